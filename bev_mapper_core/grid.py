@@ -1,0 +1,187 @@
+"""The one BEV grid definition every part of bev_mapper uses.
+
+Conventions (REP 103 ego frame ``base_link``: x forward, y left, z up):
+
+* A layer is a 2-D array indexed ``layer[row, col]`` with shape ``(height, width)``.
+* ``col`` runs along +x (forward), ``row`` runs along +y (left).
+* Cell ``(0, 0)`` has its corner at ``(x_min, y_min)``; the centre of cell ``(row, col)`` is
+  ``(x_min + (col + 0.5) * res, y_min + (row + 0.5) * res)``.
+
+This is exactly the ``nav_msgs/OccupancyGrid`` layout: ``info.origin`` is the corner of cell
+(0, 0), ``data`` is row-major, ``info.width`` counts cells along x and ``info.height`` along y.
+Nothing else in the package re-derives these relations: build a :class:`BevGrid` once and pass
+it around.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+from .errors import GridError
+
+#: OccupancyGrid value for "unknown".
+OCC_UNKNOWN = -1
+
+
+@dataclass(frozen=True)
+class BevGrid:
+    """Axis-aligned metric grid in the ego frame.
+
+    Args:
+        x_min, x_max: longitudinal extent in metres (x forward).
+        y_min, y_max: lateral extent in metres (y left).
+        resolution: cell edge length in metres.
+
+    The default is the Bi-Mapper / HDMapNet grid: 60 m x 30 m at 0.15 m, i.e. 400 columns
+    (x) by 200 rows (y).
+    """
+
+    x_min: float = -30.0
+    x_max: float = 30.0
+    y_min: float = -15.0
+    y_max: float = 15.0
+    resolution: float = 0.15
+
+    def __post_init__(self) -> None:
+        values = (self.x_min, self.x_max, self.y_min, self.y_max, self.resolution)
+        if not all(math.isfinite(v) for v in values):
+            raise GridError(f"grid values must be finite, got {values}")
+        if self.resolution <= 0:
+            raise GridError(f"grid resolution must be > 0 m, got {self.resolution}")
+        if self.x_max <= self.x_min or self.y_max <= self.y_min:
+            raise GridError(
+                f"grid extent is empty: x [{self.x_min}, {self.x_max}], y [{self.y_min}, {self.y_max}]"
+            )
+        for name, span in (("x", self.x_max - self.x_min), ("y", self.y_max - self.y_min)):
+            cells = span / self.resolution
+            if abs(cells - round(cells)) > 1e-6 * max(1.0, cells):
+                raise GridError(
+                    f"grid {name} extent {span} m is not a whole number of {self.resolution} m cells"
+                )
+
+    # ------------------------------------------------------------------ sizes
+    @property
+    def width(self) -> int:
+        """Number of columns (cells along +x)."""
+        return int(round((self.x_max - self.x_min) / self.resolution))
+
+    @property
+    def height(self) -> int:
+        """Number of rows (cells along +y)."""
+        return int(round((self.y_max - self.y_min) / self.resolution))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """Layer shape ``(height, width)`` = ``(rows along y, cols along x)``."""
+        return (self.height, self.width)
+
+    # ------------------------------------------------------- cell <-> metric
+    def cell_to_metric(self, row, col):
+        """Centre ``(x, y)`` in metres of cell(s) ``(row, col)``; accepts scalars or arrays."""
+        row = np.asarray(row, dtype=np.float64)
+        col = np.asarray(col, dtype=np.float64)
+        x = self.x_min + (col + 0.5) * self.resolution
+        y = self.y_min + (row + 0.5) * self.resolution
+        return x, y
+
+    def metric_to_cell(self, x, y):
+        """Cell ``(row, col)`` (integer arrays) containing metric point(s) ``(x, y)``.
+
+        Points outside the grid get indices outside ``[0, height) x [0, width)``; use
+        :meth:`contains` to mask them.
+        """
+        x = np.asarray(x, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        col = np.floor((x - self.x_min) / self.resolution).astype(np.int64)
+        row = np.floor((y - self.y_min) / self.resolution).astype(np.int64)
+        return row, col
+
+    def contains(self, x, y):
+        """Boolean mask: metric point(s) ``(x, y)`` lie inside the grid."""
+        x = np.asarray(x, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        return (x >= self.x_min) & (x < self.x_max) & (y >= self.y_min) & (y < self.y_max)
+
+    @cached_property
+    def centers(self) -> tuple[np.ndarray, np.ndarray]:
+        """Cell-centre coordinates ``(xs, ys)``, each of shape ``(height, width)``, float64."""
+        rows, cols = np.meshgrid(np.arange(self.height), np.arange(self.width), indexing="ij")
+        xs, ys = self.cell_to_metric(rows, cols)
+        xs.setflags(write=False)
+        ys.setflags(write=False)
+        return xs, ys
+
+    @cached_property
+    def ranges(self) -> np.ndarray:
+        """Euclidean distance (m) of each cell centre from the ego origin, shape ``(height, width)``."""
+        xs, ys = self.centers
+        r = np.hypot(xs, ys)
+        r.setflags(write=False)
+        return r
+
+    def points(self, z: float = 0.0) -> np.ndarray:
+        """Cell centres as ``(height * width, 3)`` ego-frame points at height ``z`` (row-major)."""
+        xs, ys = self.centers
+        # (H, W) x 2 -> (H*W, 3)
+        return np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, float(z))], axis=1)
+
+    # ------------------------------------------------------ OccupancyGrid map
+    @property
+    def origin_xy(self) -> tuple[float, float]:
+        """``info.origin.position`` (x, y) of the OccupancyGrid: the corner of cell (0, 0)."""
+        return (float(self.x_min), float(self.y_min))
+
+    def to_occupancy(self, probs: np.ndarray, known: np.ndarray | None = None) -> np.ndarray:
+        """Convert a probability layer to OccupancyGrid ``data`` (int8, row-major, flat).
+
+        Args:
+            probs: ``(height, width)`` floats in [0, 1] (values are clipped).
+            known: optional boolean ``(height, width)``; cells where it is False become -1.
+
+        Returns:
+            ``(height * width,)`` int8 array with values 0..100 or -1.
+        """
+        probs = np.asarray(probs)
+        if probs.shape != self.shape:
+            raise GridError(f"layer shape {probs.shape} does not match grid shape {self.shape}")
+        occ = np.rint(np.clip(probs, 0.0, 1.0) * 100.0).astype(np.int8)
+        if known is not None:
+            known = np.asarray(known, dtype=bool)
+            if known.shape != self.shape:
+                raise GridError(f"mask shape {known.shape} does not match grid shape {self.shape}")
+            occ[~known] = OCC_UNKNOWN
+        return occ.ravel()
+
+    def from_occupancy(self, data, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+        """Inverse of :meth:`to_occupancy`: ``(probs float32 (H, W), known bool (H, W))``."""
+        if (int(width), int(height)) != (self.width, self.height):
+            raise GridError(
+                f"OccupancyGrid is {width}x{height} cells, grid expects {self.width}x{self.height}"
+            )
+        arr = np.asarray(data, dtype=np.int8).reshape(self.shape)  # (H*W,) -> (H, W)
+        known = arr >= 0
+        probs = np.where(known, arr.astype(np.float32) / 100.0, 0.0).astype(np.float32)
+        return probs, known
+
+    # ---------------------------------------------------------------- display
+    def to_display(self, layer: np.ndarray) -> np.ndarray:
+        """Re-orient a layer (or ``(H, W, C)`` image) for viewing: forward up, left on the left.
+
+        Rows of the result run from +x (top) to -x, columns from +y (left) to -y.
+        """
+        layer = np.asarray(layer)
+        if layer.shape[:2] != self.shape:
+            raise GridError(f"layer shape {layer.shape[:2]} does not match grid shape {self.shape}")
+        # (H=y, W=x, ...) -> (x, y, ...) -> reversed in both
+        return np.swapaxes(layer, 0, 1)[::-1, ::-1]
+
+    def describe(self) -> str:
+        """Human-readable one-liner, for logs."""
+        return (
+            f"{self.width}x{self.height} cells at {self.resolution} m, "
+            f"x [{self.x_min}, {self.x_max}] m, y [{self.y_min}, {self.y_max}] m"
+        )

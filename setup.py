@@ -1,0 +1,53 @@
+"""ament_python package ``bev_mapper_ros``: installs bev_mapper_core, msg_adapters, bev_mapper_ros and bags."""
+
+from glob import glob
+
+from setuptools import setup
+
+PACKAGE = "bev_mapper_ros"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=[
+        "bev_mapper_core",
+        "bev_mapper_core.synth",
+        "bev_mapper_core.models",
+        "msg_adapters",
+        "bev_mapper_ros",
+        "bags",
+    ],
+    package_data={"bev_mapper_core": ["weights/*.safetensors", "weights/*.json"]},
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+        (f"share/{PACKAGE}/launch", glob("launch/*.py")),
+    ],
+    python_requires=">=3.10",
+    install_requires=[
+        "numpy>=1.24",
+        "opencv-python-headless>=4.8",
+        "pyyaml>=6",
+        "rosbags>=0.10",
+        "mcap>=1.1",
+        "safetensors>=0.4",
+        "tqdm>=4.60",
+        # torch: install the CPU build first (`pip install torch==2.13.0`); any recent torch works.
+        "torch>=2.2",
+    ],
+    extras_require={
+        # For machines without a ROS 2 distribution: the Jazzy wheels from the package index.
+        "ros": ["ros-jazzy-rclpy", "ros-jazzy-common-interfaces", "ros-jazzy-rmw-fastrtps-cpp"],
+        "test": ["pytest>=7", "pytest-timeout>=2"],
+    },
+    zip_safe=True,
+    maintainer="bev_mapper maintainers",
+    description="Bird's-eye-view semantic mapping from cameras, with ROS 2 node and bag tool.",
+    license="Apache-2.0",
+    entry_points={
+        "console_scripts": [
+            "bev-bag = bags.cli:main",
+        ],
+    },
+)
