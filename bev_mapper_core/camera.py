@@ -211,7 +211,11 @@ class CameraModel:
         if e.distortion_model == "equidistant":
             xn = cv2.fisheye.undistortPoints(uv, e.K_array, e.D_array, criteria=crit)
         else:
-            xn = cv2.undistortPointsIter(uv, e.K_array, e.D_array, None, None, crit)
+            eye = np.eye(3)
+            if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4
+                xn = cv2.undistortPointsIter(uv, e.K_array, e.D_array, eye, eye, crit)
+            else:  # OpenCV 5: undistortPoints takes the criteria itself
+                xn = cv2.undistortPoints(uv, e.K_array, e.D_array, None, eye, eye, crit)
         xn = xn.reshape(-1, 2)  # (N, 1, 2) -> (N, 2)
         return np.concatenate([xn, np.ones((xn.shape[0], 1))], axis=1)
 

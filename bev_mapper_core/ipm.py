@@ -1,0 +1,133 @@
+"""Inverse perspective mapping (IPM): the classical, training-free baseline.
+
+Each BEV cell centre is placed on the ground plane (z = 0 in ``base_link``) and projected into
+every camera once per calibration; the resulting lookup tables warp each frame with
+``cv2.remap`` (nearest for label images, linear for RGB). Cameras overlapping on a cell are
+averaged; cells no camera sees are unknown. Objects that stand off the ground are smeared away
+from the camera: the known flat-ground limitation of IPM.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .classes import label_lut
+from .errors import ConfigError, InputError
+from .grid import BevGrid
+from .mapper import BevPrediction, Mapper, MapperConfig
+from .rig import Rig, RigCamera
+from .transforms import transform_points
+
+
+@dataclass(frozen=True)
+class RemapTable:
+    """Pixel lookup for a set of 3-D points seen by one camera.
+
+    Attributes:
+        map_x, map_y: float32 arrays of the target shape; pixel coordinates for ``cv2.remap``
+            (-1 where the point is not seen).
+        valid: bool array of the target shape: the point is in front of the camera and inside
+            its image.
+    """
+
+    map_x: np.ndarray
+    map_y: np.ndarray
+    valid: np.ndarray
+
+    def warp(self, image: np.ndarray, interpolation: int = cv2.INTER_NEAREST) -> np.ndarray:
+        """Sample ``image`` at the table's pixels; unseen points get 0."""
+        return cv2.remap(
+            image, self.map_x, self.map_y, interpolation,
+            borderMode=cv2.BORDER_CONSTANT, borderValue=0,
+        )
+
+
+def remap_table(camera: RigCamera, points_ego: np.ndarray, shape: tuple[int, int]) -> RemapTable:
+    """Project ego-frame points ``(N, 3)`` into ``camera``; arrange the result as ``shape``.
+
+    ``N`` must equal ``shape[0] * shape[1]`` (points in row-major order of the target).
+    """
+    if points_ego.shape != (shape[0] * shape[1], 3):
+        raise ValueError(f"points {points_ego.shape} do not fill target shape {shape}")
+    pts_cam = transform_points(camera.cam_from_ego, points_ego)
+    uv, in_front = camera.model.project(pts_cam)
+    valid = in_front & camera.model.in_image(uv)
+    uv = np.where(valid[:, None], uv, -1.0)
+    # (N, 2) -> two (H, W) maps
+    map_x = uv[:, 0].reshape(shape).astype(np.float32)
+    map_y = uv[:, 1].reshape(shape).astype(np.float32)
+    return RemapTable(map_x, map_y, valid.reshape(shape))
+
+
+def ground_tables(rig: Rig, grid: BevGrid, z: float = 0.0) -> dict[str, RemapTable]:
+    """Lookup tables from every BEV cell centre (at height ``z``) to each camera's pixels."""
+    pts = grid.points(z)
+    return {cam.name: remap_table(cam, pts, grid.shape) for cam in rig.cameras}
+
+
+class IpmMapper(Mapper):
+    """IPM of semantic label images onto the ground plane.
+
+    On label input each pixel's class becomes the class of the ground cell it projects to; on
+    RGB input there is no class to transfer, so :meth:`map` refuses and :meth:`warp_rgb` gives
+    the BEV colour mosaic instead.
+    """
+
+    name = "ipm"
+
+    def __init__(self, rig: Rig, grid: BevGrid, config: MapperConfig) -> None:
+        if config.input_kind != "labels":
+            raise ConfigError(
+                "IPM maps semantic label images only (input_kind 'labels'); RGB input needs a "
+                "learned method such as 'bimapper'"
+            )
+        super().__init__(rig, grid, config)
+        self._lut = label_lut(self.classes).astype(np.float32)  # (NUM_LABELS, C)
+
+    def set_rig(self, rig: Rig) -> None:
+        """Recompute the ground lookup tables for a new calibration."""
+        super().set_rig(rig)
+        self.tables = ground_tables(rig, self.grid)
+
+    def map(self, images: Mapping[str, np.ndarray], ego_pose=None, stamp_ns=None) -> BevPrediction:
+        """Warp each camera's labels to the ground and average the class indicators."""
+        images = self.check_images(images)
+        H, W = self.grid.shape
+        C = len(self.classes)
+        acc = np.zeros((H, W, C), np.float32)
+        count = np.zeros((H, W), np.float32)
+        lut = self._lut
+        n_labels = lut.shape[0]
+        for name, labels in images.items():
+            table = self.tables[name]
+            warped = table.warp(labels, cv2.INTER_NEAREST)
+            warped = np.where(warped < n_labels, warped, 0)  # ids unknown to us -> unlabeled
+            valid = table.valid
+            acc[valid] += lut[warped[valid]]
+            count += valid
+        known = count > 0
+        probs = acc / np.maximum(count, 1.0)[..., None]
+        # (H, W, C) -> (C, H, W)
+        return BevPrediction(self.class_names, np.ascontiguousarray(np.moveaxis(probs, -1, 0)), known)
+
+    def warp_rgb(self, images: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """BEV colour mosaic ``(H, W, 3)`` uint8 of RGB images (linear), and its known mask."""
+        H, W = self.grid.shape
+        acc = np.zeros((H, W, 3), np.float32)
+        count = np.zeros((H, W), np.float32)
+        for name, img in images.items():
+            if name not in self.tables:
+                raise InputError(f"image from unknown camera {name!r}")
+            img = np.asarray(img)
+            if img.ndim != 3 or img.shape[2] != 3:
+                raise InputError(f"camera {name!r}: RGB image must be (H, W, 3), got {img.shape}")
+            table = self.tables[name]
+            warped = table.warp(img, cv2.INTER_LINEAR).astype(np.float32)
+            acc[table.valid] += warped[table.valid]
+            count += table.valid
+        known = count > 0
+        return (acc / np.maximum(count, 1.0)[..., None]).round().astype(np.uint8), known

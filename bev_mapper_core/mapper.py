@@ -1,0 +1,194 @@
+"""The one interface every BEV mapping method implements.
+
+A :class:`Mapper` turns one synchronized set of camera images into per-class probability
+layers on a :class:`~bev_mapper_core.grid.BevGrid`, plus a mask of the cells it knows about.
+The ROS node and the bag tool only talk to this interface, so they never care which method
+runs. Methods register a factory under a name; :func:`create_mapper` builds one.
+"""
+
+from __future__ import annotations
+
+import importlib
+from abc import ABC, abstractmethod
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from .classes import BEV_CLASS_NAMES, resolve_classes
+from .errors import ConfigError, InputError
+from .grid import BevGrid
+from .rig import Rig
+
+INPUT_KINDS = ("labels", "rgb")
+
+
+@dataclass(frozen=True)
+class MapperConfig:
+    """Method-independent mapper settings (ROS parameters and CLI flags map onto these).
+
+    Args:
+        method: registered method name (``ipm``, ``bimapper``, ...).
+        input_kind: ``labels`` (mono8 semantic label images) or ``rgb``.
+        classes: BEV class names to produce, ``None`` = the method's/standard set.
+        weights: path to a safetensors weights file (learned methods), ``None`` = shipped default.
+        device: torch device for learned methods (``cpu``, ``cuda``).
+    """
+
+    method: str = "ipm"
+    input_kind: str = "labels"
+    classes: tuple[str, ...] | None = None
+    weights: str | None = None
+    device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        if self.input_kind not in INPUT_KINDS:
+            raise ConfigError(f"input_kind must be one of {INPUT_KINDS}, got {self.input_kind!r}")
+        if self.classes is not None:
+            object.__setattr__(self, "classes", tuple(self.classes))
+            if not self.classes:
+                raise ConfigError("classes must not be empty (use None for all classes)")
+            resolve_classes(self.classes)  # raises ConfigError on unknown names
+
+
+@dataclass(frozen=True)
+class BevPrediction:
+    """Output of a mapper for one frame.
+
+    Attributes:
+        classes: layer names, in layer order.
+        probs: ``(C, H, W)`` float32 probabilities in [0, 1].
+        known: ``(H, W)`` bool, cells the method has evidence for (False = unknown).
+    """
+
+    classes: tuple[str, ...]
+    probs: np.ndarray
+    known: np.ndarray
+
+    def layer(self, name: str) -> np.ndarray:
+        """The ``(H, W)`` probability layer of class ``name``."""
+        try:
+            return self.probs[self.classes.index(name)]
+        except ValueError:
+            raise KeyError(f"no layer {name!r}; layers: {list(self.classes)}") from None
+
+
+class Mapper(ABC):
+    """Base class of BEV mapping methods.
+
+    Subclasses set :attr:`name` and implement :meth:`map`. Calibration-dependent state is
+    (re)built in :meth:`set_rig`, which the caller invokes only when calibration changes.
+    """
+
+    name: str = ""
+
+    def __init__(self, rig: Rig, grid: BevGrid, config: MapperConfig) -> None:
+        self.grid = grid
+        self.config = config
+        self.classes = resolve_classes(config.classes)
+        self.class_names = tuple(c.name for c in self.classes)
+        self.rig = rig
+        self.set_rig(rig)
+
+    def set_rig(self, rig: Rig) -> None:
+        """Adopt a new calibration; subclasses precompute lookup tables here."""
+        self.rig = rig
+
+    def reset(self) -> None:
+        """Forget temporal state (memory banks); called on time jumps. No-op by default."""
+
+    @abstractmethod
+    def map(
+        self,
+        images: Mapping[str, np.ndarray],
+        ego_pose: np.ndarray | None = None,
+        stamp_ns: int | None = None,
+    ) -> BevPrediction:
+        """Map one synchronized set of images (camera name -> image) to BEV layers.
+
+        Cameras missing from ``images`` are treated as unseen. ``ego_pose`` is
+        ``world_from_ego`` (4x4) for methods with temporal fusion.
+        """
+
+    # ------------------------------------------------------------ helpers
+    def check_images(self, images: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """Validate the images against the rig and input kind; returns those of known cameras.
+
+        Raises:
+            InputError: unknown camera, wrong size, dtype or channel count, or no image at all.
+        """
+        out = {}
+        for name, img in images.items():
+            if name not in self.rig.names:
+                raise InputError(f"image from unknown camera {name!r}; rig cameras: {list(self.rig.names)}")
+            img = np.asarray(img)
+            w, h = self.rig[name].model.image_size
+            if self.config.input_kind == "labels":
+                if img.ndim != 2 or img.dtype != np.uint8:
+                    raise InputError(
+                        f"camera {name!r}: label image must be (H, W) uint8, got {img.shape} {img.dtype}"
+                    )
+            elif img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
+                raise InputError(f"camera {name!r}: RGB image must be (H, W, 3) uint8, got {img.shape} {img.dtype}")
+            if img.shape[:2] != (h, w):
+                raise InputError(
+                    f"camera {name!r}: image is {img.shape[1]}x{img.shape[0]}, calibration says {w}x{h}"
+                )
+            out[name] = img
+        if not out:
+            raise InputError("no camera image to map")
+        return out
+
+    def empty_prediction(self) -> BevPrediction:
+        """A prediction with every cell unknown."""
+        C = len(self.classes)
+        return BevPrediction(
+            self.class_names,
+            np.zeros((C, *self.grid.shape), np.float32),
+            np.zeros(self.grid.shape, bool),
+        )
+
+
+# --------------------------------------------------------------- registry
+# name -> "module:Class", imported lazily so that IPM users never import torch.
+_REGISTRY: dict[str, str] = {
+    "ipm": "bev_mapper_core.ipm:IpmMapper",
+}
+
+
+def register_method(name: str, target: str | Callable[..., Mapper]) -> None:
+    """Register a method under ``name`` (a ``"module:Class"`` string or a factory)."""
+    _REGISTRY[name] = target
+
+
+def available_methods() -> tuple[str, ...]:
+    """Names of the registered methods."""
+    return tuple(sorted(_REGISTRY))
+
+
+def create_mapper(rig: Rig, grid: BevGrid, config: MapperConfig) -> Mapper:
+    """Build the mapper ``config.method`` for a rig and grid.
+
+    Raises:
+        ConfigError: unknown method, or a method that cannot serve this configuration.
+    """
+    try:
+        target = _REGISTRY[config.method]
+    except KeyError:
+        raise ConfigError(f"unknown method {config.method!r}; available: {list(available_methods())}") from None
+    if isinstance(target, str):
+        module, _, attr = target.partition(":")
+        target = getattr(importlib.import_module(module), attr)
+    return target(rig, grid, config)
+
+
+__all__ = [
+    "BEV_CLASS_NAMES",
+    "BevPrediction",
+    "Mapper",
+    "MapperConfig",
+    "available_methods",
+    "create_mapper",
+    "register_method",
+]
