@@ -39,10 +39,10 @@ class RemapTable:
     valid: np.ndarray
 
     def warp(self, image: np.ndarray, interpolation: int = cv2.INTER_NEAREST) -> np.ndarray:
-        """Sample ``image`` at the table's pixels; unseen points get 0."""
+        """Sample ``image`` at the table's pixels (edges replicated; mask with ``valid``)."""
         return cv2.remap(
             image, self.map_x, self.map_y, interpolation,
-            borderMode=cv2.BORDER_CONSTANT, borderValue=0,
+            borderMode=cv2.BORDER_REPLICATE,
         )
 
 

@@ -1,0 +1,44 @@
+"""bev_mapper_core must stay framework-free: no rclpy, no *_msgs, no rosbags."""
+
+import ast
+import pathlib
+import subprocess
+import sys
+
+CORE = pathlib.Path(__file__).resolve().parents[1] / "bev_mapper_core"
+FORBIDDEN = ("rclpy", "rosbags", "mcap", "tf2_ros", "launch", "launch_ros", "rosidl_runtime_py")
+
+
+def imported_modules(path: pathlib.Path):
+    tree = ast.parse(path.read_text(), filename=str(path))
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                yield alias.name, node.lineno
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            yield node.module, node.lineno
+
+
+def test_core_sources_import_no_ros():
+    offenders = []
+    files = sorted(CORE.rglob("*.py"))
+    assert len(files) > 5
+    for f in files:
+        for mod, line in imported_modules(f):
+            top = mod.split(".")[0]
+            if top in FORBIDDEN or top.endswith("_msgs") or top.endswith("_interfaces"):
+                offenders.append(f"{f.relative_to(CORE.parent)}:{line} imports {mod}")
+    assert not offenders, "\n".join(offenders)
+
+
+def test_importing_core_loads_no_ros_module():
+    code = (
+        "import sys, pkgutil, importlib, bev_mapper_core\n"
+        "for m in pkgutil.walk_packages(bev_mapper_core.__path__, 'bev_mapper_core.'):\n"
+        "    if not m.name.endswith('__main__'): importlib.import_module(m.name)\n"
+        "bad = sorted(k for k in sys.modules if k.split('.')[0] in ('rclpy', 'rosbags', 'mcap') "
+        "or k.split('.')[0].endswith('_msgs'))\n"
+        "print(','.join(bad))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == ""
