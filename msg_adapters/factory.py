@@ -1,0 +1,203 @@
+"""Building ROS messages for two worlds: rclpy message classes and rosbags dataclasses.
+
+Builders in this package never import a message class themselves; they ask a *factory*:
+
+* :class:`RclpyFactory` imports ``<pkg>.msg`` lazily with :mod:`importlib` (nothing ROS is
+  imported when this module is imported) and fills array fields the way the generated
+  setters accept fast: ``array.array`` for dynamic arrays (``uint8[]`` -> ``'B'``, ``int8[]``
+  -> ``'b'``, ``float64[]`` -> ``'d'``) and float64 ``numpy`` arrays for fixed-size arrays.
+* :class:`RosbagsFactory` takes classes from ``typestore.types`` and fills every array field
+  with a ``numpy`` array of the field's dtype (what the CDR serializer expects). rosbags
+  dataclasses have no defaults, so builders pass *all* fields, nested ones included.
+
+Reading is duck-typed and needs no factory: rclpy and rosbags messages expose the same field
+names. Time conversions (``stamp_ns`` <-> ``(sec, nanosec)``) live here and only here.
+"""
+
+from __future__ import annotations
+
+import array
+import importlib
+from typing import Any, Protocol
+
+import numpy as np
+
+from .errors import MessageFactoryError
+
+_NS_PER_S = 1_000_000_000
+
+
+# ------------------------------------------------------------------------ time
+def ns_to_sec_nanosec(stamp_ns: int) -> tuple[int, int]:
+    """Split integer nanoseconds into ``(sec, nanosec)`` with ``0 <= nanosec < 1e9``."""
+    stamp_ns = int(stamp_ns)
+    sec, nanosec = divmod(stamp_ns, _NS_PER_S)
+    return int(sec), int(nanosec)
+
+
+def stamp_to_ns(stamp: Any) -> int:
+    """Integer nanoseconds of a ``builtin_interfaces/Time`` (anything with ``sec``/``nanosec``)."""
+    return int(stamp.sec) * _NS_PER_S + int(stamp.nanosec)
+
+
+def header_stamp_ns(msg: Any) -> int:
+    """Integer nanoseconds of ``msg.header.stamp``."""
+    return stamp_to_ns(msg.header.stamp)
+
+
+def normalize_typename(typename: str) -> tuple[str, str]:
+    """``'sensor_msgs/msg/Image'`` or ``'sensor_msgs/Image'`` -> ``('sensor_msgs', 'Image')``."""
+    parts = typename.split("/")
+    if len(parts) == 3 and parts[1] == "msg":
+        return parts[0], parts[2]
+    if len(parts) == 2:
+        return parts[0], parts[1]
+    raise MessageFactoryError(f"invalid message type name {typename!r}; expected 'pkg/msg/Name'")
+
+
+# --------------------------------------------------------------------- protocol
+class MessageFactory(Protocol):
+    """What builders need from a message world."""
+
+    #: Short name of the world, ``'rclpy'`` or ``'rosbags'``.
+    name: str
+
+    def msg(self, typename: str, **fields: Any) -> Any:
+        """Instantiate message ``typename`` (``'pkg/msg/Name'``) with ``fields``."""
+
+    def uint8_seq(self, data: np.ndarray) -> Any:
+        """Value for a ``uint8[]`` field from a flat uint8 array."""
+
+    def int8_seq(self, data: np.ndarray) -> Any:
+        """Value for an ``int8[]`` field from a flat int8 array."""
+
+    def float64_seq(self, data: Any) -> Any:
+        """Value for a ``float64[]`` (dynamic) field."""
+
+    def float64_fixed(self, data: Any, size: int) -> Any:
+        """Value for a ``float64[size]`` (fixed) field."""
+
+
+def _flat(data: Any, dtype: Any) -> np.ndarray:
+    return np.ascontiguousarray(np.asarray(data, dtype=dtype).ravel())
+
+
+def _fixed(data: Any, size: int) -> np.ndarray:
+    arr = _flat(data, np.float64)
+    if arr.size != size:
+        raise MessageFactoryError(f"fixed float64 array needs {size} values, got {arr.size}")
+    return arr
+
+
+class RclpyFactory:
+    """Factory for rclpy message classes, imported lazily from ``<pkg>.msg``."""
+
+    name = "rclpy"
+
+    def __init__(self) -> None:
+        self._classes: dict[str, type] = {}
+
+    def cls(self, typename: str) -> type:
+        """The rclpy message class of ``typename`` (cached)."""
+        if typename not in self._classes:
+            pkg, name = normalize_typename(typename)
+            try:
+                module = importlib.import_module(f"{pkg}.msg")
+                self._classes[typename] = getattr(module, name)
+            except (ImportError, AttributeError) as exc:
+                raise MessageFactoryError(
+                    f"cannot import message type {pkg}/msg/{name} for rclpy: {exc}"
+                ) from None
+        return self._classes[typename]
+
+    def msg(self, typename: str, **fields: Any) -> Any:
+        """Instantiate an rclpy message (field types are checked by the generated setters)."""
+        return self.cls(typename)(**fields)
+
+    def uint8_seq(self, data: np.ndarray) -> array.array:
+        out = array.array("B")
+        out.frombytes(_flat(data, np.uint8).tobytes())
+        return out
+
+    def int8_seq(self, data: np.ndarray) -> array.array:
+        out = array.array("b")
+        out.frombytes(_flat(data, np.int8).tobytes())
+        return out
+
+    def float64_seq(self, data: Any) -> array.array:
+        out = array.array("d")
+        out.frombytes(_flat(data, np.float64).tobytes())
+        return out
+
+    def float64_fixed(self, data: Any, size: int) -> np.ndarray:
+        return _fixed(data, size)
+
+
+class RosbagsFactory:
+    """Factory for the dataclasses of a rosbags typestore (e.g. ``Stores.ROS2_JAZZY``)."""
+
+    name = "rosbags"
+
+    def __init__(self, typestore: Any) -> None:
+        self.typestore = typestore
+
+    def cls(self, typename: str) -> type:
+        """The rosbags dataclass of ``typename``."""
+        pkg, name = normalize_typename(typename)
+        try:
+            return self.typestore.types[f"{pkg}/msg/{name}"]
+        except KeyError:
+            raise MessageFactoryError(
+                f"message type {pkg}/msg/{name} is not in the rosbags typestore"
+            ) from None
+
+    def msg(self, typename: str, **fields: Any) -> Any:
+        """Instantiate a rosbags message dataclass (all fields must be given)."""
+        try:
+            return self.cls(typename)(**fields)
+        except TypeError as exc:
+            raise MessageFactoryError(f"cannot build {typename}: {exc}") from None
+
+    def uint8_seq(self, data: np.ndarray) -> np.ndarray:
+        return _flat(data, np.uint8)
+
+    def int8_seq(self, data: np.ndarray) -> np.ndarray:
+        return _flat(data, np.int8)
+
+    def float64_seq(self, data: Any) -> np.ndarray:
+        return _flat(data, np.float64)
+
+    def float64_fixed(self, data: Any, size: int) -> np.ndarray:
+        return _fixed(data, size)
+
+
+# ------------------------------------------------------------- common builders
+def make_time(factory: MessageFactory, stamp_ns: int) -> Any:
+    """``builtin_interfaces/Time`` for integer nanoseconds."""
+    sec, nanosec = ns_to_sec_nanosec(stamp_ns)
+    return factory.msg("builtin_interfaces/msg/Time", sec=sec, nanosec=nanosec)
+
+
+def make_header(factory: MessageFactory, stamp_ns: int, frame_id: str) -> Any:
+    """``std_msgs/Header`` with ``stamp_ns`` and ``frame_id``."""
+    return factory.msg(
+        "std_msgs/msg/Header", stamp=make_time(factory, stamp_ns), frame_id=str(frame_id)
+    )
+
+
+def make_vector3(factory: MessageFactory, v: Any) -> Any:
+    """``geometry_msgs/Vector3`` from a 3-vector."""
+    x, y, z = (float(c) for c in np.asarray(v, dtype=np.float64).reshape(3))
+    return factory.msg("geometry_msgs/msg/Vector3", x=x, y=y, z=z)
+
+
+def make_point(factory: MessageFactory, v: Any) -> Any:
+    """``geometry_msgs/Point`` from a 3-vector."""
+    x, y, z = (float(c) for c in np.asarray(v, dtype=np.float64).reshape(3))
+    return factory.msg("geometry_msgs/msg/Point", x=x, y=y, z=z)
+
+
+def make_quaternion(factory: MessageFactory, q_xyzw: Any) -> Any:
+    """``geometry_msgs/Quaternion`` from ``(x, y, z, w)``."""
+    x, y, z, w = (float(c) for c in q_xyzw)
+    return factory.msg("geometry_msgs/msg/Quaternion", x=x, y=y, z=z, w=w)

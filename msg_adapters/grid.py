@@ -1,0 +1,139 @@
+"""BEV layers <-> ``nav_msgs/OccupancyGrid``.
+
+The cell layout is :class:`bev_mapper_core.grid.BevGrid`'s (identical to OccupancyGrid's):
+``info.origin`` is the corner of cell (0, 0) at ``grid.origin_xy``, ``info.width`` counts cells
+along x, ``info.height`` along y, data is row-major; values 0..100, -1 unknown.
+
+``info.resolution`` is a float32 on the wire, so comparisons against a grid and the
+reconstruction of a grid from a message go through float32 (0.15 stays 0.15).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from bev_mapper_core.errors import GridError
+from bev_mapper_core.grid import BevGrid
+
+from .errors import GridMessageError
+from .factory import MessageFactory, make_header, make_point, make_quaternion
+
+_ORIGIN_TOL = 1e-6  # metres
+
+
+def _f32(value: float) -> float:
+    """The float64 that prints like float32 ``value`` (undoes float32 storage of 0.15 etc.)."""
+    return float(str(np.float32(value)))
+
+
+def occupancy_data(grid: BevGrid, probs: np.ndarray, known: np.ndarray | None = None) -> np.ndarray:
+    """Flat int8 OccupancyGrid data of a probability layer (``grid.to_occupancy``)."""
+    try:
+        return grid.to_occupancy(probs, known)
+    except GridError as exc:
+        raise GridMessageError(str(exc)) from None
+
+
+def make_occupancy_grid(
+    factory: MessageFactory,
+    grid: BevGrid,
+    probs: np.ndarray,
+    known: np.ndarray | None,
+    stamp_ns: int,
+    frame_id: str,
+) -> Any:
+    """Build a ``nav_msgs/OccupancyGrid`` of one layer ``(H, W)`` in [0, 1]; unknown -> -1."""
+    data = occupancy_data(grid, probs, known)
+    ox, oy = grid.origin_xy
+    origin = factory.msg(
+        "geometry_msgs/msg/Pose",
+        position=make_point(factory, (ox, oy, 0.0)),
+        orientation=make_quaternion(factory, (0.0, 0.0, 0.0, 1.0)),
+    )
+    header = make_header(factory, stamp_ns, frame_id)
+    info = factory.msg(
+        "nav_msgs/msg/MapMetaData",
+        map_load_time=header.stamp,
+        resolution=float(grid.resolution),
+        width=int(grid.width),
+        height=int(grid.height),
+        origin=origin,
+    )
+    return factory.msg(
+        "nav_msgs/msg/OccupancyGrid", header=header, info=info, data=factory.int8_seq(data)
+    )
+
+
+def _check_orientation(q: Any) -> None:
+    xyzw = np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
+    if not (np.allclose(xyzw[:3], 0.0, atol=1e-6) and abs(abs(xyzw[3]) - 1.0) < 1e-6):
+        raise GridMessageError(
+            f"OccupancyGrid origin is rotated (quaternion {xyzw.tolist()}); only axis-aligned "
+            "grids are supported"
+        )
+
+
+def grid_from_info(info: Any) -> BevGrid:
+    """Reconstruct the :class:`BevGrid` of an OccupancyGrid's ``info`` (``MapMetaData``)."""
+    _check_orientation(info.origin.orientation)
+    res = _f32(info.resolution)
+    w, h = int(info.width), int(info.height)
+    ox, oy = float(info.origin.position.x), float(info.origin.position.y)
+    if w <= 0 or h <= 0:
+        raise GridMessageError(f"OccupancyGrid has empty size {w}x{h}")
+    try:
+        return BevGrid(
+            x_min=ox, x_max=round(ox + w * res, 9), y_min=oy, y_max=round(oy + h * res, 9),
+            resolution=res,
+        )
+    except GridError as exc:
+        raise GridMessageError(f"OccupancyGrid info does not describe a valid grid: {exc}") from None
+
+
+def check_grid_info(info: Any, grid: BevGrid) -> None:
+    """Raise :class:`GridMessageError` unless ``info`` describes exactly ``grid``."""
+    if not np.isclose(float(info.resolution), grid.resolution, rtol=1e-6, atol=0.0):
+        raise GridMessageError(
+            f"OccupancyGrid resolution {_f32(info.resolution)} m differs from the grid's "
+            f"{grid.resolution} m"
+        )
+    if (int(info.width), int(info.height)) != (grid.width, grid.height):
+        raise GridMessageError(
+            f"OccupancyGrid is {info.width}x{info.height} cells, grid expects "
+            f"{grid.width}x{grid.height}"
+        )
+    ox, oy = float(info.origin.position.x), float(info.origin.position.y)
+    gx, gy = grid.origin_xy
+    if abs(ox - gx) > _ORIGIN_TOL or abs(oy - gy) > _ORIGIN_TOL:
+        raise GridMessageError(f"OccupancyGrid origin ({ox}, {oy}) differs from the grid's ({gx}, {gy})")
+    _check_orientation(info.origin.orientation)
+
+
+def occupancy_grid_to_layer(msg: Any, grid: BevGrid | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Decode an OccupancyGrid into ``(probs float32 (H, W), known bool (H, W))``.
+
+    Args:
+        msg: the OccupancyGrid (rclpy or rosbags).
+        grid: expected grid; ``None`` reconstructs it from ``msg.info``.
+
+    Raises:
+        GridMessageError: info does not match ``grid`` or the data length is wrong.
+    """
+    if grid is None:
+        grid = grid_from_info(msg.info)
+    else:
+        check_grid_info(msg.info, grid)
+    data = msg.data
+    if isinstance(data, np.ndarray):
+        arr = data.reshape(-1).view(np.int8) if data.dtype.itemsize == 1 else data.astype(np.int8)
+    elif hasattr(data, "buffer_info"):  # array.array('b')
+        arr = np.frombuffer(data, dtype=np.int8)
+    else:
+        arr = np.asarray(data, dtype=np.int8).reshape(-1)
+    if arr.size != grid.width * grid.height:
+        raise GridMessageError(
+            f"OccupancyGrid data has {arr.size} cells, expected {grid.width}x{grid.height}"
+        )
+    return grid.from_occupancy(arr, grid.width, grid.height)
