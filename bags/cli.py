@@ -1,0 +1,72 @@
+"""``bev-bag``: the bag tool's command line.
+
+Each subcommand lives in its own module, listed in :data:`SUBCOMMANDS`. A subcommand module
+defines::
+
+    HELP: str                                        # one line for ``bev-bag --help``
+    def configure(parser: argparse.ArgumentParser) -> None
+    def run(args: argparse.Namespace) -> int         # exit status
+
+Expected failures (any :class:`~bev_mapper_core.errors.BevMapperError`, I/O errors) are printed
+as ``error: ...`` on stderr with a non-zero status, without a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+from bev_mapper_core.errors import BevMapperError
+
+#: Subcommand name -> module implementing it (add new subcommands here).
+SUBCOMMANDS: dict[str, str] = {
+    "synth": "bags.synth_cmd",
+}
+
+EXIT_ERROR = 1
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The top-level parser with one sub-parser per registered subcommand."""
+    parser = argparse.ArgumentParser(
+        prog="bev-bag", description="Write, inspect and replay bev_mapper rosbag2 bags."
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name, module_name in SUBCOMMANDS.items():
+        module = importlib.import_module(module_name)
+        p = sub.add_parser(name, help=module.HELP, description=module.HELP)
+        module.configure(p)
+        p.set_defaults(_run=module.run)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``bev-bag``; returns the exit status."""
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as exc:  # --help or a usage error; argparse printed the message
+        return int(exc.code or 0) if not isinstance(exc.code, str) else EXIT_USAGE
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(levelname)s: %(message)s",
+    )
+    try:
+        return int(args._run(args) or 0)
+    except BevMapperError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    except OSError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    except KeyboardInterrupt:
+        print("error: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,363 @@
+"""Reading bev_mapper bags: the rig, the grid and synchronized frames.
+
+:class:`BagReader` opens a rosbag2 directory (mcap or sqlite3) or a plain ``.mcap``/``.db3``
+file, builds the :class:`~bev_mapper_core.rig.Rig` from the bag's own CameraInfo and
+``/tf_static``, the :class:`~bev_mapper_core.grid.BevGrid` from the GT OccupancyGrid info, and
+iterates frames synchronized by :class:`msg_adapters.FrameSynchronizer` on the header stamps.
+
+A damaged bag yields every frame before the damage, then raises :class:`BagCorruptError`.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Iterator
+
+import numpy as np
+
+from bev_mapper_core.classes import BEV_CLASS_NAMES
+from bev_mapper_core.errors import BevMapperError
+from bev_mapper_core.grid import BevGrid
+from bev_mapper_core.rig import Rig, RigCamera
+from msg_adapters import (
+    AdapterError,
+    FrameSynchronizer,
+    OdometryState,
+    SyncConfig,
+    SyncedSet,
+    TfTree,
+    camera_info_to_model,
+    grid_from_info,
+    header_stamp_ns,
+    image_to_labels,
+    image_to_rgb,
+    occupancy_grid_to_layer,
+    odometry_to_state,
+)
+
+from . import topics as T
+from .errors import BagContentError, BagCorruptError
+from .sources import TopicSummary, open_source
+
+log = logging.getLogger(__name__)
+
+MS = 1_000_000
+#: Default synchronization of bag frames: cameras of one frame within 30 ms of each other.
+DEFAULT_SYNC = SyncConfig(slop_ns=30 * MS, timeout_ns=300 * MS, queue_size=16)
+
+
+@dataclass(frozen=True)
+class BagMessage:
+    """One deserialized message (rosbags dataclass) with its topic, type and log time."""
+
+    topic: str
+    msgtype: str
+    log_ns: int
+    msg: Any
+
+
+@dataclass(frozen=True)
+class BagFrame:
+    """One synchronized frame of a bag.
+
+    Attributes:
+        index: 0-based count of yielded frames.
+        stamp_ns: the frame's reference stamp: the matched GT (else odometry) header stamp,
+            else the mean of the camera stamps.
+        camera_stamps: per camera, the header stamp of its image (``None`` if missing).
+        valid: per camera (rig order), True when all requested images are present and decoded.
+        rgb, labels: per valid camera, ``(H, W, 3)`` uint8 RGB / ``(H, W)`` uint8 label ids
+            (only the kinds requested).
+        gt_classes: names of the GT layers, in layer order.
+        gt: ``(C, H, W)`` float32 in [0, 1] (100 -> 1.0), or ``None`` if no GT matched.
+        gt_known: ``(C, H, W)`` bool, False where the layer was -1 (not visible).
+        odom: the matched odometry, or ``None``.
+    """
+
+    index: int
+    stamp_ns: int
+    camera_stamps: dict[str, int | None]
+    valid: dict[str, bool]
+    rgb: dict[str, np.ndarray]
+    labels: dict[str, np.ndarray]
+    gt_classes: tuple[str, ...]
+    gt: np.ndarray | None
+    gt_known: np.ndarray | None
+    odom: OdometryState | None
+
+    @property
+    def valid_mask(self) -> np.ndarray:
+        """Validity as a bool array in rig order."""
+        return np.array(list(self.valid.values()), dtype=bool)
+
+
+def _nearest(buf: deque, stamp: int, tol: int):
+    """Entry ``(stamp, msg)`` of ``buf`` closest to ``stamp`` within ``tol``, else ``None``."""
+    best = None
+    for s, m in buf:
+        if abs(s - stamp) <= tol and (best is None or abs(s - stamp) < abs(best[0] - stamp)):
+            best = (s, m)
+    return best
+
+
+class BagReader:
+    """Reads a bev_mapper bag (see module docstring). Use as a context manager.
+
+    Args:
+        path: rosbag2 directory, ``.mcap`` or ``.db3`` file.
+        ego_frame: the frame the camera extrinsics are expressed in.
+    """
+
+    def __init__(self, path: str | Path, *, ego_frame: str = "base_link") -> None:
+        self.path = Path(path)
+        self.ego_frame = ego_frame
+        self._src = open_source(self.path)
+        self._rig: Rig | None = None
+        self._grid: BevGrid | None = None
+        self.decode_errors = 0
+
+    def __enter__(self) -> "BagReader":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Release the underlying files."""
+        self._src.close()
+
+    # ---------------------------------------------------------------- content
+    @property
+    def topics(self) -> dict[str, TopicSummary]:
+        """Topic -> type and message count."""
+        return dict(self._src.topics)
+
+    @property
+    def damage(self) -> str | None:
+        """Why the bag is read in degraded (stream) mode, or ``None`` for an intact bag."""
+        return self._src.damage
+
+    @property
+    def custom_data(self) -> dict[str, str]:
+        """``custom_data`` of metadata.yaml (empty for plain files)."""
+        return dict(self._src.custom_data)
+
+    @property
+    def camera_names(self) -> tuple[str, ...]:
+        """Cameras with a ``/cameras/<cam>/camera_info`` topic, in the bag's topic order."""
+        names = []
+        for topic in self._src.topic_order:
+            parsed = T.parse_camera_topic(topic)
+            if parsed and parsed[1] == "camera_info" and parsed[0] not in names:
+                names.append(parsed[0])
+        return tuple(names)
+
+    @property
+    def gt_classes(self) -> tuple[str, ...]:
+        """Classes with a ``/bev/gt/<class>`` topic: standard order first, then the rest sorted."""
+        found = {c for c in map(T.parse_gt_topic, self._src.topics) if c}
+        return tuple(c for c in BEV_CLASS_NAMES if c in found) + tuple(
+            sorted(found - set(BEV_CLASS_NAMES))
+        )
+
+    def messages(self, topics: Iterable[str] | None = None) -> Iterator[BagMessage]:
+        """Deserialized messages in log-time order, optionally only of ``topics``.
+
+        Raises:
+            BagCorruptError: at the point of damage, after the readable messages.
+        """
+        wanted = None if topics is None else set(topics)
+        for topic, msgtype, t, msg in self._src.messages(wanted):
+            yield BagMessage(topic, msgtype, t, msg)
+
+    # ------------------------------------------------------------ rig & grid
+    def rig(self) -> Rig:
+        """The camera rig from the first CameraInfo of each camera and ``/tf_static``.
+
+        Raises:
+            BagContentError: no cameras, a camera without CameraInfo, or a camera frame that
+                ``/tf_static`` does not connect to ``ego_frame``.
+        """
+        if self._rig is not None:
+            return self._rig
+        names = self.camera_names
+        if not names:
+            raise BagContentError(f"{self.path}: no /cameras/<name>/camera_info topics")
+        infos: dict[str, Any] = {}
+        tree = TfTree()
+        wanted = {T.camera_info_topic(n) for n in names} | {T.TF_STATIC}
+        for m in self.messages(wanted):
+            if m.topic == T.TF_STATIC:
+                tree.add_message(m.msg)
+            else:
+                cam = T.parse_camera_topic(m.topic)[0]
+                infos.setdefault(cam, m.msg)
+            if len(infos) == len(names) and self._all_connected(tree, infos):
+                break
+        missing = [n for n in names if n not in infos]
+        if missing:
+            raise BagContentError(f"{self.path}: no CameraInfo message for cameras {missing}")
+        cams = []
+        for n in names:
+            frame = infos[n].header.frame_id.lstrip("/")
+            try:
+                model = camera_info_to_model(infos[n])
+                ego_from_cam = tree.lookup(self.ego_frame, frame)
+                cams.append(RigCamera(n, model, ego_from_cam, frame))
+            except BevMapperError as exc:
+                raise BagContentError(f"{self.path}: camera {n!r}: {exc}") from None
+        self._rig = Rig(self.custom_data.get("bev_mapper.rig", self.path.stem), tuple(cams))
+        return self._rig
+
+    def _all_connected(self, tree: TfTree, infos: dict[str, Any]) -> bool:
+        try:
+            for msg in infos.values():
+                tree.lookup(self.ego_frame, msg.header.frame_id)
+        except AdapterError:
+            return False
+        return True
+
+    def grid(self) -> BevGrid | None:
+        """The BEV grid of the GT layers (from the first GT OccupancyGrid), ``None`` without GT."""
+        if self._grid is None and self.gt_classes:
+            for m in self.messages({T.gt_topic(self.gt_classes[0])}):
+                try:
+                    self._grid = grid_from_info(m.msg.info)
+                except AdapterError as exc:
+                    raise BagContentError(f"{self.path}: {m.topic}: {exc}") from None
+                break
+        return self._grid
+
+    # ----------------------------------------------------------------- frames
+    def frames(
+        self,
+        *,
+        rgb: bool = True,
+        labels: bool = True,
+        gt: bool = True,
+        odom: bool = True,
+        sync: SyncConfig = DEFAULT_SYNC,
+        lookahead_ns: int = 500 * MS,
+    ) -> Iterator[BagFrame]:
+        """Synchronized frames of the bag (see :class:`BagFrame`).
+
+        Args:
+            rgb, labels: which images to decode; a camera is valid in a frame when all the
+                requested kinds are present for it.
+            gt, odom: match GT layers / odometry to each frame (nearest stamp within
+                ``sync.slop_ns`` of the mean camera stamp).
+            sync: synchronizer settings (stamp-driven time).
+            lookahead_ns: a frame is yielded once the bag's log time passes its newest camera
+                stamp by this much, so that its GT and odometry have been read.
+
+        Raises:
+            BagContentError: no image topics for the requested kinds.
+            BagCorruptError: after the frames before the damage were yielded.
+        """
+        cams = self.camera_names
+        kinds = [k for k, on in (("rgb", rgb), ("labels", labels)) if on]
+        stream_of = {
+            T.image_topic(c, k): f"{c}/{k}" for c in cams for k in kinds
+            if T.image_topic(c, k) in self._src.topics
+        }
+        if not stream_of:
+            raise BagContentError(f"{self.path}: no image topics for {kinds} of cameras {cams}")
+        classes = self.gt_classes if gt else ()
+        grid = self.grid() if classes else None
+        gt_topics = {T.gt_topic(c): c for c in classes}
+        want_odom = odom and T.ODOM in self._src.topics
+        topics = set(stream_of) | set(gt_topics) | ({T.ODOM} if want_odom else set())
+
+        streams = [f"{c}/{k}" for c in cams for k in kinds]
+        sync_ = FrameSynchronizer(streams, sync)
+        gt_buf = {c: deque() for c in classes}
+        odom_buf: deque = deque()
+        ready: deque[SyncedSet] = deque()
+        ctx = dict(cams=cams, kinds=kinds, classes=classes, grid=grid, gt_buf=gt_buf,
+                   odom_buf=odom_buf, tol=sync.slop_ns)
+        index = 0
+        try:
+            for m in self.messages(topics):
+                stamp = header_stamp_ns(m.msg)
+                if m.topic in stream_of:
+                    ready.extend(sync_.add(stream_of[m.topic], stamp, m.msg))
+                elif m.topic in gt_topics:
+                    gt_buf[gt_topics[m.topic]].append((stamp, m.msg))
+                else:
+                    odom_buf.append((stamp, m.msg))
+                while ready and max(s for s in ready[0].stamps.values() if s) + lookahead_ns < m.log_ns:
+                    yield self._build(ready.popleft(), index, ctx)
+                    index += 1
+        except BagCorruptError as exc:
+            while ready:  # sets completed before the damage
+                yield self._build(ready.popleft(), index, ctx)
+                index += 1
+            raise BagCorruptError(f"{exc}; {index} frame(s) were read before the damage") from None
+        ready.extend(sync_.flush())
+        while ready:
+            yield self._build(ready.popleft(), index, ctx)
+            index += 1
+
+    def _build(self, s: SyncedSet, index: int, ctx: dict) -> BagFrame:
+        cams, kinds, tol = ctx["cams"], ctx["kinds"], ctx["tol"]
+        images: dict[str, dict[str, np.ndarray]] = {"rgb": {}, "labels": {}}
+        valid: dict[str, bool] = {}
+        cam_stamps: dict[str, int | None] = {}
+        for c in cams:
+            ok = all(s.messages[f"{c}/{k}"] is not None for k in kinds)
+            stamps = [s.stamps[f"{c}/{k}"] for k in kinds if s.stamps[f"{c}/{k}"] is not None]
+            cam_stamps[c] = min(stamps) if stamps else None
+            if ok:
+                try:
+                    for k in kinds:
+                        msg = s.messages[f"{c}/{k}"]
+                        arr = image_to_rgb(msg) if k == "rgb" else image_to_labels(msg)
+                        images[k][c] = np.array(arr, copy=True)
+                except AdapterError as exc:
+                    log.warning("frame %d camera %s: %s", index, c, exc)
+                    self.decode_errors += 1
+                    ok = False
+                    for k in kinds:
+                        images[k].pop(c, None)
+            valid[c] = ok
+        mean = s.mean_stamp_ns
+        stamp = None
+        gt = known = None
+        if ctx["classes"]:
+            layers = []
+            for c in ctx["classes"]:
+                hit = _nearest(ctx["gt_buf"][c], mean, tol)
+                if hit is None:
+                    layers = None
+                    break
+                stamp = hit[0]
+                try:
+                    layers.append(occupancy_grid_to_layer(hit[1], ctx["grid"]))
+                except AdapterError as exc:
+                    raise BagContentError(f"{self.path}: GT layer {c!r}: {exc}") from None
+            if layers:
+                gt = np.stack([p for p, _ in layers])  # C x (H, W) -> (C, H, W)
+                known = np.stack([k for _, k in layers])
+        odom_state = None
+        hit = _nearest(ctx["odom_buf"], mean, tol)
+        if hit is not None:
+            odom_state = odometry_to_state(hit[1])
+            stamp = hit[0] if stamp is None else stamp
+        for buf in list(ctx["gt_buf"].values()) + [ctx["odom_buf"]]:
+            while buf and buf[0][0] < mean - tol:  # older than any later frame can match
+                buf.popleft()
+        return BagFrame(
+            index=index,
+            stamp_ns=int(mean if stamp is None else stamp),
+            camera_stamps=cam_stamps,
+            valid=valid,
+            rgb=images["rgb"],
+            labels=images["labels"],
+            gt_classes=tuple(ctx["classes"]),
+            gt=gt,
+            gt_known=known,
+            odom=odom_state,
+        )

@@ -1,0 +1,55 @@
+"""Topic names and types of the bags this tool writes and reads (one place for both)."""
+
+from __future__ import annotations
+
+TF_STATIC = "/tf_static"
+ODOM = "/odom"
+GT_PREFIX = "/bev/gt/"
+CAMERA_PREFIX = "/cameras/"
+
+IMAGE_TYPE = "sensor_msgs/msg/Image"
+CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
+TF_TYPE = "tf2_msgs/msg/TFMessage"
+ODOM_TYPE = "nav_msgs/msg/Odometry"
+GRID_TYPE = "nav_msgs/msg/OccupancyGrid"
+
+#: Image kinds per camera: topic suffix.
+IMAGE_KINDS = {"rgb": "image_raw", "labels": "labels"}
+
+
+def image_topic(camera: str, kind: str = "rgb") -> str:
+    """``/cameras/<camera>/image_raw`` (kind ``rgb``) or ``/cameras/<camera>/labels``."""
+    return f"{CAMERA_PREFIX}{camera}/{IMAGE_KINDS[kind]}"
+
+
+def camera_info_topic(camera: str) -> str:
+    """``/cameras/<camera>/camera_info``."""
+    return f"{CAMERA_PREFIX}{camera}/camera_info"
+
+
+def gt_topic(class_name: str) -> str:
+    """``/bev/gt/<class>``."""
+    return f"{GT_PREFIX}{class_name}"
+
+
+def parse_camera_topic(topic: str) -> tuple[str, str] | None:
+    """``('front', 'rgb' | 'labels' | 'camera_info')`` for a camera topic, else ``None``."""
+    if not topic.startswith(CAMERA_PREFIX):
+        return None
+    parts = topic[len(CAMERA_PREFIX):].split("/")
+    if len(parts) != 2:
+        return None
+    camera, leaf = parts
+    if leaf == "camera_info":
+        return camera, "camera_info"
+    for kind, suffix in IMAGE_KINDS.items():
+        if leaf == suffix:
+            return camera, kind
+    return None
+
+
+def parse_gt_topic(topic: str) -> str | None:
+    """The class name of a ``/bev/gt/<class>`` topic, else ``None``."""
+    if topic.startswith(GT_PREFIX) and "/" not in topic[len(GT_PREFIX):]:
+        return topic[len(GT_PREFIX):] or None
+    return None
