@@ -288,7 +288,7 @@ class BagReader:
                     gt_buf[gt_topics[m.topic]].append((stamp, m.msg))
                 else:
                     odom_buf.append((stamp, m.msg))
-                while ready and max(s for s in ready[0].stamps.values() if s) + lookahead_ns < m.log_ns:
+                while ready and _newest(ready[0]) + lookahead_ns < m.log_ns:
                     yield self._build(ready.popleft(), index, ctx)
                     index += 1
         except BagCorruptError as exc:

@@ -90,12 +90,19 @@ def _fixed(data: Any, size: int) -> np.ndarray:
 
 
 class RclpyFactory:
-    """Factory for rclpy message classes, imported lazily from ``<pkg>.msg``."""
+    """Factory for rclpy message classes, imported lazily from ``<pkg>.msg``.
+
+    Args:
+        check_fields: passed to every constructor when not ``None`` (Jazzy messages accept
+            it; ``True`` makes the generated setters type-check every field, as in tests).
+            ``None`` keeps the default (env ``ROS_PYTHON_CHECK_FIELDS``).
+    """
 
     name = "rclpy"
 
-    def __init__(self) -> None:
+    def __init__(self, check_fields: bool | None = None) -> None:
         self._classes: dict[str, type] = {}
+        self._extra = {} if check_fields is None else {"check_fields": bool(check_fields)}
 
     def cls(self, typename: str) -> type:
         """The rclpy message class of ``typename`` (cached)."""
@@ -112,7 +119,7 @@ class RclpyFactory:
 
     def msg(self, typename: str, **fields: Any) -> Any:
         """Instantiate an rclpy message (field types are checked by the generated setters)."""
-        return self.cls(typename)(**fields)
+        return self.cls(typename)(**self._extra, **fields)
 
     def uint8_seq(self, data: np.ndarray) -> array.array:
         out = array.array("B")

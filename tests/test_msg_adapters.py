@@ -35,7 +35,7 @@ def _rosbags_factory():
     ]
 )
 def factory(request):
-    return _rosbags_factory() if request.param == "rosbags" else ma.RclpyFactory()
+    return _rosbags_factory() if request.param == "rosbags" else ma.RclpyFactory(check_fields=True)
 
 
 def _roundtrip_cdr(factory, msg, typename):
@@ -238,8 +238,8 @@ def test_camera_info_lenient_cases(factory):
 def _tf(factory, parent, child, T, stamp=0, q=None):
     msg = ma.make_transform_stamped(factory, parent, child, T, stamp)
     if q is not None:
-        msg.transform.rotation = factory.msg("geometry_msgs/msg/Quaternion", x=q[0], y=q[1],
-                                             z=q[2], w=q[3])
+        x, y, z, w = (float(v) for v in q)
+        msg.transform.rotation = factory.msg("geometry_msgs/msg/Quaternion", x=x, y=y, z=z, w=w)
     return msg
 
 
