@@ -94,6 +94,11 @@ class BagFrame:
         return np.array(list(self.valid.values()), dtype=bool)
 
 
+def _newest(s: SyncedSet) -> int:
+    """Newest stamp of a synchronized set."""
+    return max(t for t in s.stamps.values() if t is not None)
+
+
 def _nearest(buf: deque, stamp: int, tol: int):
     """Entry ``(stamp, msg)`` of ``buf`` closest to ``stamp`` within ``tol``, else ``None``."""
     best = None
