@@ -1,0 +1,115 @@
+"""Bi-Mapper behind the core :class:`~bev_mapper_core.mapper.Mapper` interface.
+
+Register as ``"bimapper": "bev_mapper_core.models.bimapper_mapper:BiMapperMapper"``. Built from
+``MapperConfig(method="bimapper", weights=path, device=...)``; with ``weights=None`` it looks for
+the shipped file ``bev_mapper_core/weights/bimapper_<rig>_<input_kind>.safetensors``. With
+``classes=None`` the weights' classes are used; otherwise they must match the weights.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import ConfigError
+from ..grid import BevGrid
+from ..mapper import BevPrediction, Mapper, MapperConfig
+from ..rig import Rig
+from .bimapper import BiMapper
+from .weights import WeightsError, load_bimapper, read_metadata
+
+WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
+#: Environment variable overriding the number of torch CPU threads used for inference.
+THREADS_ENV = "BEV_MAPPER_TORCH_THREADS"
+
+
+def default_weights_path(rig_name: str, input_kind: str) -> Path:
+    """Where the shipped weights of a rig and input kind live."""
+    return WEIGHTS_DIR / f"bimapper_{rig_name}_{input_kind}.safetensors"
+
+
+def inference_threads() -> int:
+    """Torch CPU threads for inference: ``$BEV_MAPPER_TORCH_THREADS`` or the CPUs we may use."""
+    env = os.environ.get(THREADS_ENV)
+    if env:
+        try:
+            return max(1, int(env))
+        except ValueError:
+            raise ConfigError(f"{THREADS_ENV} must be an integer, got {env!r}") from None
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+class BiMapperMapper(Mapper):
+    """Learned Bi-Mapper inference: batch 1, ``torch.inference_mode``, sigmoid probabilities.
+
+    ``known`` = ground cells inside the image of at least one camera present in the frame.
+    Cameras missing from a frame are zeroed and masked out of both streams.
+
+    Raises (constructor):
+        ConfigError: no weights file given and none shipped, or a bad device.
+        WeightsError: the weights do not fit this rig, grid, input kind or classes.
+    """
+
+    name = "bimapper"
+
+    def __init__(self, rig: Rig, grid: BevGrid, config: MapperConfig) -> None:
+        path = Path(config.weights) if config.weights else default_weights_path(rig.name, config.input_kind)
+        if not config.weights and not path.is_file():
+            raise ConfigError(
+                f"no Bi-Mapper weights given and none shipped for rig {rig.name!r} / input "
+                f"{config.input_kind!r} (looked for {path}); train one and pass weights=<file>"
+            )
+        meta = read_metadata(path)
+        if config.classes is None:
+            config = replace(config, classes=tuple(meta["classes"]))
+        try:
+            self.device = torch.device(config.device)
+        except (RuntimeError, TypeError) as e:
+            raise ConfigError(f"invalid torch device {config.device!r} ({e})") from None
+        if self.device.type == "cuda" and not torch.cuda.is_available():
+            raise ConfigError(f"device {config.device!r} requested but CUDA is not available")
+        if self.device.type == "cpu":
+            torch.set_num_threads(inference_threads())
+        self.weights_path = path
+        self.model: BiMapper | None = None
+        super().__init__(rig, grid, config)
+
+    def set_rig(self, rig: Rig) -> None:
+        """Load the model for this rig on first use; afterwards rebuild its calibration tables."""
+        super().set_rig(rig)
+        if self.model is None:
+            self.model = load_bimapper(self.weights_path, rig, self.grid, input_kind=self.config.input_kind,
+                                       classes=self.class_names, device=self.device)
+        else:
+            self.model.set_rig(rig)
+
+    def map(self, images: Mapping[str, np.ndarray], ego_pose=None, stamp_ns=None) -> BevPrediction:
+        """Map one synchronized set of images; cameras absent from ``images`` are unseen."""
+        images = self.check_images(images)
+        xs = []
+        present = []
+        with torch.inference_mode():
+            for name in self.rig.names:
+                img = images.get(name)
+                if img is None:
+                    w, h = self.rig[name].model.image_size
+                    img = np.zeros((h, w) if self.config.input_kind == "labels" else (h, w, 3), np.uint8)
+                raw = torch.from_numpy(np.ascontiguousarray(img))[None, None].to(self.device)  # (1, 1, H, W[, 3])
+                xs.append(self.model.preprocess(raw))  # (1, 1, C_in, h, w)
+                present.append(name in images)
+            cam_mask = torch.tensor([present], dtype=torch.bool, device=self.device)  # (1, N)
+            out = self.model.forward_preprocessed(torch.cat(xs, dim=1), cam_mask)  # input (1, N, C_in, h, w)
+            probs = torch.sigmoid(out["logits"][0]).float().cpu().numpy()  # (K, H, W)
+            known = self.model.known(cam_mask)[0].cpu().numpy()  # (H, W)
+        return BevPrediction(self.class_names, np.ascontiguousarray(probs, dtype=np.float32), known.astype(bool))
+
+
+__all__ = ["BiMapperMapper", "WeightsError", "default_weights_path", "inference_threads"]

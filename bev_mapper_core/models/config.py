@@ -1,0 +1,127 @@
+"""Bi-Mapper architecture configuration (saved with the weights and checked on load)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+
+from ..classes import BEV_CLASS_NAMES, NUM_LABELS, resolve_classes
+from ..errors import ConfigError
+from .efficientnet import EfficientNetConfig
+from .geometry import PlaneSpec
+
+STREAMS = ("gv", "lv", "both")
+FUSIONS = ("sum", "concat")
+#: ImageNet statistics used to normalise RGB input (no pretrained weights; just a standard scale).
+RGB_MEAN = (0.485, 0.456, 0.406)
+RGB_STD = (0.229, 0.224, 0.225)
+
+
+@dataclass(frozen=True)
+class BiMapperConfig:
+    """Architecture hyperparameters (all saved with the weights and checked on load).
+
+    The defaults are the CPU-trainable configuration; :meth:`paper` gives the paper's sizes.
+
+    Args:
+        input_kind: ``labels`` (one-hot of ``NUM_LABELS`` label ids) or ``rgb``.
+        classes: BEV class names, in output layer order.
+        input_width: model input width per camera (px); the height follows the camera aspect.
+        encoder_variant: EfficientNet variant ``b0`` .. ``b7``.
+        width_mult, depth_mult: override the variant's multipliers (``None`` = the variant's).
+        encoder_stages: EfficientNet stages kept (7 = full).
+        drop_connect_rate: EfficientNet stochastic depth.
+        neck_channels: camera-encoder neck width (HDMapNet 512).
+        bev_channels: channels C of F_g and F_l (HDMapNet 64).
+        bev_downsample: BEV feature grid = full grid / this (paper/HDMapNet 5: 40x80).
+        gv_hidden: hidden width of the GV MLPs, ``None`` = BEV feature cells (HDMapNet).
+        streams: ``both`` | ``gv`` | ``lv`` (ablations).
+        fusion: ``sum`` (weighted) | ``concat``.
+        gv_weight, lv_weight: fusion weights (paper 1.0, 0.1).
+        plane_x_range, plane_z_range, plane_shape, plane_height: the camera plane
+            (:class:`~.geometry.PlaneSpec`; ``plane_height`` None = camera height above ground).
+        unet_channels: U-Net expanding-path width.
+        decoder_channels: BEV decoder width at the feature resolution.
+    """
+
+    input_kind: str = "labels"
+    classes: tuple[str, ...] = BEV_CLASS_NAMES
+    input_width: int = 112
+    encoder_variant: str = "b0"
+    width_mult: float | None = 0.5
+    depth_mult: float | None = 0.5
+    encoder_stages: int = 5
+    drop_connect_rate: float = 0.2
+    neck_channels: int = 64
+    bev_channels: int = 32
+    bev_downsample: int = 8
+    gv_hidden: int | None = None
+    streams: str = "both"
+    fusion: str = "sum"
+    gv_weight: float = 1.0
+    lv_weight: float = 0.1
+    plane_x_range: tuple[float, float] = (-5.0, 5.0)
+    plane_z_range: tuple[float, float] = (3.0, 29.0)
+    plane_shape: tuple[int, int] = (104, 40)
+    plane_height: float | None = None
+    unet_channels: int = 32
+    decoder_channels: int = 64
+
+    def __post_init__(self) -> None:
+        for name in ("classes", "plane_x_range", "plane_z_range", "plane_shape"):
+            object.__setattr__(self, name, tuple(getattr(self, name)))
+        if self.input_kind not in ("labels", "rgb"):
+            raise ConfigError(f"input_kind must be 'labels' or 'rgb', got {self.input_kind!r}")
+        resolve_classes(self.classes)
+        if self.streams not in STREAMS:
+            raise ConfigError(f"streams must be one of {STREAMS}, got {self.streams!r}")
+        if self.fusion not in FUSIONS:
+            raise ConfigError(f"fusion must be one of {FUSIONS}, got {self.fusion!r}")
+        for name in ("input_width", "neck_channels", "bev_channels", "bev_downsample", "unet_channels", "decoder_channels"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"{name} must be >= 1, got {getattr(self, name)}")
+        self.plane_spec()  # validates the plane
+        self.encoder_config(3)  # validates the encoder
+
+    @classmethod
+    def paper(cls, **overrides) -> "BiMapperConfig":
+        """The paper-size network: full EfficientNet-B0, HDMapNet neck (512) and BEV width (64),
+        40x80 BEV features on the 200x400 grid, 352 px wide inputs (HDMapNet's 352x128 on
+        nuScenes), the 1 m camera plane at the paper's 400x800 IPM resolution."""
+        base = dict(
+            width_mult=None, depth_mult=None, encoder_stages=7, neck_channels=512, bev_channels=64,
+            bev_downsample=5, input_width=352, plane_shape=(800, 400), plane_height=1.0,
+            unet_channels=64, decoder_channels=128,
+        )
+        base.update(overrides)
+        return cls(**base)
+
+    @property
+    def in_channels(self) -> int:
+        """Model input channels."""
+        return NUM_LABELS if self.input_kind == "labels" else 3
+
+    def encoder_config(self, in_channels: int) -> EfficientNetConfig:
+        """EfficientNet config of both streams' encoders."""
+        over = {"num_stages": self.encoder_stages, "in_channels": in_channels, "drop_connect_rate": self.drop_connect_rate}
+        if self.width_mult is not None:
+            over["width_mult"] = self.width_mult
+        if self.depth_mult is not None:
+            over["depth_mult"] = self.depth_mult
+        return EfficientNetConfig.variant(self.encoder_variant, **over)
+
+    def plane_spec(self) -> PlaneSpec:
+        """The camera plane of the LV stream."""
+        return PlaneSpec(self.plane_x_range, self.plane_z_range, self.plane_shape, self.plane_height)
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict (tuples as lists)."""
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "BiMapperConfig":
+        """Inverse of :meth:`to_dict`; unknown keys raise ConfigError."""
+        names = {f.name for f in fields(cls)}
+        extra = set(d) - names
+        if extra:
+            raise ConfigError(f"unknown BiMapperConfig fields {sorted(extra)}")
+        return cls(**d)

@@ -1,0 +1,234 @@
+"""EfficientNet (Tan & Le, ICML 2019) written in the project, trained from scratch.
+
+MBConv blocks (1x1 expansion, depthwise kxk, squeeze-and-excitation, 1x1 projection, stochastic
+depth on the residual) with the B0 stage table; the variants B0..B7 scale that table by their
+width (channels) and depth (block repeats) multipliers with the reference rounding rules.
+
+Departures from the ImageNet classifier, all deliberate:
+
+* No classifier and no 1x1 "head" convolution: the BEV networks only read the stage outputs
+  (as HDMapNet's ``CamEncode``, which Bi-Mapper's GV stream follows).
+* ``num_stages`` keeps only the first stages (1..7), so a CPU-trainable network can stop at
+  stride 8 or 16; ``width_mult`` / ``depth_mult`` override the variant's multipliers.
+* Padding is symmetric ``k // 2`` (PyTorch style) rather than TensorFlow's asymmetric "same";
+  every stride-2 layer maps ``n`` pixels to ``ceil(n / 2)``.
+* BatchNorm momentum defaults to PyTorch's 0.1 (the reference uses 0.01): faster-settling
+  running statistics suit short CPU training runs. ``bn_momentum`` restores the reference.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import torch
+from torch import nn
+
+from ..errors import ConfigError
+
+#: B0 stage table: (expand ratio, kernel, stride, in channels, out channels, repeats).
+B0_STAGES: tuple[tuple[int, int, int, int, int, int], ...] = (
+    (1, 3, 1, 32, 16, 1),
+    (6, 3, 2, 16, 24, 2),
+    (6, 5, 2, 24, 40, 2),
+    (6, 3, 2, 40, 80, 3),
+    (6, 5, 1, 80, 112, 3),
+    (6, 5, 2, 112, 192, 4),
+    (6, 3, 1, 192, 320, 1),
+)
+
+#: Variant -> (width multiplier, depth multiplier, reference resolution, dropout).
+VARIANTS: dict[str, tuple[float, float, int, float]] = {
+    "b0": (1.0, 1.0, 224, 0.2),
+    "b1": (1.0, 1.1, 240, 0.2),
+    "b2": (1.1, 1.2, 260, 0.3),
+    "b3": (1.2, 1.4, 300, 0.3),
+    "b4": (1.4, 1.8, 380, 0.4),
+    "b5": (1.6, 2.2, 456, 0.4),
+    "b6": (1.8, 2.6, 528, 0.5),
+    "b7": (2.0, 3.1, 600, 0.5),
+}
+
+
+def round_filters(channels: int, width_mult: float, divisor: int = 8) -> int:
+    """Scale a channel count by ``width_mult``, rounded to a multiple of ``divisor`` (reference rule)."""
+    scaled = channels * width_mult
+    new = max(divisor, int(scaled + divisor / 2) // divisor * divisor)
+    if new < 0.9 * scaled:  # never round down by more than 10 %
+        new += divisor
+    return int(new)
+
+
+def round_repeats(repeats: int, depth_mult: float) -> int:
+    """Scale a stage's block count by ``depth_mult`` (ceil, as the reference)."""
+    return int(math.ceil(depth_mult * repeats))
+
+
+@dataclass(frozen=True)
+class EfficientNetConfig:
+    """Architecture of an :class:`EfficientNet` trunk.
+
+    Args:
+        width_mult, depth_mult: channel and depth multipliers (B0 = 1.0, 1.0).
+        num_stages: how many of the seven MBConv stages to keep (7 = the full network).
+        in_channels: input channels (3 for RGB, ``NUM_LABELS`` for one-hot label images).
+        drop_connect_rate: stochastic-depth rate of the last block (linearly ramped from 0).
+        se_ratio: squeeze-excitation bottleneck, relative to the block's input channels.
+        bn_eps, bn_momentum: BatchNorm settings.
+    """
+
+    width_mult: float = 1.0
+    depth_mult: float = 1.0
+    num_stages: int = 7
+    in_channels: int = 3
+    drop_connect_rate: float = 0.2
+    se_ratio: float = 0.25
+    bn_eps: float = 1e-3
+    bn_momentum: float = 0.1
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.num_stages <= len(B0_STAGES):
+            raise ConfigError(f"num_stages must be in 1..{len(B0_STAGES)}, got {self.num_stages}")
+        if self.width_mult <= 0 or self.depth_mult <= 0:
+            raise ConfigError(f"width/depth multipliers must be > 0, got {self.width_mult}, {self.depth_mult}")
+        if self.in_channels < 1:
+            raise ConfigError(f"in_channels must be >= 1, got {self.in_channels}")
+        if not 0.0 <= self.drop_connect_rate < 1.0:
+            raise ConfigError(f"drop_connect_rate must be in [0, 1), got {self.drop_connect_rate}")
+
+    @classmethod
+    def variant(cls, name: str, **overrides) -> "EfficientNetConfig":
+        """Config of variant ``name`` (``b0`` .. ``b7``); keyword arguments override fields."""
+        try:
+            w, d, _, _ = VARIANTS[name.lower()]
+        except KeyError:
+            raise ConfigError(f"unknown EfficientNet variant {name!r}; known: {sorted(VARIANTS)}") from None
+        return replace(cls(width_mult=w, depth_mult=d), **overrides)
+
+
+def _bn(channels: int, cfg: EfficientNetConfig) -> nn.BatchNorm2d:
+    return nn.BatchNorm2d(channels, eps=cfg.bn_eps, momentum=cfg.bn_momentum)
+
+
+class SqueezeExcite(nn.Module):
+    """Channel attention: global average -> reduce (SiLU) -> expand (sigmoid) -> rescale."""
+
+    def __init__(self, channels: int, reduced: int) -> None:
+        super().__init__()
+        self.reduce = nn.Conv2d(channels, reduced, 1)
+        self.expand = nn.Conv2d(reduced, channels, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """``x`` (B, C, H, W) -> same shape."""
+        s = x.mean((2, 3), keepdim=True)  # (B, C, 1, 1)
+        s = torch.sigmoid(self.expand(nn.functional.silu(self.reduce(s))))
+        return x * s
+
+
+class MBConv(nn.Module):
+    """Mobile inverted bottleneck with squeeze-excitation and stochastic depth."""
+
+    def __init__(self, cin: int, cout: int, expand: int, kernel: int, stride: int,
+                 drop_rate: float, cfg: EfficientNetConfig) -> None:
+        super().__init__()
+        mid = cin * expand
+        layers: list[nn.Module] = []
+        if expand != 1:
+            layers += [nn.Conv2d(cin, mid, 1, bias=False), _bn(mid, cfg), nn.SiLU()]
+        layers += [
+            nn.Conv2d(mid, mid, kernel, stride, kernel // 2, groups=mid, bias=False),
+            _bn(mid, cfg),
+            nn.SiLU(),
+            SqueezeExcite(mid, max(1, int(cin * cfg.se_ratio))),
+            nn.Conv2d(mid, cout, 1, bias=False),
+            _bn(cout, cfg),
+        ]
+        self.body = nn.Sequential(*layers)
+        self.residual = stride == 1 and cin == cout
+        self.drop_rate = drop_rate
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """``x`` (B, cin, H, W) -> (B, cout, H / stride, W / stride)."""
+        y = self.body(x)
+        if not self.residual:
+            return y
+        if self.training and self.drop_rate > 0:
+            keep = 1.0 - self.drop_rate
+            # per-sample Bernoulli mask (B, 1, 1, 1)
+            mask = torch.empty((x.shape[0], 1, 1, 1), dtype=x.dtype, device=x.device).bernoulli_(keep)
+            y = y * mask / keep
+        return x + y
+
+
+class EfficientNet(nn.Module):
+    """EfficientNet trunk returning its multi-scale endpoints.
+
+    ``forward`` returns a list of feature maps, one per output stride (2, 4, 8, ...): each is the
+    output of the last block before the next stride-2 block, and the last one is the trunk's
+    final output. :attr:`endpoint_channels` and :attr:`endpoint_strides` describe them.
+    """
+
+    def __init__(self, cfg: EfficientNetConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        w = cfg.width_mult
+        stem = round_filters(32, w)
+        self.stem = nn.Sequential(
+            nn.Conv2d(cfg.in_channels, stem, 3, 2, 1, bias=False), _bn(stem, cfg), nn.SiLU()
+        )
+        stages = B0_STAGES[: cfg.num_stages]
+        total = sum(round_repeats(s[5], cfg.depth_mult) for s in stages)
+        blocks: list[MBConv] = []
+        cin = stem
+        stride_now = 2
+        ends_at: list[int] = []  # block indices whose output is an endpoint
+        strides: list[int] = []
+        channels: list[int] = []
+        for expand, kernel, stride, _, cout, repeats in stages:
+            cout = round_filters(cout, w)
+            for r in range(round_repeats(repeats, cfg.depth_mult)):
+                s = stride if r == 0 else 1
+                if s == 2:  # the previous output is an endpoint (the stem's, if no block yet)
+                    ends_at.append(len(blocks) - 1)
+                    strides.append(stride_now)
+                    channels.append(cin)
+                    stride_now *= 2
+                rate = cfg.drop_connect_rate * len(blocks) / total
+                blocks.append(MBConv(cin, cout, expand, kernel, s, rate, cfg))
+                cin = cout
+        ends_at.append(len(blocks) - 1)
+        strides.append(stride_now)
+        channels.append(cin)
+        self.blocks = nn.ModuleList(blocks)
+        self._ends = set(ends_at)
+        self._stem_is_endpoint = -1 in self._ends
+        self.endpoint_strides: tuple[int, ...] = tuple(strides)
+        self.endpoint_channels: tuple[int, ...] = tuple(channels)
+
+    @property
+    def out_channels(self) -> int:
+        """Channels of the final endpoint."""
+        return self.endpoint_channels[-1]
+
+    def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
+        """``x`` (B, in_channels, H, W) -> endpoints [(B, C_i, ceil(H / s_i), ceil(W / s_i))]."""
+        x = self.stem(x)
+        outs = [x] if self._stem_is_endpoint else []
+        for i, block in enumerate(self.blocks):
+            x = block(x)
+            if i in self._ends:
+                outs.append(x)
+        return outs
+
+
+def downsampled_size(n: int, stride: int) -> int:
+    """Size after the trunk's ``log2(stride)`` stride-2 layers: ``ceil`` halving each time."""
+    while stride > 1:
+        n = (n + 1) // 2
+        stride //= 2
+    return n
+
+
+def count_parameters(module: nn.Module) -> int:
+    """Number of trainable parameters of a module."""
+    return sum(p.numel() for p in module.parameters() if p.requires_grad)
