@@ -43,6 +43,8 @@ class MapperConfig:
     device: str = "cpu"
 
     def __post_init__(self) -> None:
+        if self.method not in _REGISTRY:
+            raise ConfigError(f"unknown method {self.method!r}; available: {list(available_methods())}")
         if self.input_kind not in INPUT_KINDS:
             raise ConfigError(f"input_kind must be one of {INPUT_KINDS}, got {self.input_kind!r}")
         if self.classes is not None:
@@ -154,6 +156,7 @@ class Mapper(ABC):
 # name -> "module:Class", imported lazily so that IPM users never import torch.
 _REGISTRY: dict[str, str] = {
     "ipm": "bev_mapper_core.ipm:IpmMapper",
+    "bimapper": "bev_mapper_core.models.bimapper_mapper:BiMapperMapper",
 }
 
 

@@ -120,7 +120,7 @@ def test_ipm_refuses_rgb_and_unknown_methods():
     with pytest.raises(ConfigError, match="label images only"):
         IpmMapper(make_rig(), GRID, MapperConfig(input_kind="rgb"))
     with pytest.raises(ConfigError, match="unknown method"):
-        create_mapper(make_rig(), GRID, MapperConfig(method="nope"))
+        MapperConfig(method="nope")
     with pytest.raises(ConfigError, match="unknown BEV class"):
         MapperConfig(classes=("drivable", "unicorn"))
     assert "ipm" in available_methods()
