@@ -75,6 +75,8 @@ class BagFrame:
         gt: ``(C, H, W)`` float32 in [0, 1] (100 -> 1.0), or ``None`` if no GT matched.
         gt_known: ``(C, H, W)`` bool, False where the layer was -1 (not visible).
         odom: the matched odometry, or ``None``.
+        ground_visibility: ``(H, W)`` bool, cells whose ground point some camera sees (from
+            ``/bev/visibility/ground``), or ``None`` when the bag has no such layer.
     """
 
     index: int
@@ -87,6 +89,7 @@ class BagFrame:
     gt: np.ndarray | None
     gt_known: np.ndarray | None
     odom: OdometryState | None
+    ground_visibility: np.ndarray | None = None
 
     @property
     def valid_mask(self) -> np.ndarray:
@@ -273,12 +276,14 @@ class BagReader:
         classes = self.gt_classes if gt else ()
         grid = self.grid() if classes else None
         gt_topics = {T.gt_topic(c): c for c in classes}
+        if classes and T.GROUND_VISIBILITY in self._src.topics:
+            gt_topics[T.GROUND_VISIBILITY] = T.GROUND_VISIBILITY
         want_odom = odom and T.ODOM in self._src.topics
         topics = set(stream_of) | set(gt_topics) | ({T.ODOM} if want_odom else set())
 
         streams = [f"{c}/{k}" for c in cams for k in kinds]
         sync_ = FrameSynchronizer(streams, sync)
-        gt_buf = {c: deque() for c in classes}
+        gt_buf = {c: deque() for c in gt_topics.values()}
         odom_buf: deque = deque()
         ready: deque[SyncedSet] = deque()
         ctx = dict(cams=cams, kinds=kinds, classes=classes, grid=grid, gt_buf=gt_buf,
@@ -346,6 +351,14 @@ class BagReader:
             if layers:
                 gt = np.stack([p for p, _ in layers])  # C x (H, W) -> (C, H, W)
                 known = np.stack([k for _, k in layers])
+        ground = None
+        if T.GROUND_VISIBILITY in ctx["gt_buf"]:
+            hit = _nearest(ctx["gt_buf"][T.GROUND_VISIBILITY], mean, tol)
+            if hit is not None:
+                try:
+                    ground = occupancy_grid_to_layer(hit[1], ctx["grid"])[0] >= 0.5
+                except AdapterError as exc:
+                    raise BagContentError(f"{self.path}: ground visibility: {exc}") from None
         odom_state = None
         hit = _nearest(ctx["odom_buf"], mean, tol)
         if hit is not None:
@@ -365,4 +378,5 @@ class BagReader:
             gt=gt,
             gt_known=known,
             odom=odom_state,
+            ground_visibility=ground,
         )

@@ -5,6 +5,8 @@ from __future__ import annotations
 TF_STATIC = "/tf_static"
 ODOM = "/odom"
 GT_PREFIX = "/bev/gt/"
+#: OccupancyGrid: 100 where the cell's ground point is seen by some camera, 0 elsewhere.
+GROUND_VISIBILITY = "/bev/visibility/ground"
 CAMERA_PREFIX = "/cameras/"
 
 IMAGE_TYPE = "sensor_msgs/msg/Image"

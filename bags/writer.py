@@ -205,6 +205,11 @@ def _frame_messages(f, rig: Rig, grid: BevGrid, classes, factory, ego_frame, odo
         layer = np.asarray(f.gt[ci], dtype=np.float32)
         out.append((s, T.gt_topic(c.name),
                     make_occupancy_grid(factory, grid, layer, visible, s, ego_frame)))
+    ground = getattr(f, "ground_visibility", None)
+    if ground is not None:
+        layer = np.asarray(ground, dtype=np.float32)
+        out.append((s, T.GROUND_VISIBILITY,
+                    make_occupancy_grid(factory, grid, layer, None, s, ego_frame)))
     out.sort(key=lambda x: x[0])  # stable: per-frame log time order
     return out
 
@@ -227,7 +232,9 @@ def write_drive(
     Topics: ``/cameras/<cam>/{image_raw,labels,camera_info}`` at each camera's stamp,
     ``/tf_static`` once (latched) with ``ego_frame -> <camera optical frame>``, ``/odom``
     (``odom_frame -> ego_frame``) and ``/bev/gt/<class>`` (100 present, 0 absent, -1 not
-    visible) at the frame stamp. Log times equal the header stamps.
+    visible) at the frame stamp, plus ``/bev/visibility/ground`` (100 where the cell's ground
+    point is seen) for frames that carry ``ground_visibility``. Log times equal the header
+    stamps.
 
     Raises:
         BagExistsError: ``path`` exists and ``force`` is false.
@@ -257,6 +264,8 @@ def write_drive(
                        for c in rig.cameras]
                 bw.write(T.TF_STATIC, make_tf_message(fac, tfs), first)
             for log_ns, topic, msg in msgs:
+                if topic == T.GROUND_VISIBILITY:
+                    bw.add_topic(topic, T.GRID_TYPE)  # only when the frames carry it
                 bw.write(topic, msg, log_ns)
             last = msgs[-1][0]
             n += 1

@@ -84,6 +84,11 @@ def assert_frames_match(bag_frames, ref_frames, rig, grid):
         np.testing.assert_allclose(f.odom.world_from_ego, g.world_from_ego, atol=1e-9)
         np.testing.assert_allclose(f.odom.linear_velocity, g.linear_velocity)
         np.testing.assert_allclose(f.odom.angular_velocity, g.angular_velocity)
+        ground = getattr(g, "ground_visibility", None)
+        if ground is None:
+            assert f.ground_visibility is None
+        else:
+            np.testing.assert_array_equal(f.ground_visibility, ground)
 
 
 def assert_rig_matches(read_rig, rig):
@@ -93,9 +98,11 @@ def assert_rig_matches(read_rig, rig):
         np.testing.assert_allclose(a.ego_from_cam_array, b.ego_from_cam_array, atol=1e-9)
 
 
-def assert_layout(reader, rig, n):
+def assert_layout(reader, rig, n, ground=False):
     topics = reader.topics
     expect = {T.TF_STATIC: (T.TF_TYPE, 1), T.ODOM: (T.ODOM_TYPE, n)}
+    if ground:
+        expect[T.GROUND_VISIBILITY] = (T.GRID_TYPE, n)
     for c in rig.names:
         expect[T.image_topic(c, "rgb")] = (T.IMAGE_TYPE, n)
         expect[T.image_topic(c, "labels")] = (T.IMAGE_TYPE, n)
@@ -277,8 +284,9 @@ def test_cli_synth_roundtrip(tmp_path, storage, capsys):
     assert "wrote 3 frames" in capsys.readouterr().out
     rig = surround6().scaled(0.25)
     ref = list(generate_drive(rig, GRID, SynthConfig(frames=3, seed=3)))
+    assert all(f.ground_visibility is not None for f in ref)
     with BagReader(out) as r:
-        assert_layout(r, rig, 3)
+        assert_layout(r, rig, 3, ground=True)
         assert_rig_matches(r.rig(), rig)
         assert r.grid() == GRID
         assert r.custom_data.get("bev_mapper.rig") == "surround6"
@@ -303,3 +311,19 @@ def test_cli_usage_errors(tmp_path, capsys):
     assert main(["synth", str(tmp_path / "b"), "--scale", "0"]) == 1
     assert main(["nope"]) == 2
     assert not (tmp_path / "b").exists()
+
+
+@needs_generator
+def test_cli_synth_truncated(tmp_path):
+    """Full-size images (several 1 MiB mcap chunks): a cut file yields the intact frames."""
+    out = tmp_path / "drive"
+    assert main(["synth", str(out), "--frames", "3", *GRID_ARGS]) == 0
+    rig = surround6()
+    ref = list(generate_drive(rig, GRID, SynthConfig(frames=3)))
+    _truncate(out / "drive.mcap", tmp_path / "cut.mcap", 0.6)
+    got = []
+    with pytest.raises(BagCorruptError):
+        with BagReader(tmp_path / "cut.mcap") as r:
+            got.extend(r.frames())
+    assert 1 <= len(got) < 3
+    assert_frames_match(got, ref[: len(got)], rig, GRID)
