@@ -77,6 +77,7 @@ class MapperNode(Node):
         cfg = self.cfg
         self.factory = RclpyFactory()
         self.stats = NodeStats()
+        self._last_logged: dict[str, float] = {}
         self.mapper = None
         self._mapper_version = -1
         use_tf = cfg.use_tf
@@ -120,7 +121,7 @@ class MapperNode(Node):
             try:
                 self.sync.add(cam, header_stamp_ns(msg), msg, now_ns=self._now_ns())
             except BevMapperError as exc:
-                self._bad_input(f"{cam}: {exc}")
+                self._bad_input(f"{cam}: {exc}", f"{cam}:stamp")
         return cb
 
     def _info_cb(self, cam: str):
@@ -128,7 +129,7 @@ class MapperNode(Node):
             try:
                 model = camera_info_to_model(msg)
             except BevMapperError as exc:
-                self._bad_input(f"{cam} camera_info rejected: {exc}")
+                self._bad_input(f"{cam} camera_info rejected: {exc}", f"{cam}:camera_info")
                 return
             if self.calibration.update_intrinsics(cam, model, str(msg.header.frame_id)):
                 self.get_logger().info(f"calibration of {cam}: {model.image_size[0]}x{model.image_size[1]}")
@@ -140,9 +141,17 @@ class MapperNode(Node):
     def _on_set(self, synced) -> None:
         self.slot.put(synced)
 
-    def _bad_input(self, message: str) -> None:
+    def _bad_input(self, message: str, key: str = "") -> None:
+        """Count a rejected input; log it at most every THROTTLE_S per ``key`` (camera + problem)."""
         self.stats.record_bad_input(message)
-        self.get_logger().warning(message, throttle_duration_sec=THROTTLE_S)
+        now = time.monotonic()
+        key = key or message
+        with self.stats.lock:
+            last = self._last_logged.get(key)
+            if last is not None and now - last < THROTTLE_S:
+                return
+            self._last_logged[key] = now
+        self.get_logger().warning(message)
 
     def _on_worker_error(self, exc: BaseException) -> None:
         self.stats.record_error(f"{type(exc).__name__}: {exc}")
@@ -191,7 +200,7 @@ class MapperNode(Node):
                 raise BevMapperError(f"image is {img.shape[1]}x{img.shape[0]}, camera_info says {w}x{h}")
             return img
         except BevMapperError as exc:
-            self._bad_input(f"{cam}: {exc}")
+            self._bad_input(f"{cam}: {exc}", f"{cam}:image")
             return None
 
     def _process(self, synced) -> None:
