@@ -147,7 +147,8 @@ class DriveRenderer:
         """
         pts = self.cell_points.copy()
         pts[:, 2] = zpt.ravel()
-        vis = self._seen(renders, boxes, pts, own.ravel()).reshape(self.grid.shape)  # (H*W,) -> (H, W)
+        vis = self._seen(renders, boxes, pts, own.ravel())
+        vis = vis.reshape(self.grid.shape)  # (H*W,) -> (H, W)
         return vis, vis & (own < 0)
 
     def _seen(self, renders, boxes: Boxes, pts: np.ndarray, own: np.ndarray) -> np.ndarray:
@@ -172,7 +173,8 @@ class DriveRenderer:
         return vis
 
 
-def generate_drive(rig: Rig, grid: BevGrid, config: SynthConfig = SynthConfig()) -> Iterator[SynthFrame]:
+def generate_drive(rig: Rig, grid: BevGrid,
+                   config: SynthConfig = SynthConfig()) -> Iterator[SynthFrame]:
     """Generate a synthetic drive: ``config.frames`` :class:`SynthFrame` s, lazily.
 
     The world is built (and the arguments checked) when this is called; frames are rendered as

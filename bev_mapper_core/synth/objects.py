@@ -56,7 +56,7 @@ class Boxes:
     @staticmethod
     def make(center, z0, size, yaw, label, color, kind=PLAIN, obj=0) -> "Boxes":
         """Boxes from array-likes (scalars broadcast to ``N``)."""
-        center = np.asarray(center, np.float64).reshape(-1, 2)
+        center = np.asarray(center, np.float64).reshape(-1, 2)  # (2,) or (N, 2) -> (N, 2)
         n = len(center)
 
         def arr(v, dtype, shape=()):

@@ -228,7 +228,8 @@ def add_moving_cars(net: RoadNetwork, cat: Catalog, rng, density: float, times: 
         t0, t1 = max(t_start, 0.0), min(t_start + life, duration)  # driving while the ego does
         route = net.route(rng, r.index, d, k, rng.uniform(0.0, r.length),
                           max(t1 - t0, 0.0) * v_max + 20.0, 0.4)
-        x, y, yaw, _, _ = PathMotion(route, 3.0, v_max, rng).sample(times - t0)
+        cap = net.intersection_caps(route, rng, 4.0, 8.0)
+        x, y, yaw, _, _ = PathMotion(route, 3.0, v_max, rng, cap=cap).sample(times - t0)
         parts = car_parts(rng, car_color(rng))
         poses = _activate(np.stack([x, y, yaw], 1), ego, times, t_start, t_start + life, far)
         if poses is None:

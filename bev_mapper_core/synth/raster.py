@@ -104,7 +104,8 @@ def ground_features(net: RoadNetwork, rng: np.random.Generator) -> list[Feature]
                 feats.append(Feature("line", stop, None, Mat.WHITE, 0.4))
         if centre_style == 2:
             for lat in (-0.12, 0.12):
-                feats.append(Feature("line", r.offset(lat, lo, hi), Label.LANE_DIVIDER, Mat.YELLOW, 0.12))
+                feats.append(Feature("line", r.offset(lat, lo, hi), Label.LANE_DIVIDER, Mat.YELLOW,
+                                     0.12))
         else:
             mat = Mat.WHITE if centre_style == 0 else Mat.YELLOW
             feats.append(Feature("line", r.offset(0.0, lo, hi), Label.LANE_DIVIDER, mat, 0.18))

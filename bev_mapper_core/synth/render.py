@@ -54,12 +54,14 @@ class Look:
         sun = np.array([np.cos(elev) * np.cos(az), np.cos(elev) * np.sin(az), np.sin(elev)])
         overcast = rng.random() < 0.3
         horizon = np.array([205, 215, 228]) * rng.uniform(0.9, 1.08, 3)
-        zenith = (np.array([150, 160, 170]) if overcast else np.array([70, 120, 200])) * rng.uniform(0.85, 1.1, 3)
+        zenith = np.array([150, 160, 170]) if overcast else np.array([70, 120, 200])
+        zenith = zenith * rng.uniform(0.85, 1.1, 3)
         return Look(g.astype(np.float32), horizon.clip(0, 255), zenith.clip(0, 255), sun,
                     ambient=rng.uniform(0.5, 0.65) if overcast else rng.uniform(0.35, 0.5),
                     diffuse=rng.uniform(0.2, 0.35) if overcast else rng.uniform(0.5, 0.7),
                     gain=rng.uniform(0.85, 1.12), noise=rng.uniform(1.5, 5.0) * noise_scale,
-                    fog=rng.uniform(250.0, 700.0), window=np.array([45, 60, 80]) * rng.uniform(0.8, 1.3),
+                    fog=rng.uniform(250.0, 700.0),
+                    window=np.array([45, 60, 80]) * rng.uniform(0.8, 1.3),
                     clouds=rng.uniform(0.1, 0.8))
 
 
@@ -75,7 +77,8 @@ class CameraRender:
 
 def _hash(ix, iy, salt: int) -> np.ndarray:
     """Deterministic hash of integer lattice coordinates to floats in [0, 1)."""
-    h = (ix.astype(np.int64) * 374761393 + iy.astype(np.int64) * 668265263 + salt * 2654435761) & 0xFFFFFFFF
+    h = ix.astype(np.int64) * 374761393 + iy.astype(np.int64) * 668265263 + salt * 2654435761
+    h &= 0xFFFFFFFF
     h = ((h ^ (h >> 13)) * 1274126177) & 0xFFFFFFFF
     return ((h ^ (h >> 16)) & 0xFFFFFF).astype(np.float32) / np.float32(1 << 24)
 
@@ -123,14 +126,16 @@ class CameraRenderer:
         valid = fa | fb
         fr = np.linspace(0.0, 1.0, 2 if self.pinhole else 9)
         pts = p0[:, :, None] + fr[None, None, :, None] * (p1 - p0)[:, :, None]  # (N, 12, F, 3)
-        ok = np.broadcast_to(valid[:, :, None], pts.shape[:3]).reshape(len(boxes), -1)
-        pts = pts.reshape(len(boxes), -1, 3)
+        ok = np.broadcast_to(valid[:, :, None], pts.shape[:3]).reshape(len(boxes), -1)  # (N, 12*F)
+        pts = pts.reshape(len(boxes), -1, 3)  # (N, 12, F, 3) -> (N, 12*F, 3)
         if self.pinhole:
             z = np.maximum(pts[..., 2], _NEAR)
-            uv = np.stack([self.K[0, 0] * pts[..., 0] / z + self.K[0, 1] * pts[..., 1] / z + self.K[0, 2],
-                           self.K[1, 1] * pts[..., 1] / z + self.K[1, 2]], -1)
+            K = self.K
+            uv = np.stack([K[0, 0] * pts[..., 0] / z + K[0, 1] * pts[..., 1] / z + K[0, 2],
+                           K[1, 1] * pts[..., 1] / z + K[1, 2]], -1)
             margin = 1
         else:
+            # (N, 12*F, 3) -> (N*12*F, 3) -> uv (N*12*F, 2) -> (N, 12*F, 2)
             uv = self.model.project(pts.reshape(-1, 3))[0].reshape(pts.shape[0], -1, 2)
             margin = 3
         uv = np.where(ok[..., None], uv, np.nan)
@@ -208,7 +213,8 @@ class CameraRenderer:
             gx, gy = o[0] + t * d[..., 0][gnd], o[1] + t * d[..., 1][gnd]
             lab, mat = unpack(ground.lookup(gx, gy, center=world_from_ego[:2, 3]))
             labels[gnd] = lab
-            tex = (0.8 + 0.35 * value_noise(gx, gy, 1.7, 1)) * (0.93 + 0.14 * value_noise(gx, gy, 0.11, 2))
+            tex = ((0.8 + 0.35 * value_noise(gx, gy, 1.7, 1))
+                   * (0.93 + 0.14 * value_noise(gx, gy, 0.11, 2)))
             light = look.ambient + look.diffuse * max(look.sun[2], 0.0)
             rgb[gnd] = look.ground[mat] * (tex * light)[:, None]
         obj = part >= 0
@@ -235,7 +241,8 @@ class CameraRenderer:
         nx = np.choose(axis, [c, -s, np.zeros_like(c)]) * sign
         ny = np.choose(axis, [s, c, np.zeros_like(c)]) * sign
         nz = np.where(axis == 2, sign, 0.0)
-        lam = look.ambient + look.diffuse * np.maximum(nx * look.sun[0] + ny * look.sun[1] + nz * look.sun[2], 0)
+        sun = look.sun
+        lam = look.ambient + look.diffuse * np.maximum(nx * sun[0] + ny * sun[1] + nz * sun[2], 0)
         col = boxes.color[p] * lam[:, None].astype(np.float32)
         hit = o + t[:, None] * d  # (M, 3) world hit points
         kind = boxes.kind[p]
@@ -247,7 +254,7 @@ class CameraRenderer:
             fu, fz = (u / 2.8) % 1.0, (hit[:, 2] / 3.2) % 1.0
             win = fac & (fu > 0.22) & (fu < 0.78) & (fz > 0.3) & (fz < 0.8) & (hit[:, 2] > 0.8)
             shade = 0.6 + 0.7 * _hash(np.floor(u / 2.8), np.floor(hit[:, 2] / 3.2), 7)[win]
-            col[win] = look.window.astype(np.float32) * shade[:, None] * lam[win, None].astype(np.float32)
+            col[win] = (look.window * shade[:, None] * lam[win, None]).astype(np.float32)
         roof = (kind == FACADE) & (axis == 2)
         col[roof] *= 0.7
         tyre = (kind == CAR_BODY) & (hit[:, 2] < 0.32)

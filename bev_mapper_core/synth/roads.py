@@ -319,6 +319,19 @@ class RoadNetwork:
         return resample(np.concatenate(pieces), 0.5)
 
 
+    def intersection_caps(self, pts: np.ndarray, rng, lo: float, hi: float) -> np.ndarray:
+        """Per point of a route ``(N, 2)``: a speed cap drawn in ``[lo, hi]`` per intersection
+        (degree >= 3) within 6 m of its area, ``inf`` elsewhere."""
+        cap = np.full(len(pts), np.inf)
+        for node in self.nodes:
+            if node.degree < 3:
+                continue
+            v = rng.uniform(lo, hi)
+            near = np.hypot(*(pts - node.pos).T) < node.radius + 6.0
+            cap[near] = np.minimum(cap[near], v)
+        return cap
+
+
 def _connected(edges, n_nodes) -> bool:
     adj = [[] for _ in range(n_nodes)]
     for a, b in edges:

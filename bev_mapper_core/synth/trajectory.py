@@ -22,13 +22,15 @@ class PathMotion:
     """A vehicle driving along ``pts`` (``(N, 2)``, ~0.5 m spacing) from its first point.
 
     Speeds stay in ``[v_min, v_max]``: a piecewise cruise speed drawn from ``rng``, capped by
-    the lateral acceleration ``a_lat`` in curves, then made reachable with the longitudinal
-    limits ``a_acc`` / ``a_dec`` (m/s^2).
+    the lateral acceleration ``a_lat`` in curves and by ``cap`` (per point, e.g. slower across
+    intersections), then made reachable with the longitudinal limits ``a_acc`` / ``a_dec``
+    (m/s^2).
     """
 
     def __init__(self, pts: np.ndarray, v_min: float, v_max: float, rng: np.random.Generator,
                  a_lat: float = 2.5, a_acc: float = 1.5, a_dec: float = 2.5,
-                 cruise_span: tuple[float, float] = (60.0, 160.0)) -> None:
+                 cruise_span: tuple[float, float] = (40.0, 120.0),
+                 cap: np.ndarray | None = None) -> None:
         self.pts = pts
         self.s = s = arclength(pts)
         ds = float(np.median(np.diff(s))) if len(s) > 1 else 0.5
@@ -45,6 +47,8 @@ class PathMotion:
             pos += span
         with np.errstate(divide="ignore"):
             curve = np.sqrt(a_lat / np.maximum(np.abs(self.kappa), 1e-9))
+        if cap is not None:
+            curve = np.minimum(curve, cap)
         v = np.clip(np.minimum(cruise, curve), v_min, v_max)
         dseg = np.diff(s)
         for i in range(1, len(v)):  # acceleration limit

@@ -111,7 +111,7 @@ def build_world(config: SynthConfig) -> World:
     add_pedestrians(net, cat, _rng(seed, 8), config.pedestrian_density, times, ego, vehicles,
                     tracks, far)
     parts = cat.boxes() if cat.parts else Boxes.make(np.zeros((0, 2)), 0, 0, 0, 0, 0)
-    obj_pose = np.array(cat.poses, np.float64).reshape(-1, 3)
+    obj_pose = np.array(cat.poses, np.float64).reshape(-1, 3)  # (N_obj, 3), also when empty
     return World(config, net, ground, ego, speed, yaw_rate, parts, obj_pose, tracks)
 
 
@@ -123,8 +123,9 @@ def _ego_track(net: RoadNetwork, config: SynthConfig, rng, times: np.ndarray):
     length = config.duration_s * config.max_speed + 30.0
     route = net.route(rng, r.index, d, k, rng.uniform(0.25, 0.55) * r.length, length,
                       config.turn_probability)
+    cap = net.intersection_caps(route, rng, config.min_speed + 1.0, config.min_speed + 5.0)
     motion = PathMotion(route, config.min_speed, config.max_speed, rng,
-                        a_acc=rng.uniform(1.0, 2.0), a_dec=rng.uniform(1.5, 3.0))
+                        a_acc=rng.uniform(1.0, 2.0), a_dec=rng.uniform(1.5, 3.0), cap=cap)
     x, y, yaw, v, w = motion.sample(times)
     yaw = (yaw + math.pi) % (2 * math.pi) - math.pi
     return np.stack([x, y, yaw], 1), v, w
