@@ -1,0 +1,15 @@
+#!/usr/bin/env bash
+# The main job on the bundled default: generate the demo drive if it is not there, replay it
+# through the default method, print the metrics table, write the output bag, metrics.json and
+# pictures of prediction vs ground truth under out/demo/.
+#   bash scripts/demo.sh [extra bev-bag replay flags, e.g. --method ipm]
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash scripts/setup_venv.sh
+BAG=${BEV_DEMO_BAG:-data/demo_drive}
+OUT=${BEV_DEMO_OUT:-out/demo}
+if [ ! -f "$BAG/metadata.yaml" ]; then
+  echo "generating the demo drive $BAG (surround6, 50 frames, seed 1000: a held-out seed)" >&2
+  .venv/bin/bev-bag synth "$BAG" --rig surround6 --frames 50 --seed 1000 --storage mcap
+fi
+exec .venv/bin/bev-bag replay "$BAG" --out "$OUT" --force "$@"
