@@ -1,0 +1,421 @@
+"""Offline, deterministic replay of a bag through a BEV mapper (no ROS graph, no DDS).
+
+:func:`replay` reads a bag with :class:`~bags.reader.BagReader`, builds the rig from the bag's
+own CameraInfo and ``/tf_static`` and the grid from its GT layers (``options.grid`` or
+``BevGrid()`` when the bag has no GT), maps every synchronized frame with
+:func:`~bev_mapper_core.mapper.create_mapper` and writes into ``options.out``:
+
+* ``bev_bag/``: a rosbag2 (MCAP by default) with the input CameraInfo and ``/tf_static`` plus
+  ``/bev/<class>`` OccupancyGrids and ``/bev/image`` (rgb8 picture) per frame, written by
+  :class:`~bags.writer.BagWriter` (temporary directory + rename);
+* ``frames/frame_NNNN.png``: prediction vs ground truth for every ``picture_every``-th frame,
+  and ``replay.gif`` on request;
+* ``metrics.json``: :class:`~bev_mapper_core.metrics.MetricAccumulator` results over the frames
+  with GT, the scoring scope and mapping latency percentiles. Written last.
+
+Every file appears under its final name only when complete. A damaged bag is replayed up to
+the damage: the outputs of the frames before it are completed and :attr:`ReplayResult.damage`
+says what happened (the CLI then exits non-zero).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import time
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Iterator
+
+import cv2
+import numpy as np
+
+from bev_mapper_core.classes import colorize_layers, resolve_classes
+from bev_mapper_core.grid import BevGrid
+from bev_mapper_core.mapper import BevPrediction, MapperConfig, create_mapper
+from bev_mapper_core.metrics import MetricAccumulator
+from msg_adapters import make_image, make_occupancy_grid
+
+from . import topics as T
+from .errors import BagContentError, BagCorruptError, BagError, BagExistsError
+from .pictures import comparison_picture, encode_gif, encode_png, partial_name, write_atomic
+from .reader import BagReader
+from .writer import STORAGES, BagWriter
+
+log = logging.getLogger(__name__)
+
+SCOPES = ("visible", "ground")
+OUT_PREFIX = "/bev/"
+IMAGE_TOPIC = "/bev/image"
+BAG_DIR, FRAMES_DIR, METRICS_FILE, GIF_FILE = "bev_bag", "frames", "metrics.json", "replay.gif"
+
+
+@dataclass(frozen=True)
+class ReplayOptions:
+    """Everything :func:`replay` needs.
+
+    Args:
+        bag: input bag (rosbag2 directory, ``.mcap`` or ``.db3``).
+        out: output directory (created if needed).
+        mapper: method settings.
+        grid: grid used only when the bag has no GT layers (``None`` = ``BevGrid()``).
+        scope: ``'visible'`` scores cells whose GT is not -1; ``'ground'`` additionally requires,
+            for flat classes, ``/bev/visibility/ground`` (the cell's ground point is seen by a
+            camera); object classes keep the visible scope (see :class:`_Scorer`).
+        max_frames: stop after this many mapped frames (``None`` = all).
+        pictures: write PNG pictures; ``picture_every``: every k-th frame (frame 0 included).
+        gif: also write an animated GIF of the pictures.
+        storage: storage of the output bag.
+        force: replace existing outputs in ``out``.
+        progress: show a tqdm progress bar on stderr.
+    """
+
+    bag: Path
+    out: Path
+    mapper: MapperConfig = field(default_factory=MapperConfig)
+    grid: BevGrid | None = None
+    scope: str = "visible"
+    max_frames: int | None = None
+    pictures: bool = True
+    picture_every: int = 10
+    gif: bool = False
+    storage: str = "mcap"
+    force: bool = False
+    progress: bool = False
+
+    def __post_init__(self) -> None:
+        if self.scope not in SCOPES:
+            raise BagError(f"scope must be one of {list(SCOPES)}, got {self.scope!r}")
+        if self.max_frames is not None and self.max_frames < 1:
+            raise BagError(f"--max-frames must be >= 1, got {self.max_frames}")
+        if self.picture_every < 1:
+            raise BagError(f"--picture-every must be >= 1, got {self.picture_every}")
+        if self.storage not in STORAGES:
+            raise BagError(f"storage must be one of {list(STORAGES)}, got {self.storage!r}")
+
+
+@dataclass
+class ReplayResult:
+    """What :func:`replay` did: the metrics dict, output paths, damage note, GIF note."""
+
+    metrics: dict
+    out: Path
+    bag_path: Path
+    pictures: list[Path]
+    gif: Path | None = None
+    gif_note: str = ""
+    damage: str | None = None
+    notes: list[str] = field(default_factory=list)
+
+
+def _check_outputs(out: Path, force: bool) -> None:
+    if out.exists() and not out.is_dir():
+        raise BagExistsError(f"{out} exists and is not a directory")
+    existing = [n for n in (BAG_DIR, FRAMES_DIR, METRICS_FILE, GIF_FILE) if (out / n).exists()]
+    if existing and not force:
+        raise BagExistsError(f"{out} already holds replay outputs {existing}; pass --force to "
+                             "replace them")
+
+
+def _percentiles(values: list[float]) -> dict:
+    if not values:
+        return {"p50": None, "p95": None, "mean": None, "max": None}
+    a = np.asarray(values, np.float64)
+    return {"p50": round(float(np.percentile(a, 50)), 3), "p95": round(float(np.percentile(a, 95)), 3),
+            "mean": round(float(a.mean()), 3), "max": round(float(a.max()), 3)}
+
+
+class _InfoCopier:
+    """Copies CameraInfo and ``/tf_static`` of the input bag into the output bag, in time order.
+
+    A second reader on the same bag streams those topics lazily; :meth:`upto` writes what was
+    logged up to a time. Damage on this stream just ends the copy (the frame stream reports it).
+    """
+
+    def __init__(self, bag: Path, reader: BagReader, writer: BagWriter) -> None:
+        self.topics = [T.camera_info_topic(c) for c in reader.camera_names]
+        if T.TF_STATIC in reader.topics:
+            self.topics.insert(0, T.TF_STATIC)
+        for t in self.topics:
+            writer.add_topic(t, reader.topics[t].msgtype, latched=t == T.TF_STATIC)
+        self._writer = writer
+        quiet = logging.getLogger("bags.sources")  # the frame reader already warned about damage
+        level = quiet.level
+        quiet.setLevel(logging.ERROR)
+        try:
+            self._reader = BagReader(bag)
+        finally:
+            quiet.setLevel(level)
+        self._it: Iterator | None = self._reader.messages(self.topics)
+        self._next = None
+
+    def upto(self, log_ns: int) -> None:
+        """Write every copied message logged at or before ``log_ns``."""
+        while self._it is not None:
+            if self._next is None:
+                try:
+                    self._next = next(self._it)
+                except (StopIteration, BagCorruptError):
+                    self._it = None
+                    return
+            if self._next.log_ns > log_ns and self._next.topic != T.TF_STATIC:
+                return
+            m, self._next = self._next, None
+            self._writer.write(m.topic, m.msg, m.log_ns)
+
+    def close(self) -> None:
+        """Release the second reader."""
+        self._it = None
+        self._reader.close()
+
+
+def _frame_time(frame) -> int:
+    stamps = [s for s in frame.camera_stamps.values() if s is not None]
+    return max(stamps + [frame.stamp_ns])
+
+
+def replay(options: ReplayOptions) -> ReplayResult:
+    """Replay ``options.bag`` through the mapper and write the outputs (see module docstring).
+
+    Raises:
+        BagExistsError: outputs exist and ``options.force`` is false.
+        BagError / BevMapperError: unreadable bag, unusable calibration, mapper errors. Nothing
+            is written then. Damage met *while reading frames* is not raised: it is returned in
+            :attr:`ReplayResult.damage` after the outputs of the intact frames were written.
+    """
+    out = Path(options.out)
+    _check_outputs(out, options.force)
+    with BagReader(options.bag) as reader:
+        rig = reader.rig()
+        grid = reader.grid()
+        notes: list[str] = []
+        if grid is None:
+            grid = options.grid or BevGrid()
+            notes.append(f"the bag has no GT layers: mapping onto {grid.describe()}, no metrics")
+        elif options.grid is not None and options.grid != grid:
+            raise BagContentError(
+                f"the bag's GT grid is {grid.describe()}; grid flags only apply to bags without GT")
+        mapper = create_mapper(rig, grid, options.mapper)
+        out.mkdir(parents=True, exist_ok=True)
+        tmp_frames = partial_name(out / FRAMES_DIR)
+        shutil.rmtree(tmp_frames, ignore_errors=True)
+        try:
+            result = _run(options, reader, rig, grid, mapper, out, tmp_frames, notes)
+        finally:
+            shutil.rmtree(tmp_frames, ignore_errors=True)
+    return result
+
+
+def _run(options, reader, rig, grid, mapper, out, tmp_frames, notes) -> ReplayResult:
+    kind = options.mapper.input_kind
+    gt_names = reader.gt_classes
+    has_ground = T.GROUND_VISIBILITY in reader.topics
+    scorer = _Scorer(grid, mapper.class_names, gt_names,
+                     ground=options.scope == "ground" and has_ground)
+    if gt_names and scorer.unscored:
+        notes.append(f"classes without GT in the bag are not scored: {scorer.unscored}")
+    if options.scope == "ground" and gt_names and not has_ground:
+        notes.append("scope 'ground' requested but the bag has no /bev/visibility/ground: "
+                     "scoring visible cells only")
+    image_topic = T.image_topic(rig.names[0], kind)
+    total = reader.topics[image_topic].count if image_topic in reader.topics else None
+    if options.max_frames is not None:
+        total = min(total or options.max_frames, options.max_frames)
+    from tqdm import tqdm  # noqa: PLC0415 - only the replay needs it
+
+    bar = tqdm(total=total, unit="frame", disable=not options.progress, leave=False,
+               dynamic_ncols=True)
+    latencies: list[float] = []
+    pictures: list[Path] = []
+    gif_frames: list[np.ndarray] = []
+    mapped = skipped = 0
+    damage = None
+    frames_dir = out / FRAMES_DIR
+    if options.pictures:
+        tmp_frames.mkdir()
+    ego = reader.ego_frame
+    with BagWriter(out / BAG_DIR, storage=options.storage, force=options.force) as bw:
+        for c in mapper.class_names:
+            bw.add_topic(OUT_PREFIX + c, T.GRID_TYPE)
+        bw.add_topic(IMAGE_TOPIC, T.IMAGE_TYPE)
+        copier = _InfoCopier(Path(options.bag), reader, bw)
+        custom = dict(reader.custom_data)
+        custom["bev_mapper.replay"] = json.dumps(
+            {"method": options.mapper.method, "input": kind, "classes": list(mapper.class_names)})
+        for k, v in custom.items():
+            bw.set_custom_data(k, v)
+        frames = reader.frames(rgb=kind == "rgb", labels=kind == "labels")
+        try:
+            for frame in frames:
+                if options.max_frames is not None and mapped >= options.max_frames:
+                    break
+                images = frame.labels if kind == "labels" else frame.rgb
+                if not images:
+                    skipped += 1
+                    continue
+                pose = frame.odom.world_from_ego if frame.odom is not None else None
+                t0 = time.perf_counter()
+                pred = mapper.map(images, ego_pose=pose, stamp_ns=frame.stamp_ns)
+                latencies.append((time.perf_counter() - t0) * 1000.0)
+                copier.upto(_frame_time(frame))
+                _write_frame(bw, grid, mapper, pred, frame.stamp_ns, ego)
+                gt, mask = scorer.update(frame, pred)
+                if options.pictures and mapped % options.picture_every == 0:
+                    pic = comparison_picture(
+                        grid, pred.probs, pred.known, mapper.classes, gt, mask, scorer.classes,
+                        method=options.mapper.method,
+                        caption=f"frame {frame.index}  stamp {frame.stamp_ns / 1e9:.3f} s")
+                    name = f"frame_{frame.index:04d}.png"
+                    write_atomic(tmp_frames / name, encode_png(pic))
+                    pictures.append(frames_dir / name)
+                    if options.gif:
+                        gif_frames.append(pic)
+                mapped += 1
+                bar.update(1)
+        except BagCorruptError as exc:
+            damage = str(exc)
+        finally:
+            frames.close()
+            bar.close()
+            copier.close()
+        bag_counts = dict(bw.counts)
+    # the output bag is in place; now the pictures, the GIF and last the metrics
+    if frames_dir.exists():  # stale pictures of an earlier replay (only with --force)
+        shutil.rmtree(frames_dir)
+    if options.pictures:
+        tmp_frames.rename(frames_dir)
+    gif_path, gif_note = None, ""
+    if options.gif:
+        data, gif_note = encode_gif(gif_frames)
+        if data is not None:
+            gif_path = write_atomic(out / GIF_FILE, data)
+        notes.append(gif_note)
+    if gif_path is None and (out / GIF_FILE).exists():
+        (out / GIF_FILE).unlink()
+    metrics = _metrics(options, scorer, grid, mapped, skipped, latencies, damage, bag_counts)
+    write_atomic(out / METRICS_FILE, (json.dumps(metrics, indent=2, allow_nan=False) + "\n").encode())
+    return ReplayResult(metrics, out, out / BAG_DIR, pictures, gif_path, gif_note, damage, notes)
+
+
+def _write_frame(bw: BagWriter, grid: BevGrid, mapper, pred: BevPrediction, stamp: int,
+                 ego: str) -> None:
+    """``/bev/<class>`` grids and the ``/bev/image`` picture of one frame."""
+    for ci, c in enumerate(mapper.class_names):
+        bw.write(OUT_PREFIX + c, make_occupancy_grid(bw.factory, grid, pred.probs[ci], pred.known,
+                                                     stamp, ego), stamp)
+    picture = grid.to_display(colorize_layers(pred.probs, mapper.classes, pred.known))
+    bw.write(IMAGE_TOPIC, make_image(bw.factory, np.ascontiguousarray(picture), "rgb8", stamp, ego),
+             stamp)
+
+
+def _metrics(options, scorer: "_Scorer", grid, mapped, skipped, latencies, damage,
+             bag_counts) -> dict:
+    """The ``metrics.json`` document."""
+    res = scorer.result()
+    return {
+        "method": options.mapper.method,
+        "input": options.mapper.input_kind,
+        "bag": str(options.bag),
+        "frames": mapped,
+        "frames_scored": res["frames"],
+        "frames_skipped": skipped,
+        "scope": options.scope,
+        "scope_used": scorer.scope_used,
+        "classes": res["classes"],
+        "miou": res["miou"],
+        "map": res["map"],
+        "iou_by_range": res["iou_by_range"],
+        "unscored_classes": scorer.unscored,
+        "latency_ms": _percentiles(latencies),
+        "grid": asdict(grid),
+        "output_bag": {"path": BAG_DIR, "storage": options.storage, "messages": bag_counts},
+        "complete": damage is None,
+        "damage": damage,
+    }
+
+
+@contextmanager
+def _exact_cv2():
+    """Run OpenCV without its SIMD paths (single-threaded replay only: the flag is global).
+
+    OpenCV's SIMD ``distanceTransform(DIST_MASK_PRECISE)`` (used by the Chamfer distance)
+    returns last-ulp differences depending on the output buffer's alignment, so the same frame
+    scored twice can differ at 1e-10 m; the scalar path is reproducible.
+    """
+    previous = cv2.useOptimized()
+    cv2.setUseOptimized(False)
+    try:
+        yield
+    finally:
+        cv2.setUseOptimized(previous)
+
+
+def _mean(values) -> float | None:
+    vals = [v for v in values if v is not None]
+    return sum(vals) / len(vals) if vals else None
+
+
+class _Scorer:
+    """Scores predictions against a frame's GT in the chosen scope.
+
+    ``visible``: one :class:`MetricAccumulator` over the cells whose GT is known (not -1).
+    ``ground`` (with a ground visibility layer): flat classes are scored where the ground is
+    seen too; object classes keep the visible scope, since an object hides its own ground.
+    The two accumulators' results are merged into one document (means recomputed).
+    """
+
+    def __init__(self, grid: BevGrid, pred_names, gt_names, ground: bool) -> None:
+        names = tuple(c for c in pred_names if c in gt_names)
+        self.classes = resolve_classes(names) if names else ()
+        self.unscored = [c for c in pred_names if c not in gt_names]
+        self.scope_used = None if not names else ("ground" if ground else "visible")
+        split = [[c.name for c in self.classes if c.flat], [c.name for c in self.classes
+                                                             if not c.flat]]
+        groups = split if ground else [list(names)]
+        self.order = names
+        self.groups = []
+        for i, group in enumerate(groups):
+            if group:
+                self.groups.append((MetricAccumulator(grid, group),
+                                    [list(pred_names).index(c) for c in group],
+                                    [list(gt_names).index(c) for c in group],
+                                    ground and i == 0))
+        self._gt_idx = [list(gt_names).index(c) for c in names]
+
+    def update(self, frame, pred: BevPrediction):
+        """Score one frame; returns ``(gt (C', H, W) bool, visible (H, W))`` or ``(None, None)``."""
+        if not self.groups or frame.gt is None:
+            return None, None
+        with _exact_cv2():
+            for acc, p_idx, g_idx, use_ground in self.groups:
+                mask = frame.gt_known[g_idx].all(axis=0)
+                if use_ground and frame.ground_visibility is not None:
+                    mask = mask & frame.ground_visibility
+                acc.update(pred.probs[p_idx], frame.gt[g_idx] >= 0.5, mask, pred.known)
+        return frame.gt[self._gt_idx] >= 0.5, frame.gt_known[self._gt_idx].all(axis=0)
+
+    def result(self) -> dict:
+        """The merged :meth:`MetricAccumulator.result` of all groups, classes in mapper order."""
+        if not self.groups:
+            return {"frames": 0, "classes": {}, "miou": None, "map": None, "iou_by_range": {}}
+        results = [acc.result() for acc, *_ in self.groups]
+        if len(results) == 1:
+            return results[0]
+        classes = {}
+        for r in results:
+            classes.update(r["classes"])
+        classes = {c: classes[c] for c in self.order}
+        by_range = {}
+        for band in results[0]["iou_by_range"]:
+            row = {}
+            for r in results:
+                row.update({k: v for k, v in r["iou_by_range"][band].items() if k != "miou"})
+            row = {c: row[c] for c in self.order}
+            row["miou"] = _mean(row.values())
+            by_range[band] = row
+        return {"frames": results[0]["frames"], "classes": classes,
+                "miou": _mean(m["iou"] for m in classes.values()),
+                "map": _mean(m["precision"] for m in classes.values()),
+                "iou_by_range": by_range}
