@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from bev_mapper_core.errors import BevMapperError
-from msg_adapters import TfTree, camera_info_to_model, grid_from_info
+from msg_adapters import TfTree, camera_info_to_model
 
 from . import topics as T
 from .errors import BagCorruptError

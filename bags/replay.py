@@ -27,7 +27,7 @@ import time
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Iterator
 
 import cv2
 import numpy as np
@@ -249,8 +249,6 @@ def _run(options, reader, rig, grid, mapper, out, tmp_frames, notes) -> ReplayRe
         frames = reader.frames(rgb=kind == "rgb", labels=kind == "labels")
         try:
             for frame in frames:
-                if options.max_frames is not None and mapped >= options.max_frames:
-                    break
                 images = frame.labels if kind == "labels" else frame.rgb
                 if not images:
                     skipped += 1
@@ -274,6 +272,8 @@ def _run(options, reader, rig, grid, mapper, out, tmp_frames, notes) -> ReplayRe
                         gif_frames.append(pic)
                 mapped += 1
                 bar.update(1)
+                if options.max_frames is not None and mapped >= options.max_frames:
+                    break  # before reading further (and maybe meeting damage we don't need)
         except BagCorruptError as exc:
             damage = str(exc)
         finally:

@@ -198,6 +198,10 @@ def test_truncated_bag_replays_up_to_the_damage(tmp_path, capsys):
     assert all(sorted(g) == intact for g in grids.values())
     assert len(list((out / FRAMES_DIR).glob("*.png"))) == len(intact)
     assert no_partials(tmp_path) == []
+    # stopping before the damage is a complete replay
+    assert replay(cut, tmp_path / "first", "--max-frames", "1", "--no-pictures") == 0
+    m = load_metrics(tmp_path / "first")
+    assert m["frames"] == 1 and m["complete"] is True
 
 
 def test_bag_without_gt_uses_grid_flags(drive, tmp_path, capsys):
