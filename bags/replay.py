@@ -24,12 +24,10 @@ import json
 import logging
 import shutil
 import time
-from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Iterator
 
-import cv2
 import numpy as np
 
 from bev_mapper_core.classes import colorize_layers, resolve_classes
@@ -336,22 +334,6 @@ def _metrics(options, scorer: "_Scorer", grid, mapped, skipped, latencies, damag
     }
 
 
-@contextmanager
-def _exact_cv2():
-    """Run OpenCV without its SIMD paths (single-threaded replay only: the flag is global).
-
-    OpenCV's SIMD ``distanceTransform(DIST_MASK_PRECISE)`` (used by the Chamfer distance)
-    returns last-ulp differences depending on the output buffer's alignment, so the same frame
-    scored twice can differ at 1e-10 m; the scalar path is reproducible.
-    """
-    previous = cv2.useOptimized()
-    cv2.setUseOptimized(False)
-    try:
-        yield
-    finally:
-        cv2.setUseOptimized(previous)
-
-
 def _mean(values) -> float | None:
     vals = [v for v in values if v is not None]
     return sum(vals) / len(vals) if vals else None
@@ -388,12 +370,11 @@ class _Scorer:
         """Score one frame; returns ``(gt (C', H, W) bool, visible (H, W))`` or ``(None, None)``."""
         if not self.groups or frame.gt is None:
             return None, None
-        with _exact_cv2():
-            for acc, p_idx, g_idx, use_ground in self.groups:
-                mask = frame.gt_known[g_idx].all(axis=0)
-                if use_ground and frame.ground_visibility is not None:
-                    mask = mask & frame.ground_visibility
-                acc.update(pred.probs[p_idx], frame.gt[g_idx] >= 0.5, mask, pred.known)
+        for acc, p_idx, g_idx, use_ground in self.groups:
+            mask = frame.gt_known[g_idx].all(axis=0)
+            if use_ground and frame.ground_visibility is not None:
+                mask = mask & frame.ground_visibility
+            acc.update(pred.probs[p_idx], frame.gt[g_idx] >= 0.5, mask, pred.known)
         return frame.gt[self._gt_idx] >= 0.5, frame.gt_known[self._gt_idx].all(axis=0)
 
     def result(self) -> dict:

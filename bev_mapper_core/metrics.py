@@ -135,7 +135,11 @@ def _distance_to(cells: np.ndarray) -> np.ndarray:
     """
     # distanceTransform measures the distance to the nearest *zero* pixel.
     src = np.where(cells, 0, 1).astype(np.uint8)
-    return cv2.distanceTransform(src, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    d = cv2.distanceTransform(src, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    # Between cell centres the squared distance is an integer: snapping it removes the last-ulp
+    # noise of OpenCV's SIMD path (which varies with buffer alignment), so scores are exactly
+    # reproducible.
+    return np.sqrt(np.rint(d.astype(np.float64) ** 2))
 
 
 def _chamfer_terms(pred: np.ndarray, gt: np.ndarray, resolution: float, clip: float):

@@ -6,7 +6,6 @@ transposed grid or a mis-scaled intrinsic anywhere between the renderer, the bag
 reader and the IPM would break this.
 """
 
-import numpy as np
 import pytest
 
 from bags.reader import BagReader
