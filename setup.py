@@ -48,6 +48,7 @@ setup(
     entry_points={
         "console_scripts": [
             "bev-bag = bags.cli:main",
+            "bev-train = bev_mapper_core.training.cli:main",
             "mapper_node = bev_mapper_ros.mapper_node:main",
         ],
     },

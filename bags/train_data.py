@@ -1,0 +1,78 @@
+"""Training data from rosbag2 files that carry GT topics (``/bev/gt/<class>``), for ``bev-train --bag``.
+
+Lives outside ``bev_mapper_core`` because reading bags needs rosbags; the training CLI imports
+this module lazily, only when ``--bag`` is given. Frames become the same in-memory
+:class:`~bev_mapper_core.training.data.FrameSet` as the synthetic drives:
+
+* label images of every camera in rig order (frames where a camera's labels are missing or
+  undecodable are skipped, and counted);
+* ``target`` = GT layers of the requested classes thresholded at 0.5;
+* ``mask`` = cells whose GT is known (not -1) in every requested layer; ``ground_mask`` = the
+  bag's ``/bev/visibility/ground`` when present, else ``mask``.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from bev_mapper_core.errors import ConfigError
+from bev_mapper_core.grid import BevGrid
+from bev_mapper_core.rig import Rig
+from bev_mapper_core.training.data import FrameSet, resize_labels
+
+from .reader import BagReader
+
+log = logging.getLogger(__name__)
+
+
+def bag_rig_grid(path: str | Path) -> tuple[Rig, BevGrid]:
+    """The rig and GT grid recorded in a bag (ConfigError if it has no GT)."""
+    with BagReader(path) as r:
+        rig, grid = r.rig(), r.grid()
+    if grid is None:
+        raise ConfigError(f"{path}: no /bev/gt/<class> topics: cannot train on it")
+    return rig, grid
+
+
+def bag_frameset(paths: Sequence[str | Path], classes: Sequence[str], rig: Rig, grid: BevGrid,
+                 input_size: tuple[int, int] | None = None) -> FrameSet:
+    """All complete frames of ``paths`` (see module docstring) for ``rig`` and ``grid``.
+
+    Raises:
+        ConfigError: a bag lacks a requested GT class, has other cameras, another grid, or no
+            usable frame at all.
+    """
+    L, T, M, G = [], [], [], []
+    skipped = 0
+    for path in paths:
+        with BagReader(path) as r:
+            missing = [c for c in classes if c not in r.gt_classes]
+            if missing:
+                raise ConfigError(f"{path}: no GT topics for classes {missing} (has {list(r.gt_classes)})")
+            if r.rig().names != rig.names:
+                raise ConfigError(f"{path}: cameras {list(r.rig().names)} differ from {list(rig.names)}")
+            if r.grid() != grid:
+                raise ConfigError(f"{path}: GT grid {r.grid().describe()} differs from {grid.describe()}")
+            for f in r.frames(rgb=False, labels=True, gt=True, odom=False):
+                if f.gt is None or not all(n in f.labels for n in rig.names):
+                    skipped += 1
+                    continue
+                idx = [f.gt_classes.index(c) for c in classes]
+                lab = np.stack([f.labels[n] for n in rig.names]).astype(np.uint8)
+                L.append(lab if input_size is None else resize_labels(lab, input_size))
+                T.append(f.gt[idx] >= 0.5)
+                known = f.gt_known[idx].all(0)
+                M.append(known)
+                G.append(known if f.ground_visibility is None else (f.ground_visibility & known))
+    if not L:
+        raise ConfigError(f"no usable frame (labels of every camera + GT) in {list(map(str, paths))}")
+    if skipped:
+        log.warning("skipped %d incomplete frame(s) of %s", skipped, list(map(str, paths)))
+    return FrameSet(np.stack(L), np.stack(T), np.stack(M), np.stack(G), rig.names)
+
+
+__all__ = ["bag_frameset", "bag_rig_grid"]

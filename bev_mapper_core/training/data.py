@@ -1,0 +1,266 @@
+"""Training data: synthetic drives rendered once, cached as compressed ``.npz``, held in memory.
+
+One cache file per drive (``<cache>/<key>/drive_<seed>.npz``) holds, for ``frames`` frames
+rendered every ``stride``-th step of a seeded :func:`~bev_mapper_core.synth.generate_drive`
+world (short drives from many seeds give variety; the stride makes consecutive samples ~3 m
+apart instead of 1 m):
+
+* ``labels`` ``(F, N, H, W)`` uint8: full-resolution camera label images in rig order (full
+  resolution so that the same file serves IPM and the Mapper interface at evaluation time);
+* ``gt`` ``(F, K, Hg, Wg)`` bool: BEV ground truth of the requested classes (the renderer's
+  class table is swapped for the requested classes, e.g. Cam2BEV's road / vehicle / static);
+* ``visibility`` / ``ground_visibility`` ``(F, Hg, Wg)`` bool.
+
+The key directory name encodes rig, classes, grid, frames and stride, so incompatible caches
+never mix. Everything is a pure function of ``(rig, grid, classes, seed, frames, stride)``:
+the same seed gives bit-identical samples, and a drive rendered on the fly equals its cache.
+
+Seeds: training drives use ``train_seeds(seed, n)`` = ``seed * 100_000 + i`` (< ``VAL_SEED_BASE``);
+held-out drives ``val_seeds(n)`` = ``VAL_SEED_BASE + i`` by default, the same for every run, so
+all methods are scored on the same drives. :func:`check_disjoint` enforces that no training
+seed is a validation seed.
+
+In memory, label images can be stored already resized to the model input size with the exact
+operation :meth:`BiMapper.preprocess` applies (``nearest-exact`` interpolation of the ids), so
+the model sees identical inputs while RAM shrinks ~13x (preprocess skips resizing when the size
+already matches).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import zipfile
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Iterator, Sequence
+
+import numpy as np
+
+from ..classes import NUM_LABELS, label_lut, resolve_classes
+from ..errors import ConfigError
+from ..grid import BevGrid
+from ..rig import Rig
+
+#: First validation seed; training seeds must stay below it.
+VAL_SEED_BASE = 900_000_000
+#: Training seeds of run seed ``s`` are ``s * TRAIN_SEED_STRIDE + i``.
+TRAIN_SEED_STRIDE = 100_000
+CACHE_VERSION = 1
+
+
+def train_seeds(seed: int, n: int) -> tuple[int, ...]:
+    """Drive seeds of the training split of run seed ``seed``."""
+    if n < 1:
+        raise ConfigError(f"need at least one training drive, got {n}")
+    if seed < 0 or seed * TRAIN_SEED_STRIDE + n >= VAL_SEED_BASE or n > TRAIN_SEED_STRIDE:
+        raise ConfigError(f"run seed {seed} with {n} drives leaves the training seed range")
+    return tuple(seed * TRAIN_SEED_STRIDE + i for i in range(n))
+
+
+def val_seeds(n: int, base: int = VAL_SEED_BASE) -> tuple[int, ...]:
+    """Held-out drive seeds (the same for every run unless ``base`` is changed)."""
+    if n < 1:
+        raise ConfigError(f"need at least one validation drive, got {n}")
+    return tuple(base + i for i in range(n))
+
+
+def check_disjoint(train: Sequence[int], val: Sequence[int]) -> None:
+    """Raise :class:`ConfigError` if a seed is in both splits."""
+    both = sorted(set(train) & set(val))
+    if both:
+        raise ConfigError(f"validation seeds overlap training seeds: {both[:5]}")
+
+
+@dataclass(frozen=True)
+class DriveSpec:
+    """What one cached drive holds (everything its content depends on)."""
+
+    rig: str
+    cameras: tuple[str, ...]
+    classes: tuple[str, ...]
+    grid: tuple[float, float, float, float, float]
+    frames: int
+    stride: int
+
+    def key(self) -> str:
+        """Cache sub-directory name: readable prefix + hash of the full spec."""
+        h = hashlib.sha1(json.dumps(asdict(self), sort_keys=True).encode()).hexdigest()[:10]
+        return f"{self.rig}_{len(self.classes)}cls_f{self.frames}s{self.stride}_v{CACHE_VERSION}_{h}"
+
+
+def drive_spec(rig: Rig, grid: BevGrid, classes: Sequence[str], frames: int, stride: int) -> DriveSpec:
+    """The :class:`DriveSpec` of a rig/grid/classes and sampling."""
+    if frames < 1 or stride < 1:
+        raise ConfigError(f"frames and stride must be >= 1, got {frames}, {stride}")
+    resolve_classes(classes)
+    g = (grid.x_min, grid.x_max, grid.y_min, grid.y_max, grid.resolution)
+    return DriveSpec(rig.name, tuple(rig.names), tuple(classes), g, int(frames), int(stride))
+
+
+def render_drive(rig: Rig, grid: BevGrid, classes: Sequence[str], seed: int, frames: int,
+                 stride: int = 3) -> dict[str, np.ndarray]:
+    """Render one drive: frames ``0, stride, 2*stride, ...`` of the world of ``seed``.
+
+    Returns the arrays described in the module docstring. ``gt`` is built for ``classes`` by
+    giving the renderer the class table of those classes (it only uses it to build GT).
+    """
+    from ..synth import SynthConfig
+    from ..synth.drive import DriveRenderer
+    from ..synth.world import build_world
+
+    cls = resolve_classes(classes)
+    cfg = SynthConfig(frames=(frames - 1) * stride + 1, seed=int(seed))
+    renderer = DriveRenderer(build_world(cfg), rig, grid)
+    renderer.lut = label_lut(cls)  # GT of the requested classes
+    labels, gt, vis, gvis = [], [], [], []
+    for i in range(frames):
+        f = renderer.frame(i * stride)
+        labels.append(np.stack([f.cameras[n].labels for n in rig.names]))
+        gt.append(f.gt.astype(bool))
+        vis.append(f.visibility.astype(bool))
+        gvis.append((f.ground_visibility if f.ground_visibility is not None else f.visibility).astype(bool))
+    return {"labels": np.stack(labels).astype(np.uint8), "gt": np.stack(gt), "visibility": np.stack(vis),
+            "ground_visibility": np.stack(gvis)}
+
+
+def drive_path(cache_dir: str | os.PathLike, spec: DriveSpec, seed: int) -> Path:
+    """Cache file of drive ``seed``."""
+    return Path(cache_dir) / spec.key() / f"drive_{int(seed)}.npz"
+
+
+def load_or_render(rig: Rig, grid: BevGrid, spec: DriveSpec, seed: int,
+                   cache_dir: str | os.PathLike | None) -> dict[str, np.ndarray]:
+    """A drive from the cache, rendering (and caching) it first if needed.
+
+    A cache file that cannot be read is re-rendered (and overwritten).
+    """
+    if cache_dir is not None:
+        path = drive_path(cache_dir, spec, seed)
+        if path.is_file():
+            try:
+                with np.load(path, allow_pickle=False) as z:
+                    d = {k: z[k] for k in ("labels", "gt", "visibility", "ground_visibility")}
+                if d["labels"].shape[:2] == (spec.frames, len(spec.cameras)) and d["gt"].shape[1] == len(spec.classes):
+                    return d
+            except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError):
+                pass
+    d = render_drive(rig, grid, spec.classes, seed, spec.frames, spec.stride)
+    if cache_dir is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        meta = path.parent / "spec.json"
+        if not meta.exists():
+            meta.write_text(json.dumps(asdict(spec), indent=1))
+        tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
+        np.savez_compressed(tmp, **d)
+        os.replace(tmp, path)
+    return d
+
+
+def resize_labels(labels: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """``(..., H, W)`` uint8 ids -> ``(..., h, w)`` with exactly :meth:`BiMapper.preprocess`'s
+    resize (``F.interpolate(mode="nearest-exact")``); unknown ids become 0 as there."""
+    import torch
+    from torch.nn import functional as F
+
+    lead, (H, W) = labels.shape[:-2], labels.shape[-2:]
+    h, w = size
+    out = labels
+    if (H, W) != (h, w):
+        t = torch.from_numpy(np.ascontiguousarray(labels.reshape(-1, 1, H, W))).float()
+        out = F.interpolate(t, size=(h, w), mode="nearest-exact").to(torch.uint8).numpy().reshape(*lead, h, w)
+    return np.where(out < NUM_LABELS, out, 0).astype(np.uint8)
+
+
+class FrameSet:
+    """Frames held in memory: ``labels`` (M, N, h, w) uint8, ``target`` (M, K, Hg, Wg) bool,
+    ``mask`` (M, Hg, Wg) bool (+ ``ground_mask``), with :meth:`batches` for training.
+
+    ``labels_full`` keeps full-resolution images when requested (for evaluation through a
+    Mapper, which needs camera-size images).
+    """
+
+    def __init__(self, labels: np.ndarray, target: np.ndarray, mask: np.ndarray,
+                 ground_mask: np.ndarray | None = None, camera_names: Sequence[str] = ()) -> None:
+        if not (len(labels) == len(target) == len(mask)):
+            raise ConfigError("labels, target and mask must have the same number of frames")
+        self.labels, self.target, self.mask = labels, target, mask
+        self.ground_mask = mask if ground_mask is None else ground_mask
+        self.camera_names = tuple(camera_names)
+
+    def __len__(self) -> int:
+        return len(self.labels)
+
+    def batch(self, idx: np.ndarray) -> dict:
+        """Torch batch of frames ``idx``: ``images`` (B, N, h, w) uint8, ``target`` float, ``mask`` bool."""
+        import torch
+
+        idx = np.asarray(idx)
+        return {"images": torch.from_numpy(self.labels[idx]),
+                "target": torch.from_numpy(self.target[idx]).float(),
+                "mask": torch.from_numpy(self.mask[idx])}
+
+    def batches(self, batch_size: int, seed: int, epoch: int, limit: int | None = None,
+                shuffle: bool = True) -> Iterator[dict]:
+        """Batches of one epoch, order a function of ``(seed, epoch)``; at most ``limit`` frames."""
+        n = len(self)
+        order = np.random.default_rng([seed, epoch, 17]).permutation(n) if shuffle else np.arange(n)
+        if limit is not None and limit < n:
+            order = order[:limit]
+        for i in range(0, len(order), batch_size):
+            yield self.batch(order[i:i + batch_size])
+
+
+def synth_frameset(rig: Rig, grid: BevGrid, classes: Sequence[str], seeds: Sequence[int], frames: int,
+                   stride: int = 3, cache_dir: str | os.PathLike | None = None,
+                   input_size: tuple[int, int] | None = None, progress: bool = False) -> FrameSet:
+    """Load (rendering missing drives) the drives ``seeds`` into a :class:`FrameSet`.
+
+    ``input_size`` = (h, w): store labels resized as the model's preprocess would (see module
+    docstring); ``None`` keeps full resolution.
+    """
+    spec = drive_spec(rig, grid, classes, frames, stride)
+    it = seeds
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(seeds, desc=f"drives {rig.name}", unit="drive")
+    L, T, M, G = [], [], [], []
+    for s in it:
+        d = load_or_render(rig, grid, spec, s, cache_dir)
+        lab = d["labels"] if input_size is None else resize_labels(d["labels"], input_size)
+        L.append(lab)
+        T.append(d["gt"])
+        M.append(d["visibility"])
+        G.append(d["ground_visibility"])
+    return FrameSet(np.concatenate(L), np.concatenate(T), np.concatenate(M), np.concatenate(G), rig.names)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m bev_mapper_core.training.data``: render the cache ahead of training."""
+    import argparse
+
+    from ..classes import BEV_CLASS_NAMES, CAM2BEV_CLASSES
+    from ..rig import preset_rig
+
+    ap = argparse.ArgumentParser(description="Render synthetic training/validation drives into a cache.")
+    ap.add_argument("--rig", default="surround6")
+    ap.add_argument("--classes", default="standard", help="standard | cam2bev | comma list")
+    ap.add_argument("--cache", required=True)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--train-drives", type=int, default=30)
+    ap.add_argument("--val-drives", type=int, default=6)
+    ap.add_argument("--frames", type=int, default=20)
+    ap.add_argument("--stride", type=int, default=3)
+    a = ap.parse_args(argv)
+    classes = (BEV_CLASS_NAMES if a.classes == "standard" else tuple(c.name for c in CAM2BEV_CLASSES)
+               if a.classes == "cam2bev" else tuple(a.classes.split(",")))
+    rig, grid = preset_rig(a.rig), BevGrid()
+    seeds = list(val_seeds(a.val_drives)) + list(train_seeds(a.seed, a.train_drives))
+    synth_frameset(rig, grid, classes, seeds, a.frames, a.stride, a.cache, progress=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
