@@ -9,7 +9,8 @@ bash scripts/setup_venv.sh
 BAG=${BEV_DEMO_BAG:-data/demo_drive}
 OUT=${BEV_DEMO_OUT:-out/demo}
 if [ ! -f "$BAG/metadata.yaml" ]; then
-  echo "generating the demo drive $BAG (surround6, 50 frames, seed 1000: a held-out seed)" >&2
-  .venv/bin/bev-bag synth "$BAG" --rig surround6 --frames 50 --seed 1000 --storage mcap
+  # Seeds from 950,000,000 up are the test split: never used for training or validation.
+  echo "generating the demo drive $BAG (surround6, 50 frames, test seed 950000008)" >&2
+  .venv/bin/bev-bag synth "$BAG" --rig surround6 --frames 50 --seed 950000008 --storage mcap
 fi
 exec .venv/bin/bev-bag replay "$BAG" --out "$OUT" --force "$@"
