@@ -80,13 +80,18 @@ class IpmMapper(Mapper):
     name = "ipm"
 
     def __init__(self, rig: Rig, grid: BevGrid, config: MapperConfig) -> None:
+        self.preflight(config, rig.name)
+        super().__init__(rig, grid, config)
+        self._lut = label_lut(self.classes).astype(np.float32)  # (NUM_LABELS, C)
+
+    @classmethod
+    def preflight(cls, config: MapperConfig, rig_name: str) -> None:
+        """IPM needs label images."""
         if config.input_kind != "labels":
             raise ConfigError(
                 "IPM maps semantic label images only (input_kind 'labels'); RGB input needs a "
                 "learned method such as 'bimapper'"
             )
-        super().__init__(rig, grid, config)
-        self._lut = label_lut(self.classes).astype(np.float32)  # (NUM_LABELS, C)
 
     def set_rig(self, rig: Rig) -> None:
         """Recompute the ground lookup tables for a new calibration."""

@@ -93,6 +93,16 @@ class Mapper(ABC):
         self.rig = rig
         self.set_rig(rig)
 
+    @classmethod
+    def preflight(cls, config: MapperConfig, rig_name: str) -> None:
+        """Check what can be checked before any calibration is known (weights, input kind).
+
+        Lets a node fail at start-up with a clear error instead of at its first frame.
+
+        Raises:
+            ConfigError: the configuration cannot work for this method.
+        """
+
     def set_rig(self, rig: Rig) -> None:
         """Adopt a new calibration; subclasses precompute lookup tables here."""
         self.rig = rig
@@ -170,20 +180,37 @@ def available_methods() -> tuple[str, ...]:
     return tuple(sorted(_REGISTRY))
 
 
+def mapper_class(method: str) -> type[Mapper]:
+    """The class registered for ``method`` (imported on first use).
+
+    Raises:
+        ConfigError: unknown method.
+    """
+    try:
+        target = _REGISTRY[method]
+    except KeyError:
+        raise ConfigError(f"unknown method {method!r}; available: {list(available_methods())}") from None
+    if isinstance(target, str):
+        module, _, attr = target.partition(":")
+        target = getattr(importlib.import_module(module), attr)
+    return target
+
+
+def preflight(config: MapperConfig, rig_name: str) -> None:
+    """Run the method's start-up checks (see :meth:`Mapper.preflight`)."""
+    cls = mapper_class(config.method)
+    check = getattr(cls, "preflight", None)
+    if check is not None:
+        check(config, rig_name)
+
+
 def create_mapper(rig: Rig, grid: BevGrid, config: MapperConfig) -> Mapper:
     """Build the mapper ``config.method`` for a rig and grid.
 
     Raises:
         ConfigError: unknown method, or a method that cannot serve this configuration.
     """
-    try:
-        target = _REGISTRY[config.method]
-    except KeyError:
-        raise ConfigError(f"unknown method {config.method!r}; available: {list(available_methods())}") from None
-    if isinstance(target, str):
-        module, _, attr = target.partition(":")
-        target = getattr(importlib.import_module(module), attr)
-    return target(rig, grid, config)
+    return mapper_class(config.method)(rig, grid, config)
 
 
 __all__ = [
@@ -193,5 +220,7 @@ __all__ = [
     "MapperConfig",
     "available_methods",
     "create_mapper",
+    "mapper_class",
+    "preflight",
     "register_method",
 ]

@@ -23,7 +23,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from bev_mapper_core.classes import colorize_layers
 from bev_mapper_core.errors import BevMapperError
-from bev_mapper_core.mapper import create_mapper
+from bev_mapper_core.mapper import create_mapper, preflight
 from msg_adapters import (
     FrameSynchronizer,
     RclpyFactory,
@@ -75,6 +75,7 @@ class MapperNode(Node):
         declare_parameters(self)
         self.cfg = node_config_from_params(read_parameters(self))  # raises on bad parameters
         cfg = self.cfg
+        preflight(cfg.mapper, self.get_parameter("rig").value)  # e.g. missing weights: fail now
         self.factory = RclpyFactory()
         self.stats = NodeStats()
         self._last_logged: dict[str, float] = {}

@@ -181,3 +181,26 @@ def test_node_survives_broken_input(ros, drive):
     r, c = GRID.metric_to_cell(15.0, 0.0)
     assert occ[r * GRID.width + c] == -1
     assert np.asarray(d.grids["drivable"][f2.stamp_ns].data)[r * GRID.width + c] != -1
+
+
+@pytest.mark.parametrize(
+    "overrides, message",
+    [
+        (["-p", "grid.resolution:=0.7"], "not a whole number"),
+        (["-p", "cameras:=[front,front]"], "distinct"),
+        (["-p", "method:=bimapper", "-p", "weights:=/nonexistent.safetensors"], "does not exist"),
+        (["-p", "input_kind:=rgb"], "label images only"),
+        (["-p", "sync_slop_s:=fast"], "expecting type 'DOUBLE'"),
+    ],
+)
+def test_node_rejects_bad_parameters_at_startup(tmp_path, overrides, message):
+    """Bad parameters: a clear one-line error and exit status 2, not a traceback."""
+    proc = start_process(["bev_mapper_ros.mapper_node", "--ros-args", "--params-file", str(PARAMS_FILE),
+                          *overrides], free_domain_id(7), tmp_path / "bad.log")
+    try:
+        code = proc.wait(60)
+    finally:
+        stop_process(proc)
+    text = (tmp_path / "bad.log").read_text()
+    assert code == 2, text
+    assert "error: " in text and message in text and "Traceback" not in text

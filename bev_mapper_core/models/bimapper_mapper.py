@@ -60,13 +60,36 @@ class BiMapperMapper(Mapper):
 
     name = "bimapper"
 
-    def __init__(self, rig: Rig, grid: BevGrid, config: MapperConfig) -> None:
-        path = Path(config.weights) if config.weights else default_weights_path(rig.name, config.input_kind)
-        if not config.weights and not path.is_file():
+    @classmethod
+    def weights_path(cls, config: MapperConfig, rig_name: str) -> Path:
+        """The weights file to use: ``config.weights`` or the shipped one for the rig.
+
+        Raises:
+            ConfigError: none given and none shipped for this rig and input kind.
+        """
+        if config.weights:
+            return Path(config.weights)
+        path = default_weights_path(rig_name, config.input_kind)
+        if not path.is_file():
             raise ConfigError(
-                f"no Bi-Mapper weights given and none shipped for rig {rig.name!r} / input "
+                f"no Bi-Mapper weights given and none shipped for rig {rig_name!r} / input "
                 f"{config.input_kind!r} (looked for {path}); train one and pass weights=<file>"
             )
+        return path
+
+    @classmethod
+    def preflight(cls, config: MapperConfig, rig_name: str) -> None:
+        """The weights file exists and is a Bi-Mapper safetensors file for this input kind."""
+        path = cls.weights_path(config, rig_name)
+        meta = read_metadata(path)
+        if meta["input_kind"] != config.input_kind:
+            raise WeightsError(
+                f"{path} is for input {meta['input_kind']!r}, configured input is {config.input_kind!r}")
+        if rig_name and meta["rig"] != rig_name:
+            raise WeightsError(f"{path} was trained for rig {meta['rig']!r}, not {rig_name!r}")
+
+    def __init__(self, rig: Rig, grid: BevGrid, config: MapperConfig) -> None:
+        path = self.weights_path(config, rig.name)
         meta = read_metadata(path)
         if config.classes is None:
             config = replace(config, classes=tuple(meta["classes"]))
