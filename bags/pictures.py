@@ -20,7 +20,7 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from bev_mapper_core.classes import BevClass, colorize_layers
+from bev_mapper_core.classes import BevClass, bev_picture
 from bev_mapper_core.grid import BevGrid
 
 #: Pictures are upscaled (nearest) until the BEV panels are at least this many pixels tall.
@@ -50,12 +50,6 @@ def write_atomic(path: str | Path, data: bytes) -> Path:
         if tmp.exists():
             tmp.unlink()
     return path
-
-
-def bev_picture(grid: BevGrid, layers: np.ndarray, classes: Sequence[BevClass],
-                known: np.ndarray | None = None) -> np.ndarray:
-    """``(W, H, 3)`` uint8 RGB display picture of class layers ``(C, H, W)`` (forward up)."""
-    return np.ascontiguousarray(grid.to_display(colorize_layers(layers, tuple(classes), known)))
 
 
 def _text(img: np.ndarray, text: str, x: int, y: int, scale: float = 0.45) -> None:

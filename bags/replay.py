@@ -30,7 +30,7 @@ from typing import Iterator
 
 import numpy as np
 
-from bev_mapper_core.classes import colorize_layers, resolve_classes
+from bev_mapper_core.classes import bev_picture, resolve_classes
 from bev_mapper_core.grid import BevGrid
 from bev_mapper_core.mapper import BevPrediction, MapperConfig, create_mapper
 from bev_mapper_core.metrics import MetricAccumulator
@@ -303,8 +303,8 @@ def _write_frame(bw: BagWriter, grid: BevGrid, mapper, pred: BevPrediction, stam
     for ci, c in enumerate(mapper.class_names):
         bw.write(OUT_PREFIX + c, make_occupancy_grid(bw.factory, grid, pred.probs[ci], pred.known,
                                                      stamp, ego), stamp)
-    picture = grid.to_display(colorize_layers(pred.probs, mapper.classes, pred.known))
-    bw.write(IMAGE_TOPIC, make_image(bw.factory, np.ascontiguousarray(picture), "rgb8", stamp, ego),
+    picture = bev_picture(grid, pred.probs, mapper.classes, pred.known)
+    bw.write(IMAGE_TOPIC, make_image(bw.factory, picture, "rgb8", stamp, ego),
              stamp)
 
 

@@ -136,3 +136,9 @@ def colorize_layers(layers: np.ndarray, classes=BEV_CLASSES, known=None, thresho
         on = (layers[ci] >= threshold) & known
         img[on] = c.color
     return img
+
+
+def bev_picture(grid, layers: np.ndarray, classes=BEV_CLASSES, known=None) -> np.ndarray:
+    """Display picture of class layers ``(C, H, W)`` on ``grid``: ``(W, H, 3)`` uint8 RGB,
+    forward up and left on the left (see :meth:`BevGrid.to_display`), C-contiguous."""
+    return np.ascontiguousarray(grid.to_display(colorize_layers(layers, tuple(classes), known)))

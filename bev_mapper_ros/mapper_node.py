@@ -21,7 +21,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
-from bev_mapper_core.classes import colorize_layers
+from bev_mapper_core.classes import bev_picture
 from bev_mapper_core.errors import BevMapperError
 from bev_mapper_core.mapper import create_mapper, preflight
 from msg_adapters import (
@@ -222,9 +222,8 @@ class MapperNode(Node):
             msg = make_occupancy_grid(self.factory, self.cfg.grid, pred.probs[ci], pred.known,
                                       stamp, self.cfg.base_frame)
             self._grid_pubs[c.name].publish(msg)
-        picture = self.cfg.grid.to_display(colorize_layers(pred.probs, self.classes, pred.known))
-        self._image_pub.publish(make_image(self.factory, np.ascontiguousarray(picture), "rgb8",
-                                           stamp, self.cfg.base_frame))
+        picture = bev_picture(self.cfg.grid, pred.probs, self.classes, pred.known)
+        self._image_pub.publish(make_image(self.factory, picture, "rgb8", stamp, self.cfg.base_frame))
         processing_ms = (time.perf_counter() - t0) * 1000.0
         latency_ms = (self._now_ns() - stamp) / 1e6
         self.stats.record_mapped(time.monotonic(), processing_ms, latency_ms, missing)
