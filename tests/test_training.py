@@ -172,3 +172,26 @@ def test_config_from_yaml(tmp_path):
     # paper schedule scaled: lr step at 10/30, mutual both ways from the 5th of 30 epochs
     assert TrainConfig(epochs=30).lr_step == 10 and TrainConfig(epochs=30).mutual_start == 4
     assert TrainConfig(epochs=9).lr_step == 3
+
+
+def test_training_on_a_bag_with_gt(tmp_path, capsys):
+    pytest.importorskip("rosbags")
+    from bags.cli import main as bag_main
+
+    bag = tmp_path / "bag"
+    g = [str(v) for v in TINY_GRID]
+    assert bag_main(["synth", str(bag), "--rig", RIG, "--frames", "3", "--grid-x-min", g[0], "--grid-x-max", g[1],
+                     "--grid-y-min", g[2], "--grid-y-max", g[3], "--grid-res", g[4]]) == 0
+    from bags.train_data import bag_frameset, bag_rig_grid
+
+    rig, grid = bag_rig_grid(bag)
+    assert rig.names == preset_rig(RIG).names and grid == BevGrid(*TINY_GRID)
+    fs = bag_frameset([bag], ("drivable", "vehicle"), rig, grid)
+    assert len(fs) == 3 and fs.target.shape == (3, 2, 16, 32) and fs.labels.shape[1] == 4 and fs.mask.any()
+    out = tmp_path / "run"
+    rc = cli.main(["--bag", str(bag), "--val-bag", str(bag), "--rig", RIG, "--classes", "drivable,vehicle", "--epochs", "1",
+                   "--batch", "2", "--input-width", "48", "--gv-hidden", "16", "--threads", "1", "--out", str(out),
+                   "--no-progress"])
+    assert rc == 0 and (out / "best.safetensors").is_file()
+    with pytest.raises(ConfigError):  # a class the bag has no GT topic for
+        bag_frameset([bag], ("road",), rig, grid)

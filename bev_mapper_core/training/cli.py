@@ -107,6 +107,7 @@ def train_parser() -> argparse.ArgumentParser:
     p.add_argument("--fusion", choices=["sum", "concat"])
     p.add_argument("--no-asl", dest="asl", action="store_false", default=argparse.SUPPRESS)
     p.add_argument("--mutual", choices=["async", "sync", "lv", "gv", "none"])
+    p.add_argument("--pos-weight", dest="pos_weight", choices=["auto", "none"], help="BCE class weights (none = paper)")
     p.add_argument("--input-width", dest="input_width", type=_pos_int)
     p.add_argument("--gv-hidden", dest="gv_hidden", type=_pos_int)
     p.add_argument("--time-budget", dest="time_budget_min", type=_pos_float, help="minutes; stop (resumable) after")
@@ -145,6 +146,11 @@ def run_eval(argv: list[str]) -> int:
     from .data import val_seeds
     from .evaluate import evaluate, save_result, summary_header, summary_row
 
+    import os
+
+    from ..models.bimapper_mapper import THREADS_ENV
+
+    os.environ[THREADS_ENV] = str(a.threads)  # the Bi-Mapper Mapper sets its own thread count
     torch.set_num_threads(a.threads)
     classes = class_set(a.classes, a.rig)
     seeds = a.val_seeds or val_seeds(a.val_drives)

@@ -65,6 +65,10 @@ class TrainConfig:
         progress: tqdm progress bars.
         grid: ``(x_min, x_max, y_min, y_max, resolution)`` of the BEV grid (None = the default
             60 m x 30 m at 0.15 m, which the shipped weights use); synthetic data only.
+        pos_weight: ``auto``: per-class positive weight of the ego BCE,
+            ``clip(sqrt(negatives / positives), 1, 10)`` over the visible cells of the training
+            set (thin and rare layers: lane dividers, crossings, pedestrians); ``none``: plain BCE
+            as in the paper. See :func:`~.trainer.class_pos_weight`.
     """
 
     method: str = "bimapper"
@@ -101,6 +105,7 @@ class TrainConfig:
     val_bag: tuple[str, ...] | None = None
     progress: bool = True
     grid: tuple[float, float, float, float, float] | None = None
+    pos_weight: str = "auto"
 
     def __post_init__(self) -> None:
         if self.grid is not None:
@@ -141,6 +146,8 @@ class TrainConfig:
             raise ConfigError(f"streams must be one of {STREAMS}, got {self.streams!r}")
         if self.fusion not in FUSIONS:
             raise ConfigError(f"fusion must be one of {FUSIONS}, got {self.fusion!r}")
+        if self.pos_weight not in ("auto", "none"):
+            raise ConfigError(f"pos_weight must be 'auto' or 'none', got {self.pos_weight!r}")
         if self.mutual not in MUTUAL_MODES:
             raise ConfigError(f"mutual must be one of {MUTUAL_MODES}, got {self.mutual!r}")
         if self.device.split(":")[0] not in ("cpu", "cuda"):

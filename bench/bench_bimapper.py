@@ -1,0 +1,72 @@
+"""Benchmark: Bi-Mapper inference ms/frame on CPU through the Mapper interface.
+
+The shipped configuration: ``create_mapper(surround6, BevGrid(), MapperConfig(method="bimapper"))``
+(the shipped weights ``bev_mapper_core/weights/bimapper_surround6_labels.safetensors``), batch 1,
+six 400x225 label images per frame; the time covers ``mapper.map`` in full: preprocessing
+(resize + one-hot), both streams, fusion, decoder, sigmoid and the copy back to numpy. IPM is
+timed on the same frames for reference.
+
+    .venv/bin/python bench/bench_bimapper.py [--frames 20] [--repeat 3] [--threads N] [--weights FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import time
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=20)
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: $BEV_MAPPER_TORCH_THREADS or all CPUs)")
+    ap.add_argument("--weights", default=None, help="weights file (default: the shipped one)")
+    ap.add_argument("--rig", default="surround6")
+    args = ap.parse_args()
+    if args.threads:
+        os.environ["BEV_MAPPER_TORCH_THREADS"] = str(args.threads)
+
+    import torch
+
+    from bev_mapper_core.grid import BevGrid
+    from bev_mapper_core.mapper import MapperConfig, create_mapper
+    from bev_mapper_core.rig import preset_rig
+    from bev_mapper_core.synth import SynthConfig, generate_drive
+
+    rig, grid = preset_rig(args.rig), BevGrid()
+    frames = [{n: c.labels for n, c in f.cameras.items()}
+              for f in generate_drive(rig, grid, SynthConfig(frames=args.frames, seed=7))]
+    t0 = time.perf_counter()
+    mapper = create_mapper(rig, grid, MapperConfig(method="bimapper", weights=args.weights))
+    setup_ms = (time.perf_counter() - t0) * 1000.0
+    ipm = create_mapper(rig, grid, MapperConfig(method="ipm", classes=mapper.class_names))
+    mapper.map(frames[0])  # warm-up (allocations, oneDNN kernels)
+
+    def per_frame(m):
+        runs = []
+        for _ in range(args.repeat):
+            t = time.perf_counter()
+            for f in frames:
+                m.map(f)
+            runs.append((time.perf_counter() - t) * 1000.0 / len(frames))
+        return min(runs), statistics.median(runs)
+
+    bi_best, bi_med = per_frame(mapper)
+    ipm_best, ipm_med = per_frame(ipm)
+    model = mapper.model
+    n_params = sum(p.numel() for p in model.parameters())
+    w, h = rig.cameras[0].model.image_size
+    print(f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, torch {torch.__version__}, "
+          f"{torch.get_num_threads()} torch thread(s)")
+    print(f"{rig.name} {len(rig.cameras)}x{w}x{h} labels -> {grid.describe()}, {len(frames)} frames, batch 1")
+    print(f"weights {mapper.weights_path.name}: {n_params / 1e6:.2f} M parameters, model input "
+          f"{model.input_size[1]}x{model.input_size[0]} per camera; load {setup_ms:.0f} ms")
+    print(f"Bi-Mapper (Mapper.map): {bi_best:8.1f} ms/frame (best of {args.repeat}; median {bi_med:.1f})")
+    print(f"IPM       (Mapper.map): {ipm_best:8.1f} ms/frame (best of {args.repeat}; median {ipm_med:.1f})")
+
+
+if __name__ == "__main__":
+    main()
