@@ -20,6 +20,9 @@ TfLookup = Callable[[str, str], "np.ndarray | None"]
 class LiveCalibration:
     """Thread-safe per-camera calibration that yields a :class:`Rig` once complete.
 
+    Extrinsics: TF first (looked up until found, then kept: camera mounts are static), else
+    the ``extrinsics.<cam>`` parameters.
+
     Intrinsics arrive continuously with CameraInfo; only a *change* bumps :attr:`version`, so
     the mapper recomputes its lookup tables only when the calibration really changes.
     """

@@ -1,0 +1,114 @@
+"""Node configuration, generated rig configs and the latest-set worker (no ROS graph needed)."""
+
+import threading
+import time
+
+import numpy as np
+import pytest
+import yaml
+
+from bev_mapper_core.errors import ConfigError, GridError
+from bev_mapper_core.rig import PRESETS, preset_rig
+from bev_mapper_core.transforms import quat_to_rot
+from bev_mapper_ros.calibration import LiveCalibration
+from bev_mapper_ros.config import NodeConfigError, node_config_from_params
+from bev_mapper_ros.rig_params import CONFIG_DIR, write_configs
+from bev_mapper_ros.worker import LatestSlot, Worker
+
+
+def test_params_map_onto_dataclasses():
+    cfg = node_config_from_params({
+        "cameras": ["a", "b"], "input_kind": "rgb", "method": "ipm", "classes": ["drivable"],
+        "grid.x_min": 0.0, "grid.x_max": 10.0, "grid.y_min": -5.0, "grid.y_max": 5.0,
+        "grid.resolution": 0.5, "extrinsics.a": [1, 2, 3, 0, 0, 0, 1], "compressed": True,
+    })
+    assert cfg.grid.shape == (20, 20) and cfg.mapper.input_kind == "rgb"
+    assert cfg.mapper.classes == ("drivable",)
+    assert cfg.image_topic_for("a") == "/cameras/a/image_raw/compressed"
+    assert cfg.camera_info_topic_for("b") == "/cameras/b/camera_info"
+    np.testing.assert_allclose(cfg.extrinsic("a")[:3, 3], [1, 2, 3])
+    assert cfg.extrinsic("b") is None
+
+
+@pytest.mark.parametrize(
+    "params, error, message",
+    [
+        ({"cameras": []}, NodeConfigError, "cameras"),
+        ({"cameras": ["a", "a/b"]}, NodeConfigError, "without '/'"),
+        ({"cameras": ["a"], "extrinsics.a": [1, 2, 3]}, NodeConfigError, "7 finite numbers"),
+        ({"cameras": ["a"], "extrinsics.a": [0, 0, 0, 0, 0, 0, 0]}, NodeConfigError, "quaternion"),
+        ({"cameras": ["a"], "sync_slop_s": 0.5, "sync_timeout_s": 0.1}, NodeConfigError, "timeout"),
+        ({"cameras": ["a"], "image_topic": "/img"}, NodeConfigError, "{camera}"),
+        ({"cameras": ["a"], "grid.resolution": -1.0}, GridError, "resolution"),
+        ({"cameras": ["a"], "input_kind": "depth"}, ConfigError, "input_kind"),
+        ({"cameras": ["a"], "classes": ["unicorn"]}, ConfigError, "unknown BEV class"),
+    ],
+)
+def test_bad_params_are_rejected_with_a_clear_message(params, error, message):
+    with pytest.raises(error, match=message):
+        node_config_from_params(params)
+
+
+def test_shipped_configs_match_the_rig_presets(tmp_path):
+    """config/*.yaml are generated from the presets; a stale file would map with wrong extrinsics."""
+    written = write_configs(tmp_path)
+    assert sorted(p.name for p in written) == sorted(f"{n}.yaml" for n in PRESETS)
+    for path in written:
+        assert (CONFIG_DIR / path.name).read_text() == path.read_text(), f"regenerate {path.name}"
+    # And the parameters really describe the preset's extrinsics.
+    params = yaml.safe_load((CONFIG_DIR / "surround6.yaml").read_text())["/**"]["ros__parameters"]
+    rig = preset_rig("surround6")
+    for cam in rig.cameras:
+        x, y, z, qx, qy, qz, qw = params["extrinsics"][cam.name]
+        np.testing.assert_allclose(quat_to_rot(qx, qy, qz, qw), cam.ego_from_cam_array[:3, :3], atol=1e-8)
+        np.testing.assert_allclose([x, y, z], cam.ego_from_cam_array[:3, 3], atol=1e-8)
+
+
+def test_latest_slot_keeps_only_the_newest_and_counts_drops():
+    slot = LatestSlot()
+    assert slot.put(1) is False
+    assert slot.put(2) is True and slot.put(3) is True
+    assert slot.dropped == 2
+    assert slot.take(0) == 3 and slot.take(0.01) is None
+
+
+def test_worker_survives_a_failing_item():
+    slot, done, errors = LatestSlot(), [], []
+    event = threading.Event()
+
+    def handle(item):
+        if item == "bad":
+            raise ValueError("boom")
+        done.append(item)
+        event.set()
+
+    w = Worker(slot, handle, errors.append)
+    w.start()
+    slot.put("bad")
+    time.sleep(0.2)
+    slot.put("good")
+    assert event.wait(5)
+    w.stop()
+    assert done == ["good"] and len(errors) == 1 and "boom" in str(errors[0])
+
+
+def test_live_calibration_prefers_tf_and_bumps_version_only_on_change():
+    rig = preset_rig("front1")
+    cam = rig.cameras[0]
+    tf_answer = {"T": None}
+    calib = LiveCalibration("front1", ["front"], "base_link", {"front": cam.ego_from_cam_array},
+                            tf_lookup=lambda target, source: tf_answer["T"])
+    assert calib.rig() is None and calib.missing() == ("front: camera_info",)
+    assert calib.update_intrinsics("front", cam.model, cam.frame_id) is True
+    assert calib.update_intrinsics("front", cam.model, cam.frame_id) is False
+    first = calib.rig()
+    assert calib.sources() == {"front": "parameter"}
+    np.testing.assert_allclose(first["front"].ego_from_cam_array, cam.ego_from_cam_array)
+    v = calib.version
+    lifted = cam.ego_from_cam_array.copy()
+    lifted[2, 3] += 0.5
+    tf_answer["T"] = lifted
+    second = calib.rig()
+    assert calib.version > v and calib.sources() == {"front": "tf"}
+    np.testing.assert_allclose(second["front"].ego_from_cam_array, lifted)
+    assert calib.rig() is second  # cached while nothing changes
