@@ -248,7 +248,8 @@ def train(cfg: TrainConfig, log: Callable[[str], None] = print, data=None) -> di
                 break
         train_s = time.time() - t0
         if stopped and n < total:
-            # an unfinished epoch is not checkpointed as finished: keep the weights as "partial"
+            # the cut epoch is validated and checkpointed like a finished one (a resume starts
+            # with the next epoch); its history record says ``partial``
             log(f"time budget reached inside epoch {epoch + 1} after {n}/{total} batches")
         tv = time.time()
         res = validate(model, val_set, grid, cfg.batch, cfg.val_frames)
