@@ -2,21 +2,15 @@
 
 from glob import glob
 
-from setuptools import setup
+from setuptools import find_packages, setup
 
 PACKAGE = "bev_mapper_ros"
 
 setup(
     name=PACKAGE,
     version="0.1.0",
-    packages=[
-        "bev_mapper_core",
-        "bev_mapper_core.synth",
-        "bev_mapper_core.models",
-        "msg_adapters",
-        "bev_mapper_ros",
-        "bags",
-    ],
+    # Every subpackage of the four top-level packages (a hand-kept list once missed one).
+    packages=find_packages(include=["bev_mapper_core*", "msg_adapters*", "bev_mapper_ros*", "bags*"]),
     package_data={"bev_mapper_core": ["weights/*.safetensors", "weights/*.json"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
