@@ -56,13 +56,7 @@ def to_rclpy(typestore, msg: Any, msgtype: str, factory: RclpyFactory | None = N
 
 def latched_topics(reader: BagReader) -> set[str]:
     """``/tf_static`` and every topic the bag records with transient-local offered QoS."""
-    latched = {T.TF_STATIC}
-    raw = getattr(getattr(reader, "_src", None), "_reader", None)  # rosbags AnyReader, if any
-    for conn in getattr(raw, "connections", ()) or ():
-        for qos in getattr(getattr(conn, "ext", None), "offered_qos_profiles", ()) or ():
-            if getattr(getattr(qos, "durability", None), "name", "") == "TRANSIENT_LOCAL":
-                latched.add(conn.topic)
-    return latched
+    return {T.TF_STATIC} | reader.latched_topics
 
 
 class Player:

@@ -149,6 +149,11 @@ class BagReader:
         return self._src.damage
 
     @property
+    def latched_topics(self) -> set[str]:
+        """Topics recorded with transient-local durability (empty when the storage has no QoS)."""
+        return set(getattr(self._src, "latched", ()))
+
+    @property
     def custom_data(self) -> dict[str, str]:
         """``custom_data`` of metadata.yaml (empty for plain files)."""
         return dict(self._src.custom_data)

@@ -69,6 +69,11 @@ class AnyReaderSource:
             for name, info in self._reader.topics.items()
         }
         self.topic_order = [c.topic for c in sorted(self._reader.connections, key=lambda c: c.id)]
+        self.latched = {
+            c.topic for c in self._reader.connections
+            for qos in (getattr(getattr(c, "ext", None), "offered_qos_profiles", ()) or ())
+            if getattr(getattr(qos, "durability", None), "name", "") == "TRANSIENT_LOCAL"
+        }
 
     def messages(self, topics: set[str] | None = None) -> Iterator[tuple[str, str, int, Any]]:
         conns = [c for c in self._reader.connections if topics is None or c.topic in topics]

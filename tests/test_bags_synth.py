@@ -146,6 +146,7 @@ def test_write_read_roundtrip(tmp_path, storage):
     assert durabilities == [D.TRANSIENT_LOCAL]
     with BagReader(out) as r:
         assert r.damage is None
+        assert r.latched_topics == {"/tf_static"}  # what `bev-bag play` publishes transient-local
         assert_layout(r, rig, 3)
         assert_rig_matches(r.rig(), rig)
         assert r.grid() == GRID
