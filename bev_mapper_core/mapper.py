@@ -34,6 +34,7 @@ class MapperConfig:
         classes: BEV class names to produce, ``None`` = the method's/standard set.
         weights: path to a safetensors weights file (learned methods), ``None`` = shipped default.
         device: torch device for learned methods (``cpu``, ``cuda``).
+        threads: CPU threads of learned methods' inference; 0 = the method's default.
     """
 
     method: str = "ipm"
@@ -41,8 +42,11 @@ class MapperConfig:
     classes: tuple[str, ...] | None = None
     weights: str | None = None
     device: str = "cpu"
+    threads: int = 0
 
     def __post_init__(self) -> None:
+        if not isinstance(self.threads, int) or self.threads < 0:
+            raise ConfigError(f"threads must be an integer >= 0 (0 = method default), got {self.threads!r}")
         if self.method not in _REGISTRY:
             raise ConfigError(f"unknown method {self.method!r}; available: {list(available_methods())}")
         if self.input_kind not in INPUT_KINDS:

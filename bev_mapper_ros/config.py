@@ -8,6 +8,7 @@ module imports no rclpy, so the mapping is unit-testable without a ROS graph.
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -111,6 +112,20 @@ def extrinsic_from_list(camera: str, values) -> np.ndarray | None:
         raise NodeConfigError(f"extrinsics.{camera}: {exc}") from None
 
 
+def node_default_threads() -> int:
+    """Inference threads in the node: every CPU but one, which stays free for the executor.
+
+    With torch on every core the subscription callbacks starve, the images of one set arrive
+    further apart than the sync timeout and sets are split into partial ones (measured with
+    ``bench/bench_node_rate.py``).
+    """
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        cpus = os.cpu_count() or 1
+    return max(1, cpus - 1)
+
+
 def node_config_from_params(p: dict) -> NodeConfig:
     """Build a :class:`NodeConfig` from a flat parameter dict (names as the node declares them).
 
@@ -125,6 +140,7 @@ def node_config_from_params(p: dict) -> NodeConfig:
         classes=classes,
         weights=p.get("weights") or None,
         device=p.get("device", "cpu"),
+        threads=int(p.get("threads", 0)) or node_default_threads(),
     )
     grid = BevGrid(
         x_min=float(p.get("grid.x_min", -30.0)),

@@ -31,6 +31,8 @@ PARAMETERS: dict[str, tuple] = {
     "method": ("ipm", _T.PARAMETER_STRING, True, "mapping method"),
     "weights": ("", _T.PARAMETER_STRING, True, "safetensors weights ('' = shipped default)"),
     "device": ("cpu", _T.PARAMETER_STRING, True, "torch device of learned methods"),
+    "threads": (0, _T.PARAMETER_INTEGER, True,
+                "CPU threads of learned methods; 0 = all CPUs but one (left to the callbacks)"),
     "classes": ([""], _T.PARAMETER_STRING_ARRAY, True, "classes to publish ([] = all)"),
     "grid.x_min": (-30.0, _T.PARAMETER_DOUBLE, True, "grid extent along x (m)"),
     "grid.x_max": (30.0, _T.PARAMETER_DOUBLE, True, "grid extent along x (m)"),

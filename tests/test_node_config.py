@@ -112,3 +112,15 @@ def test_live_calibration_prefers_tf_and_bumps_version_only_on_change():
     assert calib.version > v and calib.sources() == {"front": "tf"}
     np.testing.assert_allclose(second["front"].ego_from_cam_array, lifted)
     assert calib.rig() is second  # cached while nothing changes
+
+
+def test_inference_threads_leave_a_core_to_the_callbacks():
+    import os
+
+    cpus = len(os.sched_getaffinity(0))
+    assert node_config_from_params({"cameras": ["a"]}).mapper.threads == max(1, cpus - 1)
+    assert node_config_from_params({"cameras": ["a"], "threads": 3}).mapper.threads == 3
+    from bev_mapper_core.mapper import MapperConfig
+
+    with pytest.raises(ConfigError, match="threads"):
+        MapperConfig(threads=-1)

@@ -100,7 +100,7 @@ class BiMapperMapper(Mapper):
         if self.device.type == "cuda" and not torch.cuda.is_available():
             raise ConfigError(f"device {config.device!r} requested but CUDA is not available")
         if self.device.type == "cpu":
-            torch.set_num_threads(inference_threads())
+            torch.set_num_threads(config.threads or inference_threads())
         self.weights_path = path
         self.model: BiMapper | None = None
         super().__init__(rig, grid, config)

@@ -1,0 +1,114 @@
+"""Benchmark: the mapper node's end-to-end rate and latency with a real method, over DDS.
+
+Starts ``mapper_node`` in its own process (surround6 parameters, loopback-only discovery, a
+private domain), publishes full-size surround6 label images at ``--hz`` with stamps = now,
+and measures on ``/bev/drivable``: grids per second and latency (receive time - image stamp).
+When the method is slower than the input, the node drops stale sets (that is the design), so
+the output rate is the method's sustainable rate.
+
+    .venv/bin/python bench/bench_node_rate.py --method bimapper [--hz 20] [--seconds 20]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import pathlib
+import statistics
+import subprocess
+import sys
+import time
+
+REPO = pathlib.Path(__file__).resolve().parents[1]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--method", default="ipm")
+    ap.add_argument("--hz", type=float, default=20.0, help="input rate of synchronized sets")
+    ap.add_argument("--seconds", type=float, default=20.0)
+    ap.add_argument("--domain-id", type=int, default=150 + os.getpid() % 50)
+    args = ap.parse_args()
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    os.environ["ROS_DOMAIN_ID"] = str(args.domain_id)
+
+    import rclpy  # noqa: PLC0415 - after the environment is set
+    from diagnostic_msgs.msg import DiagnosticArray  # noqa: PLC0415
+    from nav_msgs.msg import OccupancyGrid  # noqa: PLC0415
+    from rclpy.qos import qos_profile_sensor_data  # noqa: PLC0415
+    from sensor_msgs.msg import CameraInfo, Image  # noqa: PLC0415
+
+    from bev_mapper_core.grid import BevGrid  # noqa: PLC0415
+    from bev_mapper_core.rig import preset_rig  # noqa: PLC0415
+    from bev_mapper_core.synth import SynthConfig, generate_drive  # noqa: PLC0415
+    from msg_adapters import RclpyFactory, make_camera_info, make_image  # noqa: PLC0415
+
+    rig = preset_rig("surround6")
+    frames = [{n: c.labels for n, c in f.cameras.items()}
+              for f in generate_drive(rig, BevGrid(), SynthConfig(frames=10, seed=950_000_008))]
+    node_proc = subprocess.Popen(
+        [sys.executable, "-m", "bev_mapper_ros.mapper_node", "--ros-args", "--params-file",
+         str(REPO / "config" / "surround6.yaml"), "-p", f"method:={args.method}"],
+        cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT, env=dict(os.environ))
+    rclpy.init()
+    node = rclpy.create_node("bench_node_rate")
+    factory = RclpyFactory()
+    pubs = {c: node.create_publisher(Image, f"/cameras/{c}/labels", qos_profile_sensor_data) for c in rig.names}
+    infos = {c: node.create_publisher(CameraInfo, f"/cameras/{c}/camera_info", 10) for c in rig.names}
+    received: list[tuple[float, int]] = []
+
+    def on_grid(msg):
+        received.append((time.time(), msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec))
+
+    node.create_subscription(OccupancyGrid, "/bev/drivable", on_grid, 50)
+    diag: dict[str, str] = {}
+    node.create_subscription(
+        DiagnosticArray, "/diagnostics",
+        lambda m: diag.update({kv.key: kv.value for st in m.status for kv in st.values}), 10)
+    try:
+        deadline = time.monotonic() + 60
+        while any(p.get_subscription_count() == 0 for p in pubs.values()):
+            rclpy.spin_once(node, timeout_sec=0.05)
+            if time.monotonic() > deadline or node_proc.poll() is not None:
+                sys.exit("error: mapper_node did not come up")
+        period = 1.0 / args.hz
+        start = time.monotonic()
+        k = 0
+        warm = None
+        while time.monotonic() - start < args.seconds:
+            stamp = time.time_ns()
+            for cam in rig.cameras:
+                infos[cam.name].publish(make_camera_info(factory, cam.model, stamp, cam.frame_id))
+                pubs[cam.name].publish(make_image(factory, frames[k % len(frames)][cam.name], "mono8",
+                                                  stamp, cam.frame_id))
+            k += 1
+            if warm is None and received:
+                warm = len(received), time.time()
+            next_t = start + k * period
+            while time.monotonic() < next_t:
+                rclpy.spin_once(node, timeout_sec=max(0.0, next_t - time.monotonic()))
+        end_wall = time.time()
+        if not received or warm is None:
+            sys.exit("error: no grid received")
+        steady = [r for r in received if r[0] >= warm[1]]
+        rate = (len(steady) - 1) / (steady[-1][0] - steady[0][0]) if len(steady) > 1 else 0.0
+        lat = [(t - s / 1e9) * 1000.0 for t, s in steady]
+        print(f"method {args.method}: input {args.hz:.1f} sets/s of 6 x 400x225 labels for {args.seconds:.0f} s")
+        print(f"output rate      : {rate:.1f} grids/s on /bev/drivable ({len(steady)} after warm-up)")
+        print(f"latency (recv - stamp): p50 {statistics.median(lat):.1f} ms, "
+              f"p95 {sorted(lat)[int(0.95 * (len(lat) - 1))]:.1f} ms")
+        print(f"sets published {k}, grids received {len(received)} ({end_wall - steady[0][0]:.1f} s steady)")
+        keys = ("mapped_sets", "dropped_sets", "sets_with_missing_cameras", "bad_input", "processing_ms")
+        print("node diagnostics : " + ", ".join(f"{key} {diag.get(key, '?')}" for key in keys))
+    finally:
+        node.destroy_node()
+        rclpy.shutdown()
+        node_proc.send_signal(2)
+        try:
+            node_proc.wait(10)
+        except subprocess.TimeoutExpired:
+            node_proc.kill()
+
+
+if __name__ == "__main__":
+    main()
