@@ -119,15 +119,16 @@ class BiMapper(nn.Module):
         return {n: getattr(self, n) for n in ("ipm_grid", "ipm_valid", "gt_grid", "gt_valid", "merge_grid", "merge_weight", "frustum")}
 
     # ---------------------------------------------------------- preprocessing
-    def preprocess(self, images: torch.Tensor) -> torch.Tensor:
+    def preprocess(self, images: torch.Tensor, resize: bool = True) -> torch.Tensor:
         """Raw camera images (rig order) -> model input (B, N, C_in, h, w) float at ``input_size``.
 
         Args:
             images: labels: (B, N, H, W) integer label ids (ids >= NUM_LABELS count as
                 unlabeled), resized nearest, then one-hot; rgb: (B, N, H, W, 3) uint8 or float
                 in [0, 255], resized bilinearly (antialiased), scaled to [0, 1], normalised.
+            resize: False keeps the images' own size (the LV stream's full-resolution input).
         """
-        h, w = self.input_size
+        h, w = self.input_size if resize else tuple(images.shape[2:4])
         dev = self.rgb_mean.device
         if self.config.input_kind == "labels":
             if images.dim() != 4:
@@ -152,14 +153,20 @@ class BiMapper(nn.Module):
     # ---------------------------------------------------------------- forward
     def forward(self, images: torch.Tensor, cam_mask: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """Raw images -> outputs (see :meth:`forward_preprocessed`)."""
-        return self.forward_preprocessed(self.preprocess(images), cam_mask)
+        x_lv = None
+        if self.config.lv_full_res and self.use_lv:
+            x_lv = self.preprocess(images, resize=False)  # (B, N, C_in, H, W) at camera size
+        return self.forward_preprocessed(self.preprocess(images), cam_mask, x_lv)
 
-    def forward_preprocessed(self, x: torch.Tensor, cam_mask: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    def forward_preprocessed(self, x: torch.Tensor, cam_mask: torch.Tensor | None = None,
+                             x_lv: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """Run the network on model inputs.
 
         Args:
             x: (B, N, C_in, h, w) from :meth:`preprocess`.
             cam_mask: (B, N) bool, cameras present (absent ones are ignored); None = all.
+            x_lv: optional (B, N, C_in, H, W) input of the LV stream at any resolution (the IPM
+                tables are normalised coordinates, so they apply at every size); None = ``x``.
 
         Returns dict:
             ``logits`` (B, K, H, W) fused per-class logits on the full grid;
@@ -187,7 +194,11 @@ class BiMapper(nn.Module):
             out["gv_feat"] = self.gv(f, cam_mask)
             out["gv_fg_logits"] = self.gv_fg_head(out["gv_feat"])
         if self.use_lv:
-            lv = self.lv(x, self.tables(), cam_mask)
+            if x_lv is None:
+                x_lv = x
+            else:
+                x_lv = x_lv * cam_mask[:, :, None, None, None].to(x_lv.dtype)
+            lv = self.lv(x_lv, self.tables(), cam_mask)
             out.update(lv_feat=lv["feat"], lv_fg_logits=lv["fg_logits"], lv_plane_logits=lv["plane_logits"], lv_coverage=lv["coverage"])
         cfg = self.config
         if cfg.streams == "gv":

@@ -39,6 +39,8 @@ class BiMapperConfig:
         gv_weight, lv_weight: fusion weights (paper 1.0, 0.1).
         plane_x_range, plane_z_range, plane_shape, plane_height: the camera plane
             (:class:`~.geometry.PlaneSpec`; ``plane_height`` None = camera height above ground).
+        lv_full_res: the LV stream's IPM samples the camera images at their delivered resolution
+            (as the paper warps the original image) instead of the encoder's resized input.
         unet_channels: U-Net expanding-path width.
         decoder_channels: BEV decoder width at the feature resolution.
     """
@@ -63,6 +65,7 @@ class BiMapperConfig:
     plane_z_range: tuple[float, float] = (3.0, 29.0)
     plane_shape: tuple[int, int] = (104, 40)
     plane_height: float | None = None
+    lv_full_res: bool = False
     unet_channels: int = 32
     decoder_channels: int = 64
 

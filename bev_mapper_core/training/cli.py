@@ -106,6 +106,8 @@ def train_parser() -> argparse.ArgumentParser:
     p.add_argument("--streams", choices=["both", "gv", "lv"])
     p.add_argument("--fusion", choices=["sum", "concat"])
     p.add_argument("--no-asl", dest="asl", action="store_false", default=argparse.SUPPRESS)
+    p.add_argument("--lv-full-res", dest="lv_full_res", action="store_true", default=argparse.SUPPRESS,
+                   help="LV stream's IPM samples the camera-size images (as the paper)")
     p.add_argument("--mutual", choices=["async", "sync", "lv", "gv", "none"])
     p.add_argument("--pos-weight", dest="pos_weight", choices=["auto", "none"], help="BCE class weights (none = paper)")
     p.add_argument("--input-width", dest="input_width", type=_pos_int)

@@ -59,6 +59,7 @@ class TrainConfig:
         resume: continue ``out``'s last checkpoint.
         streams, fusion, asl, mutual: ablation switches (model streams, fusion, Across-Space
             Loss on/off, mutual-learning mode).
+        lv_full_res: the LV stream samples camera-size images (BiMapperConfig.lv_full_res).
         input_width, gv_hidden: model size knobs (BiMapperConfig).
         time_budget_min: stop (checkpointed, resumable) once this much wall time has passed.
         bag, val_bag: rosbag2 paths with GT topics to train / validate on instead of drives.
@@ -96,6 +97,7 @@ class TrainConfig:
     resume: bool = False
     streams: str = "both"
     fusion: str = "sum"
+    lv_full_res: bool = False
     asl: bool = True
     mutual: str = "async"
     input_width: int = 112
