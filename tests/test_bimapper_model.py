@@ -4,15 +4,16 @@ import math
 import pickle
 from dataclasses import replace
 
+import cv2
 import numpy as np
 import pytest
 import torch
 
 from bev_mapper_core.camera import CameraModel
-from bev_mapper_core.classes import Label, labels_to_layers, resolve_classes
+from bev_mapper_core.classes import NUM_LABELS, Label, label_lut, labels_to_layers, resolve_classes
 from bev_mapper_core.errors import BevMapperError, ConfigError
 from bev_mapper_core.grid import BevGrid
-from bev_mapper_core.ipm import remap_table
+from bev_mapper_core.ipm import IpmMapper, ground_tables, remap_table
 from bev_mapper_core.mapper import MapperConfig
 from bev_mapper_core.rig import Rig, RigCamera
 from bev_mapper_core.transforms import ego_from_optical, transform_points
@@ -21,6 +22,7 @@ from bev_mapper_core.models import (
     bimapper_loss, load_bimapper, load_state, mutual_teachers, save_weights,
 )
 from bev_mapper_core.models.bimapper_mapper import BiMapperMapper
+from bev_mapper_core.models.config import RGB_MEAN, RGB_STD
 from bev_mapper_core.models.efficientnet import round_filters
 from bev_mapper_core.models.losses import mutual_loss, warp_target_to_planes
 from bev_mapper_core.models.geometry import BiMapperGeometry
@@ -250,6 +252,72 @@ def test_lv_full_res_samples_the_camera_size_images():
     assert sum(float(p.grad.abs().sum()) for p in model.lv.parameters() if p.grad is not None) > 0
 
 
+def random_labels(seed: int) -> torch.Tensor:
+    """(1, N, H, W) uint8 label images of random ids, some beyond the label set (-> unlabeled)."""
+    rng = np.random.default_rng(seed)
+    w, h = CAM_MODEL.image_size
+    return torch.from_numpy(rng.integers(0, NUM_LABELS + 3, size=(1, len(RIG.cameras), h, w), dtype=np.uint8))
+
+
+def test_ipm_skip_starts_at_the_ipm_baseline():
+    """Untrained, an ipm_skip model decides exactly as IpmMapper, cell for cell: the prior's
+    gather reproduces cv2.remap's nearest pixel and the camera averaging. Random labels make
+    every geometry slip visible."""
+    torch.manual_seed(0)
+    model = BiMapper(replace(TINY, ipm_skip=True), RIG, GRID).eval()
+    ipm = IpmMapper(RIG, GRID, MapperConfig(method="ipm", classes=CLASSES))
+    raw = random_labels(3)
+    for present in ((True, True), (False, True), (True, False)):
+        imgs = {c.name: raw[0, n].numpy() for n, c in enumerate(RIG.cameras) if present[n]}
+        ref = ipm.map(imgs)
+        mask = torch.tensor([present])
+        with torch.no_grad():
+            p = torch.sigmoid(model(raw, mask)["logits"][0]).numpy()
+            prior = model.ipm_prior(raw, mask)[0].numpy()  # (L + 1, H, W)
+        k = ref.known
+        assert k.sum() > 100
+        np.testing.assert_array_equal(prior[-1] > 0, k)
+        lut = label_lut(resolve_classes(CLASSES)).astype(np.float32)  # (L, K)
+        np.testing.assert_allclose(np.einsum("lk,lhw->khw", lut, prior[:-1]), ref.probs, atol=1e-6)
+        assert (ref.probs[:, k] > 0.5).any() and (ref.probs[:, k] < 0.5).any()
+        np.testing.assert_array_equal(p[:, k] > 0.5, ref.probs[:, k] > 0.5)
+
+
+def test_ipm_skip_rgb_prior_is_the_nearest_colour_mosaic():
+    model = BiMapper(replace(TINY, ipm_skip=True, input_kind="rgb"), RIG, GRID)
+    rgb = np.random.default_rng(4).integers(0, 256, size=(len(RIG.cameras), 40, 64, 3), dtype=np.uint8)
+    prior = model.ipm_prior(torch.from_numpy(rgb)[None])[0].numpy()  # (3 + 1, H, W)
+    acc = np.zeros((*GRID.shape, 3))
+    cnt = np.zeros(GRID.shape)
+    for n, (name, t) in enumerate(ground_tables(RIG, GRID).items()):
+        acc[t.valid] += t.warp(rgb[n], cv2.INTER_NEAREST)[t.valid] / 255.0
+        cnt += t.valid
+    exp = (acc / np.maximum(cnt, 1)[..., None] - np.array(RGB_MEAN)) / np.array(RGB_STD)
+    k = cnt > 0
+    np.testing.assert_allclose(np.moveaxis(prior[:3], 0, -1)[k], exp[k], atol=1e-4)
+    np.testing.assert_array_equal(prior[3] > 0, k)
+
+
+def test_ipm_skip_trains_every_part_and_needs_its_prior():
+    torch.manual_seed(0)
+    model = BiMapper(replace(TINY, ipm_skip=True), RIG, GRID)
+    b = batch(2)
+    opt = torch.optim.Adam(model.parameters(), 1e-3)
+    for _ in range(2):  # step 1: only the head's zero-initialised last layer and ipm_proj move
+        loss, _ = bimapper_loss(model(b["images"]), b, epoch=10)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    for g in ("cam_encoder", "gv", "lv", "decoder", "ipm_proj"):
+        grads = [p.grad for p in getattr(model, g).parameters() if p.grad is not None]
+        assert grads and sum(float(gr.abs().sum()) for gr in grads) > 0, g
+    with pytest.raises(ValueError, match="IPM prior"):
+        model.forward_preprocessed(model.preprocess(b["images"]))
+    other = Rig("mixed", (RIG.cameras[0], replace(RIG.cameras[1], model=CAM_MODEL.scaled(2.0))))
+    with pytest.raises(ConfigError, match="different sizes"):
+        BiMapper(replace(TINY, ipm_skip=True), other, GRID)
+
+
 # ------------------------------------------------------------------ weights
 @pytest.fixture(scope="module")
 def saved(tmp_path_factory):
@@ -332,3 +400,24 @@ def test_mapper_adapter(saved):
         BiMapperMapper(RIG, GRID, MapperConfig(method="bimapper", weights=str(path), input_kind="rgb"))
     with pytest.raises(ConfigError, match="no Bi-Mapper weights"):
         BiMapperMapper(RIG, GRID, MapperConfig(method="bimapper"))
+
+
+@pytest.mark.parametrize("flag", ["ipm_skip", "lv_full_res"])
+def test_mapper_feeds_camera_size_images(flag, tmp_path):
+    """Models that read the camera-size images get them through the Mapper too (not only the
+    model input resized for the encoder): the mapper's output equals ``model(raw)``."""
+    torch.manual_seed(2)
+    streams = "lv" if flag == "lv_full_res" else "both"  # LV alone: its input decides the output
+    model = BiMapper(replace(TINY, streams=streams, **{flag: True}), RIG, GRID).eval()
+    path = tmp_path / "w.safetensors"
+    save_weights(model, path)
+    mapper = BiMapperMapper(RIG, GRID, MapperConfig(method="bimapper", weights=str(path)))
+    raw = random_labels(5)
+    pred = mapper.map({c.name: raw[0, n].numpy() for n, c in enumerate(RIG.cameras)})
+    with torch.no_grad():
+        exp = torch.sigmoid(model(raw)["logits"][0]).numpy()
+        resized_only = torch.sigmoid(model.forward_preprocessed(
+            model.preprocess(raw), x_lv=None, prior=model.ipm_prior(raw) if flag == "ipm_skip" else None)["logits"][0]).numpy()
+    np.testing.assert_allclose(pred.probs, exp, atol=1e-6)
+    if flag == "lv_full_res":
+        assert np.abs(resized_only - exp).max() > 1e-5  # 10x the agreement above: the full-size input matters

@@ -26,7 +26,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from ..classes import NUM_LABELS
+from ..classes import NUM_LABELS, label_lut, resolve_classes
 from ..errors import ConfigError
 from ..grid import BevGrid
 from ..rig import Rig
@@ -36,10 +36,19 @@ from .geometry import BiMapperGeometry
 from .gv import CamEncoder, GVTransform, conv_bn_relu
 from .lv import LVStream
 
-class BevDecoder(nn.Module):
-    """Conv + upsampling decoder from the BEV feature map to per-class logits on the full grid."""
+#: ``ipm_skip`` initialisation: logit ``8 p - 4`` for an averaged IPM class indicator ``p``.
+PRIOR_LOGIT_SCALE = 8.0
 
-    def __init__(self, cin: int, channels: int, num_classes: int, in_hw: tuple[int, int], out_hw: tuple[int, int]) -> None:
+class BevDecoder(nn.Module):
+    """Conv + upsampling decoder from the BEV feature map to per-class logits on the full grid.
+
+    With ``skip_channels`` > 0 the head also takes a full-resolution skip input (the IPM
+    prior of ``ipm_skip``), concatenated before two 3x3 conv stages; its last 1x1 layer starts
+    at zero, so an ``ipm_skip`` model's logits start as the prior's projection alone.
+    """
+
+    def __init__(self, cin: int, channels: int, num_classes: int, in_hw: tuple[int, int], out_hw: tuple[int, int],
+                 skip_channels: int = 0) -> None:
         super().__init__()
         self.out_hw = tuple(out_hw)
         self.stem = nn.Sequential(conv_bn_relu(cin, channels), conv_bn_relu(channels, channels))
@@ -51,15 +60,26 @@ class BevDecoder(nn.Module):
             c = max(16, c // 2)
             h, w = h * 2, w * 2
         self.ups = nn.ModuleList(ups)
-        self.head = nn.Sequential(conv_bn_relu(c, c), nn.Conv2d(c, num_classes, 1))
+        self.skip_channels = skip_channels
+        if skip_channels:
+            last = nn.Conv2d(c, num_classes, 1)
+            nn.init.zeros_(last.weight)
+            nn.init.zeros_(last.bias)
+            self.head = nn.Sequential(conv_bn_relu(c + skip_channels, c), conv_bn_relu(c, c), last)
+        else:
+            self.head = nn.Sequential(conv_bn_relu(c, c), nn.Conv2d(c, num_classes, 1))
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """``x`` (B, cin, h, w) -> logits (B, classes, H, W)."""
+    def forward(self, x: torch.Tensor, skip: torch.Tensor | None = None) -> torch.Tensor:
+        """``x`` (B, cin, h, w) [+ ``skip`` (B, skip_channels, H, W)] -> logits (B, classes, H, W)."""
         x = self.stem(x)
         for up in self.ups:
             x = up(F.interpolate(x, scale_factor=2.0, mode="bilinear", align_corners=False))
         if tuple(x.shape[-2:]) != self.out_hw:
             x = F.interpolate(x, size=self.out_hw, mode="bilinear", align_corners=False)
+        if self.skip_channels:
+            if skip is None:
+                raise ValueError("this decoder needs its full-resolution skip input")
+            x = torch.cat([x, skip], dim=1)  # (B, c + skip_channels, H, W)
         return self.head(x)
 
 
@@ -94,7 +114,22 @@ class BiMapper(nn.Module):
             interp = "nearest" if config.input_kind == "labels" else "bilinear"
             self.lv = LVStream(config.encoder_config(cin), config.unet_channels, Cb, self.num_classes, interp)
         dec_in = 2 * Cb if (config.fusion == "concat" and config.streams == "both") else Cb
-        self.decoder = BevDecoder(dec_in, config.decoder_channels, self.num_classes, self.feat_hw, grid.shape)
+        if (config.ipm_skip or config.lv_full_res) and len(set(geo.raw_sizes)) != 1:
+            raise ConfigError(f"ipm_skip / lv_full_res batch the camera-size images: rig {rig.name!r} has "
+                              f"cameras of different sizes {sorted(set(geo.raw_sizes))}")
+        self.prior_channels = cin + 1 if config.ipm_skip else 0  # averaged input + coverage
+        self.decoder = BevDecoder(dec_in, config.decoder_channels, self.num_classes, self.feat_hw, grid.shape,
+                                  skip_channels=self.prior_channels)
+        if config.ipm_skip:
+            self.ipm_proj = nn.Conv2d(self.prior_channels, self.num_classes, 1)
+            with torch.no_grad():
+                self.ipm_proj.weight.zero_()
+                self.ipm_proj.bias.zero_()
+                if config.input_kind == "labels":
+                    # logits start as IPM's: +4 where the averaged class indicator is 1, -4 at 0
+                    lut = torch.from_numpy(label_lut(resolve_classes(config.classes)).astype(np.float32))  # (L, K)
+                    self.ipm_proj.weight[:, :NUM_LABELS, 0, 0] = PRIOR_LOGIT_SCALE * lut.t()
+                    self.ipm_proj.bias.fill_(-PRIOR_LOGIT_SCALE / 2)
         self.register_buffer("rgb_mean", torch.tensor(RGB_MEAN).view(1, 1, 3, 1, 1), persistent=False)
         self.register_buffer("rgb_std", torch.tensor(RGB_STD).view(1, 1, 3, 1, 1), persistent=False)
 
@@ -117,6 +152,52 @@ class BiMapper(nn.Module):
     def tables(self) -> dict[str, torch.Tensor]:
         """The calibration tables as tensors (on the model's device)."""
         return {n: getattr(self, n) for n in ("ipm_grid", "ipm_valid", "gt_grid", "gt_valid", "merge_grid", "merge_weight", "frustum")}
+
+    def ipm_prior(self, images: torch.Tensor, cam_mask: torch.Tensor | None = None) -> torch.Tensor:
+        """The ``ipm_skip`` input: camera-size images IPM'd onto the full ego grid.
+
+        Exactly :class:`~bev_mapper_core.ipm.IpmMapper`'s geometry (a gather through
+        ``prior_index``, nearest pixel) and its averaging over the cameras that see a cell.
+
+        Args:
+            images: raw images as for :meth:`preprocess`, at the cameras' delivered size.
+            cam_mask: (B, N) cameras present, None = all.
+
+        Returns:
+            (B, C_in + 1, H, W): labels: the average one-hot label of the covering cameras;
+            rgb: their average normalised colour; last channel 1 where some camera covers.
+        """
+        dev = self.rgb_mean.device
+        idx = self.prior_index  # (N, Hg*Wg)
+        B, N = images.shape[:2]
+        if N != self.num_cameras:
+            raise ValueError(f"got {N} cameras, the model has {self.num_cameras}")
+        Hg, Wg = self.grid.shape
+        HW = Hg * Wg
+        valid = self.frustum.flatten(1)[None].to(torch.float32).expand(B, N, HW)  # (N, Hg, Wg) -> (B, N, HW)
+        if cam_mask is not None:
+            valid = valid * cam_mask.to(dev).to(torch.float32)[:, :, None]
+        count = valid.sum(1)  # (B, HW)
+        if self.config.input_kind == "labels":
+            if images.dim() != 4:
+                raise ValueError(f"label images must be (B, N, H, W), got {tuple(images.shape)}")
+            ids = images.to(dev).reshape(B, N, -1)  # (B, N, H, W) -> (B, N, H*W)
+            g = torch.gather(ids, 2, idx[None].expand(B, N, HW)).long()  # (B, N, HW)
+            g = torch.where((g >= 0) & (g < NUM_LABELS), g, torch.zeros_like(g))
+            slot = torch.arange(HW, device=dev)[None, None] * NUM_LABELS + g  # (B, N, HW) into (HW, L)
+            acc = torch.zeros(B, HW * NUM_LABELS, device=dev)
+            acc.scatter_add_(1, slot.reshape(B, -1), valid.reshape(B, -1))
+            acc = acc.view(B, HW, NUM_LABELS)  # (B, HW*L) -> (B, HW, L)
+        else:
+            if images.dim() != 5 or images.shape[-1] != 3:
+                raise ValueError(f"RGB images must be (B, N, H, W, 3), got {tuple(images.shape)}")
+            x = images.to(dev).reshape(B, N, -1, 3).float() / 255.0  # (B, N, H, W, 3) -> (B, N, H*W, 3)
+            x = (x - self.rgb_mean.view(1, 1, 1, 3)) / self.rgb_std.view(1, 1, 1, 3)
+            g = torch.gather(x, 2, idx[None, :, :, None].expand(B, N, HW, 3))  # (B, N, HW, 3)
+            acc = (g * valid[..., None]).sum(1)  # (B, HW, 3)
+        avg = acc / count.clamp(min=1.0)[..., None]
+        prior = torch.cat([avg, (count > 0).to(avg.dtype)[..., None]], dim=2)  # (B, HW, C_in + 1)
+        return prior.permute(0, 2, 1).reshape(B, -1, Hg, Wg)  # (B, HW, P) -> (B, P, Hg, Wg)
 
     # ---------------------------------------------------------- preprocessing
     def preprocess(self, images: torch.Tensor, resize: bool = True) -> torch.Tensor:
@@ -152,14 +233,16 @@ class BiMapper(nn.Module):
 
     # ---------------------------------------------------------------- forward
     def forward(self, images: torch.Tensor, cam_mask: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-        """Raw images -> outputs (see :meth:`forward_preprocessed`)."""
-        x_lv = None
+        """Raw images (B, N, H, W[, 3]) at the cameras' size -> outputs (see :meth:`forward_preprocessed`)."""
+        x_lv = prior = None
         if self.config.lv_full_res and self.use_lv:
             x_lv = self.preprocess(images, resize=False)  # (B, N, C_in, H, W) at camera size
-        return self.forward_preprocessed(self.preprocess(images), cam_mask, x_lv)
+        if self.config.ipm_skip:
+            prior = self.ipm_prior(images, cam_mask)
+        return self.forward_preprocessed(self.preprocess(images), cam_mask, x_lv, prior)
 
     def forward_preprocessed(self, x: torch.Tensor, cam_mask: torch.Tensor | None = None,
-                             x_lv: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+                             x_lv: torch.Tensor | None = None, prior: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """Run the network on model inputs.
 
         Args:
@@ -167,6 +250,7 @@ class BiMapper(nn.Module):
             cam_mask: (B, N) bool, cameras present (absent ones are ignored); None = all.
             x_lv: optional (B, N, C_in, H, W) input of the LV stream at any resolution (the IPM
                 tables are normalised coordinates, so they apply at every size); None = ``x``.
+            prior: (B, C_in + 1, H, W) from :meth:`ipm_prior`; required by ``ipm_skip`` models.
 
         Returns dict:
             ``logits`` (B, K, H, W) fused per-class logits on the full grid;
@@ -209,7 +293,12 @@ class BiMapper(nn.Module):
             fused = torch.cat([out["gv_feat"], out["lv_feat"]], dim=1)  # (B, 2C, hb, wb)
         else:
             fused = cfg.gv_weight * out["gv_feat"] + cfg.lv_weight * out["lv_feat"]
-        out["logits"] = self.decoder(fused)
+        if cfg.ipm_skip:
+            if prior is None:
+                raise ValueError("an ipm_skip model needs the IPM prior: call forward() with the camera-size images")
+            out["logits"] = self.decoder(fused, prior) + self.ipm_proj(prior)
+        else:
+            out["logits"] = self.decoder(fused)
         return out
 
     def known(self, cam_mask: torch.Tensor | None = None) -> torch.Tensor:

@@ -117,19 +117,22 @@ class BiMapperMapper(Mapper):
     def map(self, images: Mapping[str, np.ndarray], ego_pose=None, stamp_ns=None) -> BevPrediction:
         """Map one synchronized set of images; cameras absent from ``images`` are unseen."""
         images = self.check_images(images)
-        xs = []
-        present = []
+        present = [name in images for name in self.rig.names]
+        raws = []
+        for name in self.rig.names:
+            img = images.get(name)
+            if img is None:
+                w, h = self.rig[name].model.image_size
+                img = np.zeros((h, w) if self.config.input_kind == "labels" else (h, w, 3), np.uint8)
+            raws.append(np.ascontiguousarray(img))
         with torch.inference_mode():
-            for name in self.rig.names:
-                img = images.get(name)
-                if img is None:
-                    w, h = self.rig[name].model.image_size
-                    img = np.zeros((h, w) if self.config.input_kind == "labels" else (h, w, 3), np.uint8)
-                raw = torch.from_numpy(np.ascontiguousarray(img))[None, None].to(self.device)  # (1, 1, H, W[, 3])
-                xs.append(self.model.preprocess(raw))  # (1, 1, C_in, h, w)
-                present.append(name in images)
             cam_mask = torch.tensor([present], dtype=torch.bool, device=self.device)  # (1, N)
-            out = self.model.forward_preprocessed(torch.cat(xs, dim=1), cam_mask)  # input (1, N, C_in, h, w)
+            if len({r.shape for r in raws}) == 1:
+                raw = torch.from_numpy(np.stack(raws))[None].to(self.device)  # (1, N, H, W[, 3])
+                out = self.model(raw, cam_mask)
+            else:  # cameras of different sizes (the model refuses ipm_skip / lv_full_res then)
+                xs = [self.model.preprocess(torch.from_numpy(r)[None, None].to(self.device)) for r in raws]  # (1, 1, C_in, h, w) each
+                out = self.model.forward_preprocessed(torch.cat(xs, dim=1), cam_mask)  # input (1, N, C_in, h, w)
             probs = torch.sigmoid(out["logits"][0]).float().cpu().numpy()  # (K, H, W)
             known = self.model.known(cam_mask)[0].cpu().numpy()  # (H, W)
         return BevPrediction(self.class_names, np.ascontiguousarray(probs, dtype=np.float32), known.astype(bool))

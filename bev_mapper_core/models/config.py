@@ -41,6 +41,12 @@ class BiMapperConfig:
             (:class:`~.geometry.PlaneSpec`; ``plane_height`` None = camera height above ground).
         lv_full_res: the LV stream's IPM samples the camera images at their delivered resolution
             (as the paper warps the original image) instead of the encoder's resized input.
+        ipm_skip: **not in the paper.** The decoder head also receives the camera-size input
+            warped onto the full-resolution ego grid by the core's ground IPM (the classical
+            baseline's geometry), and the logits start from that IPM result (a residual 1x1
+            projection initialised to the class table, the learned refinement zero-initialised).
+            The streams then only have to learn corrections (occlusion, object footprints, far
+            range) instead of re-deriving 0.15 m detail from 1.2 m features.
         unet_channels: U-Net expanding-path width.
         decoder_channels: BEV decoder width at the feature resolution.
     """
@@ -66,6 +72,7 @@ class BiMapperConfig:
     plane_shape: tuple[int, int] = (104, 40)
     plane_height: float | None = None
     lv_full_res: bool = False
+    ipm_skip: bool = False
     unet_channels: int = 32
     decoder_channels: int = 64
 

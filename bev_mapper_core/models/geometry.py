@@ -155,6 +155,10 @@ class BiMapperGeometry:
         merge_grid (N, h, w, 2): ego feature cell -> plane (-2 where it is off the plane);
         merge_weight (N, h, w): seen fraction of the bilinear footprint there (0..1).
         frustum (N, H, W): full-grid ground cells inside each camera's image.
+        prior_index (N, H*W) int64: for every full-grid cell (row-major), the flat index of the
+            pixel of the camera-size image the ground IPM reads (``cv2.remap`` nearest: round
+            half to even, edges replicated), so a gather reproduces :class:`IpmMapper`.
+        raw_sizes: ``(width, height)`` of each camera's delivered image.
     """
 
     def __init__(self, rig: Rig, grid: BevGrid, input_width: int, plane: PlaneSpec, bev_downsample: int) -> None:
@@ -199,6 +203,14 @@ class BiMapperGeometry:
         self.merge_weight = np.stack(mg_w).astype(np.float32)
         tables = ground_tables(rig, grid)
         self.frustum = np.stack([tables[c.name].valid for c in rig.cameras])
+        self.raw_sizes = tuple(c.model.image_size for c in rig.cameras)
+        index = []
+        for c, (w, h) in zip(rig.cameras, self.raw_sizes):
+            t = tables[c.name]
+            ix = np.clip(np.rint(t.map_x), 0, w - 1).astype(np.int64)
+            iy = np.clip(np.rint(t.map_y), 0, h - 1).astype(np.int64)
+            index.append((iy * w + ix).ravel())  # (H, W) -> (H*W,)
+        self.prior_index = np.stack(index)
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The tables by name, for registering as (non-persistent) torch buffers."""
@@ -206,5 +218,5 @@ class BiMapperGeometry:
             "ipm_grid": self.ipm_grid, "ipm_valid": self.ipm_valid,
             "gt_grid": self.gt_grid, "gt_valid": self.gt_valid,
             "merge_grid": self.merge_grid, "merge_weight": self.merge_weight,
-            "frustum": self.frustum,
+            "frustum": self.frustum, "prior_index": self.prior_index,
         }

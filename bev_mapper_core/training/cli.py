@@ -105,6 +105,8 @@ def train_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-asl", dest="asl", action="store_false", default=argparse.SUPPRESS)
     p.add_argument("--lv-full-res", dest="lv_full_res", action="store_true", default=argparse.SUPPRESS,
                    help="LV stream's IPM samples the camera-size images (as the paper)")
+    p.add_argument("--ipm-skip", dest="ipm_skip", action="store_true", default=argparse.SUPPRESS,
+                   help="full-resolution IPM prior into the decoder head, logits start at IPM's (not in the paper)")
     p.add_argument("--mutual", choices=["async", "sync", "lv", "gv", "none"])
     p.add_argument("--pos-weight", dest="pos_weight", choices=["auto", "none"], help="BCE class weights (none = paper)")
     p.add_argument("--input-width", dest="input_width", type=_pos_int)

@@ -60,6 +60,8 @@ class TrainConfig:
         streams, fusion, asl, mutual: ablation switches (model streams, fusion, Across-Space
             Loss on/off, mutual-learning mode).
         lv_full_res: the LV stream samples camera-size images (BiMapperConfig.lv_full_res).
+        ipm_skip: full-resolution IPM prior into the decoder head (BiMapperConfig.ipm_skip;
+            not in the paper).
         input_width, gv_hidden: model size knobs (BiMapperConfig).
         time_budget_min: stop (checkpointed, resumable) once this much wall time has passed.
         bag, val_bag: rosbag2 paths with GT topics to train / validate on instead of drives.
@@ -98,6 +100,7 @@ class TrainConfig:
     streams: str = "both"
     fusion: str = "sum"
     lv_full_res: bool = False
+    ipm_skip: bool = False
     asl: bool = True
     mutual: str = "async"
     input_width: int = 112

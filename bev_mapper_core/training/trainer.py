@@ -87,7 +87,7 @@ def model_config(cfg: TrainConfig) -> BiMapperConfig:
     """The BiMapperConfig a training config asks for."""
     return BiMapperConfig(input_kind=cfg.input, classes=cfg.class_names, input_width=cfg.input_width,
                           gv_hidden=cfg.gv_hidden, streams=cfg.streams, fusion=cfg.fusion,
-                          lv_full_res=cfg.lv_full_res)
+                          lv_full_res=cfg.lv_full_res, ipm_skip=cfg.ipm_skip)
 
 
 def loss_config(cfg: TrainConfig, pos_weight: tuple[float, ...] | None = None) -> BiMapperLossConfig:
@@ -204,8 +204,9 @@ def train(cfg: TrainConfig, log: Callable[[str], None] = print, data=None) -> di
     elif last_json.exists():
         raise TrainingError(f"{out} already holds a run; use --resume or another --out")
     out.mkdir(parents=True, exist_ok=True)
-    # Full-resolution LV input needs the camera-size images in memory (else: stored resized).
-    input_size = None if model.config.lv_full_res else model.input_size
+    # Full-resolution LV input and the IPM prior need the camera-size images in memory (else:
+    # stored resized).
+    input_size = None if (model.config.lv_full_res or model.config.ipm_skip) else model.input_size
     train_set, val_set = data if data is not None else load_data(cfg, rig, grid, input_size, log)
     pw = class_pos_weight(train_set) if cfg.pos_weight == "auto" else None
     lcfg = loss_config(cfg, pw)
