@@ -44,7 +44,8 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.epilog = _EPILOG
     p.add_argument("bag", type=Path, help="input bag: rosbag2 directory, .mcap or .db3")
     p.add_argument("--out", type=Path, required=True, help="output directory")
-    p.add_argument("--method", default="ipm", choices=available_methods(), help="mapping method")
+    p.add_argument("--method", default=MapperConfig.method, choices=available_methods(),
+                   help=f"mapping method (default {MapperConfig.method}: the shipped weights of the bag's rig)")
     p.add_argument("--weights", default=None, help="safetensors weights (learned methods)")
     p.add_argument("--device", default="cpu", help="torch device of learned methods")
     p.add_argument("--input", dest="input_kind", default="labels", choices=INPUT_KINDS,

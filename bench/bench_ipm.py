@@ -70,7 +70,7 @@ def main() -> None:
         for f in generate_drive(rig, grid, SynthConfig(frames=args.frames, seed=7))
     ]
     t0 = time.perf_counter()
-    mapper = IpmMapper(rig, grid, MapperConfig())
+    mapper = IpmMapper(rig, grid, MapperConfig(method="ipm"))
     setup_ms = (time.perf_counter() - t0) * 1000.0
     lut = label_lut(mapper.classes).astype(np.float32)
     ipm_best, ipm_med = time_per_frame(mapper.map, frames, args.repeat)

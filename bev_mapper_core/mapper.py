@@ -29,7 +29,8 @@ class MapperConfig:
     """Method-independent mapper settings (ROS parameters and CLI flags map onto these).
 
     Args:
-        method: registered method name (``ipm``, ``bimapper``, ...).
+        method: registered method name (``bimapper`` with the shipped weights by default,
+            ``ipm``, ...).
         input_kind: ``labels`` (mono8 semantic label images) or ``rgb``.
         classes: BEV class names to produce, ``None`` = the method's/standard set.
         weights: path to a safetensors weights file (learned methods), ``None`` = shipped default.
@@ -37,7 +38,7 @@ class MapperConfig:
         threads: CPU threads of learned methods' inference; 0 = the method's default.
     """
 
-    method: str = "ipm"
+    method: str = "bimapper"
     input_kind: str = "labels"
     classes: tuple[str, ...] | None = None
     weights: str | None = None
@@ -98,8 +99,9 @@ class Mapper(ABC):
         self.set_rig(rig)
 
     @classmethod
-    def preflight(cls, config: MapperConfig, rig_name: str) -> None:
-        """Check what can be checked before any calibration is known (weights, input kind).
+    def preflight(cls, config: MapperConfig, rig_name: str, grid: BevGrid | None = None) -> None:
+        """Check what can be checked before any calibration is known (weights, input kind,
+        the grid the weights were trained for when ``grid`` is given).
 
         Lets a node fail at start-up with a clear error instead of at its first frame.
 
@@ -200,12 +202,12 @@ def mapper_class(method: str) -> type[Mapper]:
     return target
 
 
-def preflight(config: MapperConfig, rig_name: str) -> None:
+def preflight(config: MapperConfig, rig_name: str, grid: BevGrid | None = None) -> None:
     """Run the method's start-up checks (see :meth:`Mapper.preflight`)."""
     cls = mapper_class(config.method)
     check = getattr(cls, "preflight", None)
     if check is not None:
-        check(config, rig_name)
+        check(config, rig_name, grid)
 
 
 def create_mapper(rig: Rig, grid: BevGrid, config: MapperConfig) -> Mapper:

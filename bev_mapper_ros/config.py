@@ -135,7 +135,7 @@ def node_config_from_params(p: dict) -> NodeConfig:
     cameras = tuple(p.get("cameras") or ())
     classes = tuple(p.get("classes") or ()) or None
     mapper = MapperConfig(
-        method=p.get("method", "ipm"),
+        method=p.get("method", MapperConfig.method),
         input_kind=p.get("input_kind", "labels"),
         classes=classes,
         weights=p.get("weights") or None,

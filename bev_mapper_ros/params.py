@@ -13,7 +13,7 @@ from rclpy.exceptions import ParameterUninitializedException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from bev_mapper_core.mapper import INPUT_KINDS, available_methods
+from bev_mapper_core.mapper import INPUT_KINDS, MapperConfig, available_methods
 
 from .config import NodeConfigError
 
@@ -28,7 +28,8 @@ PARAMETERS: dict[str, tuple] = {
     "camera_info_topic": ("/cameras/{camera}/camera_info", _T.PARAMETER_STRING, True,
                           "CameraInfo topic pattern with {camera}"),
     "compressed": (False, _T.PARAMETER_BOOL, True, "subscribe to <image_topic>/compressed"),
-    "method": ("ipm", _T.PARAMETER_STRING, True, "mapping method"),
+    "method": (MapperConfig.method, _T.PARAMETER_STRING, True,
+               f"mapping method, one of {list(available_methods())} (bimapper: shipped weights per rig)"),
     "weights": ("", _T.PARAMETER_STRING, True, "safetensors weights ('' = shipped default)"),
     "device": ("cpu", _T.PARAMETER_STRING, True, "torch device of learned methods"),
     "threads": (0, _T.PARAMETER_INTEGER, True,

@@ -11,13 +11,14 @@ import sys
 import yaml
 
 from bev_mapper_core.grid import BevGrid
+from bev_mapper_core.mapper import MapperConfig
 from bev_mapper_core.rig import PRESETS, Rig, preset_rig
 from bev_mapper_core.transforms import rot_to_quat
 
 CONFIG_DIR = pathlib.Path(__file__).resolve().parents[1] / "config"
 
 
-def rig_parameters(rig: Rig, grid: BevGrid | None = None, method: str = "ipm") -> dict:
+def rig_parameters(rig: Rig, grid: BevGrid | None = None, method: str = MapperConfig.method) -> dict:
     """The node's ``ros__parameters`` for a rig: cameras, extrinsics (xyz + quaternion), grid."""
     grid = grid or BevGrid()
     params = {
@@ -39,7 +40,7 @@ def rig_parameters(rig: Rig, grid: BevGrid | None = None, method: str = "ipm") -
     return params
 
 
-def write_configs(directory: pathlib.Path = CONFIG_DIR, method: str = "ipm") -> list[pathlib.Path]:
+def write_configs(directory: pathlib.Path = CONFIG_DIR, method: str = MapperConfig.method) -> list[pathlib.Path]:
     """Write ``<directory>/<rig>.yaml`` for every preset rig; returns the paths."""
     directory.mkdir(parents=True, exist_ok=True)
     out = []

@@ -31,7 +31,7 @@ pytest.importorskip("bev_mapper_core.synth")
 PARAMS_FILE = REPO / "config" / "surround6.yaml"
 GRID_ARGS = ["--grid-x-min", "-20", "--grid-x-max", "20", "--grid-y-min", "-10",
              "--grid-y-max", "10", "--grid-res", "0.25"]
-NODE_GRID = ["-p", "grid.x_min:=-20.0", "-p", "grid.x_max:=20.0", "-p", "grid.y_min:=-10.0",
+NODE_GRID = ["-p", "method:=ipm", "-p", "grid.x_min:=-20.0", "-p", "grid.x_max:=20.0", "-p", "grid.y_min:=-10.0",
              "-p", "grid.y_max:=10.0", "-p", "grid.resolution:=0.25"]
 FRAMES = 4
 
@@ -48,7 +48,7 @@ def drive(tmp_path_factory):
     assert main(["synth", str(bag), "--frames", str(FRAMES), "--seed", "7", "--scale", "0.5",
                  *GRID_ARGS]) == 0
     assert main(["replay", str(bag), "--out", str(root / "replay"), "--quiet",
-                 "--no-pictures"]) == 0
+                 "--no-pictures", "--method", "ipm"]) == 0
     with BagReader(bag) as r:
         stamps = [f.stamp_ns for f in r.frames(rgb=False, gt=False)]
     return bag, root / "replay" / BAG_DIR, stamps
@@ -157,7 +157,7 @@ def test_play_through_mapper_node(drive, tmp_path):
                    for m in r.messages(["/bev/drivable"])}
     # ... and to the core mapper on the rig as the node sees it.
     rig, grid = _node_view(bag)
-    mapper = create_mapper(rig, grid, MapperConfig())
+    mapper = create_mapper(rig, grid, MapperConfig(method="ipm"))
     with BagReader(bag) as r:
         core = {f.stamp_ns: mapper.map(f.labels) for f in r.frames(rgb=False, gt=False)}
     di = BEV_CLASS_NAMES.index("drivable")

@@ -313,6 +313,14 @@ def test_ipm_skip_trains_every_part_and_needs_its_prior():
         assert grads and sum(float(gr.abs().sum()) for gr in grads) > 0, g
     with pytest.raises(ValueError, match="IPM prior"):
         model.forward_preprocessed(model.preprocess(b["images"]))
+    # the ablation control without streams: only the prior and the head learn
+    with pytest.raises(ConfigError, match="needs ipm_skip"):
+        replace(TINY, streams="none")
+    bare = BiMapper(replace(TINY, ipm_skip=True, streams="none"), RIG, GRID)
+    assert not hasattr(bare, "cam_encoder") and not hasattr(bare, "lv")
+    loss, parts = bimapper_loss(bare(b["images"]), b, epoch=10)
+    loss.backward()
+    assert parts["asl"] == 0 and parts["mutual"] == 0 and float(bare.ipm_proj.weight.grad.abs().sum()) > 0
     other = Rig("mixed", (RIG.cameras[0], replace(RIG.cameras[1], model=CAM_MODEL.scaled(2.0))))
     with pytest.raises(ConfigError, match="different sizes"):
         BiMapper(replace(TINY, ipm_skip=True), other, GRID)

@@ -27,7 +27,7 @@ def scored(tmp_path_factory):
     with BagReader(out) as reader:
         rig, grid = reader.rig(), reader.grid()
         assert grid == BevGrid()
-        mapper = IpmMapper(rig, grid, MapperConfig())
+        mapper = IpmMapper(rig, grid, MapperConfig(method="ipm"))
         near = grid.ranges < 20.0
         acc = {scope: MetricAccumulator(grid, reader.gt_classes, range_bands=((0, 20),))
                for scope in ("visible", "ground", "whole")}

@@ -91,7 +91,7 @@ def test_ipm_recovers_flat_classes():
 
 def test_ipm_missing_camera_only_loses_its_cells():
     rig = make_rig()
-    mapper = IpmMapper(rig, GRID, MapperConfig())
+    mapper = IpmMapper(rig, GRID, MapperConfig(method="ipm"))
     images = {cam.name: render_flat(cam) for cam in rig.cameras}
     both = mapper.map(images)
     front_only = mapper.map({"front": images["front"]})
@@ -111,7 +111,7 @@ def test_ipm_missing_camera_only_loses_its_cells():
     ],
 )
 def test_ipm_rejects_bad_input(images, message):
-    mapper = IpmMapper(make_rig(), GRID, MapperConfig())
+    mapper = IpmMapper(make_rig(), GRID, MapperConfig(method="ipm"))
     with pytest.raises(InputError, match=message):
         mapper.map(images)
 
@@ -142,7 +142,7 @@ def test_ipm_class_subset_and_rgb_mosaic():
 
 def test_calibration_change_recomputes_tables():
     rig = make_rig()
-    mapper = IpmMapper(rig, GRID, MapperConfig())
+    mapper = IpmMapper(rig, GRID, MapperConfig(method="ipm"))
     before = mapper.tables["front"].map_y.copy()
     lifted = rig.with_camera(RigCamera("front", rig["front"].model,
                                        ego_from_optical((1.5, 0.0, 2.0), pitch=math.radians(12))))

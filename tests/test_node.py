@@ -52,7 +52,7 @@ def ros(tmp_path):
     """A running mapper_node process and a test node on a private domain."""
     domain = free_domain_id()
     args = [
-        "bev_mapper_ros.mapper_node", "--ros-args", "--params-file", str(PARAMS_FILE),
+        "bev_mapper_ros.mapper_node", "--ros-args", "--params-file", str(PARAMS_FILE), "-p", "method:=ipm",
         "-p", "grid.x_min:=-20.0", "-p", "grid.x_max:=20.0", "-p", "grid.y_min:=-10.0",
         "-p", "grid.y_max:=10.0", "-p", "grid.resolution:=0.25",
         "-p", f"classes:={list(CLASSES)}".replace("'", '"'),
@@ -189,7 +189,9 @@ def test_node_survives_broken_input(ros, drive):
         (["-p", "grid.resolution:=0.7"], "not a whole number"),
         (["-p", "cameras:=[front,front]"], "distinct"),
         (["-p", "method:=bimapper", "-p", "weights:=/nonexistent.safetensors"], "does not exist"),
-        (["-p", "input_kind:=rgb"], "label images only"),
+        (["-p", "method:=ipm", "-p", "input_kind:=rgb"], "label images only"),
+        (["-p", "input_kind:=rgb"], "none shipped for rig 'surround6' / input 'rgb'"),
+        (["-p", "grid.resolution:=0.25"], "weights were trained for grid"),
         (["-p", "sync_slop_s:=fast"], "expecting type 'DOUBLE'"),
     ],
 )

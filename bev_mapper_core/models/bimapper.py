@@ -289,6 +289,8 @@ class BiMapper(nn.Module):
             fused = out["gv_feat"]
         elif cfg.streams == "lv":
             fused = out["lv_feat"]
+        elif cfg.streams == "none":  # ablation control: the decoder gets no image evidence
+            fused = x.new_zeros(B, cfg.bev_channels, *self.feat_hw)
         elif cfg.fusion == "concat":
             fused = torch.cat([out["gv_feat"], out["lv_feat"]], dim=1)  # (B, 2C, hb, wb)
         else:

@@ -21,7 +21,7 @@ from ..grid import BevGrid
 from ..mapper import BevPrediction, Mapper, MapperConfig
 from ..rig import Rig
 from .bimapper import BiMapper
-from .weights import WeightsError, load_bimapper, read_metadata
+from .weights import WeightsError, check_metadata, load_bimapper, read_metadata
 
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
 #: Environment variable overriding the number of torch CPU threads used for inference.
@@ -73,13 +73,15 @@ class BiMapperMapper(Mapper):
         if not path.is_file():
             raise ConfigError(
                 f"no Bi-Mapper weights given and none shipped for rig {rig_name!r} / input "
-                f"{config.input_kind!r} (looked for {path}); train one and pass weights=<file>"
+                f"{config.input_kind!r} (looked for {path}); train one and pass weights=<file>, "
+                f"or use method 'ipm'"
             )
         return path
 
     @classmethod
-    def preflight(cls, config: MapperConfig, rig_name: str) -> None:
-        """The weights file exists and is a Bi-Mapper safetensors file for this input kind."""
+    def preflight(cls, config: MapperConfig, rig_name: str, grid: BevGrid | None = None) -> None:
+        """The weights file exists and is a Bi-Mapper safetensors file for this input kind, rig
+        and (when given) grid."""
         path = cls.weights_path(config, rig_name)
         meta = read_metadata(path)
         if meta["input_kind"] != config.input_kind:
@@ -87,8 +89,14 @@ class BiMapperMapper(Mapper):
                 f"{path} is for input {meta['input_kind']!r}, configured input is {config.input_kind!r}")
         if rig_name and meta["rig"] != rig_name:
             raise WeightsError(f"{path} was trained for rig {meta['rig']!r}, not {rig_name!r}")
+        if grid is not None:
+            try:
+                check_metadata(meta, path, grid=grid)
+            except WeightsError as e:
+                raise WeightsError(f"{e}; use weights trained for this grid, or method 'ipm'") from None
 
     def __init__(self, rig: Rig, grid: BevGrid, config: MapperConfig) -> None:
+        self.preflight(config, rig.name, grid)  # the clear errors first (missing file, rig, grid)
         path = self.weights_path(config, rig.name)
         meta = read_metadata(path)
         if config.classes is None:

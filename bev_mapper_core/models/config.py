@@ -9,7 +9,7 @@ from ..errors import ConfigError
 from .efficientnet import EfficientNetConfig
 from .geometry import PlaneSpec
 
-STREAMS = ("gv", "lv", "both")
+STREAMS = ("gv", "lv", "both", "none")
 FUSIONS = ("sum", "concat")
 #: ImageNet statistics used to normalise RGB input (no pretrained weights; just a standard scale).
 RGB_MEAN = (0.485, 0.456, 0.406)
@@ -34,7 +34,8 @@ class BiMapperConfig:
         bev_channels: channels C of F_g and F_l (HDMapNet 64).
         bev_downsample: BEV feature grid = full grid / this (paper/HDMapNet 5: 40x80).
         gv_hidden: hidden width of the GV MLPs, ``None`` = BEV feature cells (HDMapNet).
-        streams: ``both`` | ``gv`` | ``lv`` (ablations).
+        streams: ``both`` | ``gv`` | ``lv`` (ablations); ``none`` (with ``ipm_skip`` only): no
+            stream at all, the control that shows what the streams add to the IPM prior.
         fusion: ``sum`` (weighted) | ``concat``.
         gv_weight, lv_weight: fusion weights (paper 1.0, 0.1).
         plane_x_range, plane_z_range, plane_shape, plane_height: the camera plane
@@ -84,6 +85,8 @@ class BiMapperConfig:
         resolve_classes(self.classes)
         if self.streams not in STREAMS:
             raise ConfigError(f"streams must be one of {STREAMS}, got {self.streams!r}")
+        if self.streams == "none" and not self.ipm_skip:
+            raise ConfigError("streams 'none' leaves the model without input: it needs ipm_skip")
         if self.fusion not in FUSIONS:
             raise ConfigError(f"fusion must be one of {FUSIONS}, got {self.fusion!r}")
         for name in ("input_width", "neck_channels", "bev_channels", "bev_downsample", "unet_channels", "decoder_channels"):

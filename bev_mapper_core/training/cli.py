@@ -100,7 +100,7 @@ def train_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", help="cpu | cuda[:N]")
     p.add_argument("--threads", type=_pos_int)
     p.add_argument("--resume", action="store_true", default=argparse.SUPPRESS)
-    p.add_argument("--streams", choices=["both", "gv", "lv"])
+    p.add_argument("--streams", choices=["both", "gv", "lv", "none"], help="none: only with --ipm-skip (ablation control)")
     p.add_argument("--fusion", choices=["sum", "concat"])
     p.add_argument("--no-asl", dest="asl", action="store_false", default=argparse.SUPPRESS)
     p.add_argument("--lv-full-res", dest="lv_full_res", action="store_true", default=argparse.SUPPRESS,
