@@ -406,6 +406,13 @@ def test_mapper_adapter(saved):
     assert mapper.map(imgs).probs.shape == (3, *GRID.shape)
     with pytest.raises(WeightsError):
         BiMapperMapper(RIG, GRID, MapperConfig(method="bimapper", weights=str(path), input_kind="rgb"))
+    # a subset of the weights' classes, in another order: those layers only
+    sub = BiMapperMapper(RIG, GRID, MapperConfig(method="bimapper", weights=str(path), classes=("sidewalk", "drivable")))
+    part = sub.map(imgs)
+    assert sub.class_names == ("sidewalk", "drivable")
+    np.testing.assert_allclose(part.probs, pred.probs[[2, 0]], atol=1e-6)
+    with pytest.raises(WeightsError, match="not among the weights' classes"):
+        BiMapperMapper(RIG, GRID, MapperConfig(method="bimapper", weights=str(path), classes=("vehicle",)))
     with pytest.raises(ConfigError, match="no Bi-Mapper weights"):
         BiMapperMapper(RIG, GRID, MapperConfig(method="bimapper"))
 

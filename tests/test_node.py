@@ -11,7 +11,7 @@ from ros_helpers import REPO, free_domain_id, rclpy, spin_until, start_process, 
 
 from bev_mapper_core.grid import BevGrid
 from bev_mapper_core.ipm import IpmMapper
-from bev_mapper_core.mapper import MapperConfig
+from bev_mapper_core.mapper import MapperConfig, create_mapper
 from bev_mapper_core.rig import Rig, RigCamera, preset_rig
 from bev_mapper_core.synth import SynthConfig, generate_drive
 from bev_mapper_ros.config import node_config_from_params
@@ -206,3 +206,38 @@ def test_node_rejects_bad_parameters_at_startup(tmp_path, overrides, message):
     text = (tmp_path / "bad.log").read_text()
     assert code == 2, text
     assert "error: " in text and message in text and "Traceback" not in text
+
+
+def test_node_default_is_the_shipped_bimapper(tmp_path):
+    """Started with only its rig's parameter file, the node runs Bi-Mapper with the shipped
+    weights (the default method) on the default grid, and publishes exactly the core's maps."""
+    rig, grid = preset_rig("surround6"), BevGrid()
+    frames = list(generate_drive(rig, grid, SynthConfig(frames=2, seed=12)))
+    domain = free_domain_id(3)
+    log = tmp_path / "node.log"
+    proc = start_process(["bev_mapper_ros.mapper_node", "--ros-args", "--params-file", str(PARAMS_FILE),
+                          "-p", "threads:=1", "-p", "sync_timeout_s:=0.5"], domain, log)
+    rclpy.init(domain_id=domain)
+    node = rclpy.create_node("bev_test_default")
+    try:
+        d = Driver(node, rig)
+        for f in frames:
+            for _ in range(3):
+                d.send_info(f.stamp_ns)
+                spin_until(node, lambda: False, 0.05)
+            d.send_frame(f)
+            assert d.wait_for(f.stamp_ns, 60.0), f"no grids for frame {f.index}:\n{log.read_text()}"
+    finally:
+        node.destroy_node()
+        rclpy.shutdown()
+        assert stop_process(proc) in (0, -2), log.read_text()
+    expected = create_mapper(node_view_of_rig(rig), grid, MapperConfig(classes=CLASSES, threads=1))
+    assert expected.name == "bimapper"
+    for f in frames:
+        pred = expected.map({n: c.labels for n, c in f.cameras.items()})
+        for ci, c in enumerate(CLASSES):
+            got = np.asarray(d.grids[c][f.stamp_ns].data, dtype=np.int16)
+            want = grid.to_occupancy(pred.probs[ci], pred.known).astype(np.int16)
+            # same weights, same float32 ops: at most a rounding step at a few cells
+            assert np.abs(got - want).max() <= 1 and (got == want).mean() > 0.999, c
+    assert (np.asarray(d.grids["vehicle"][frames[0].stamp_ns].data) == 100).sum() > 50

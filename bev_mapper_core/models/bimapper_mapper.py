@@ -3,7 +3,8 @@
 Register as ``"bimapper": "bev_mapper_core.models.bimapper_mapper:BiMapperMapper"``. Built from
 ``MapperConfig(method="bimapper", weights=path, device=...)``; with ``weights=None`` it looks for
 the shipped file ``bev_mapper_core/weights/bimapper_<rig>_<input_kind>.safetensors``. With
-``classes=None`` the weights' classes are used; otherwise they must match the weights.
+``classes=None`` the weights' classes are used; otherwise they must be among the weights'
+classes (a subset, in any order: only those layers are returned).
 """
 
 from __future__ import annotations
@@ -89,6 +90,9 @@ class BiMapperMapper(Mapper):
                 f"{path} is for input {meta['input_kind']!r}, configured input is {config.input_kind!r}")
         if rig_name and meta["rig"] != rig_name:
             raise WeightsError(f"{path} was trained for rig {meta['rig']!r}, not {rig_name!r}")
+        unknown = [c for c in config.classes or () if c not in meta["classes"]]
+        if unknown:
+            raise WeightsError(f"{path}: classes {unknown} are not among the weights' classes {list(meta['classes'])}")
         if grid is not None:
             try:
                 check_metadata(meta, path, grid=grid)
@@ -99,8 +103,12 @@ class BiMapperMapper(Mapper):
         self.preflight(config, rig.name, grid)  # the clear errors first (missing file, rig, grid)
         path = self.weights_path(config, rig.name)
         meta = read_metadata(path)
+        weight_classes = tuple(meta["classes"])
         if config.classes is None:
-            config = replace(config, classes=tuple(meta["classes"]))
+            config = replace(config, classes=weight_classes)
+        #: output layers of the model to return, in the configured order (a subset is allowed)
+        self._layers = [weight_classes.index(c) for c in config.classes]
+        self._weight_classes = weight_classes
         try:
             self.device = torch.device(config.device)
         except (RuntimeError, TypeError) as e:
@@ -118,7 +126,7 @@ class BiMapperMapper(Mapper):
         super().set_rig(rig)
         if self.model is None:
             self.model = load_bimapper(self.weights_path, rig, self.grid, input_kind=self.config.input_kind,
-                                       classes=self.class_names, device=self.device)
+                                       classes=self._weight_classes, device=self.device)
         else:
             self.model.set_rig(rig)
 
@@ -141,7 +149,7 @@ class BiMapperMapper(Mapper):
             else:  # cameras of different sizes (the model refuses ipm_skip / lv_full_res then)
                 xs = [self.model.preprocess(torch.from_numpy(r)[None, None].to(self.device)) for r in raws]  # (1, 1, C_in, h, w) each
                 out = self.model.forward_preprocessed(torch.cat(xs, dim=1), cam_mask)  # input (1, N, C_in, h, w)
-            probs = torch.sigmoid(out["logits"][0]).float().cpu().numpy()  # (K, H, W)
+            probs = torch.sigmoid(out["logits"][0, self._layers]).float().cpu().numpy()  # (K_wanted, H, W)
             known = self.model.known(cam_mask)[0].cpu().numpy()  # (H, W)
         return BevPrediction(self.class_names, np.ascontiguousarray(probs, dtype=np.float32), known.astype(bool))
 
