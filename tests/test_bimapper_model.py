@@ -313,6 +313,8 @@ def test_ipm_skip_trains_every_part_and_needs_its_prior():
         assert grads and sum(float(gr.abs().sum()) for gr in grads) > 0, g
     with pytest.raises(ValueError, match="IPM prior"):
         model.forward_preprocessed(model.preprocess(b["images"]))
+    with pytest.raises(ValueError, match="do not match"):  # not the calibration's image size
+        model(b["images"][:, :, :20])
     # the ablation control without streams: only the prior and the head learn
     with pytest.raises(ConfigError, match="needs ipm_skip"):
         replace(TINY, streams="none")

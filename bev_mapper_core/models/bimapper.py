@@ -114,9 +114,7 @@ class BiMapper(nn.Module):
             interp = "nearest" if config.input_kind == "labels" else "bilinear"
             self.lv = LVStream(config.encoder_config(cin), config.unet_channels, Cb, self.num_classes, interp)
         dec_in = 2 * Cb if (config.fusion == "concat" and config.streams == "both") else Cb
-        if (config.ipm_skip or config.lv_full_res) and len(set(geo.raw_sizes)) != 1:
-            raise ConfigError(f"ipm_skip / lv_full_res batch the camera-size images: rig {rig.name!r} has "
-                              f"cameras of different sizes {sorted(set(geo.raw_sizes))}")
+        self.raw_hw = self._raw_hw(geo, rig)
         self.prior_channels = cin + 1 if config.ipm_skip else 0  # averaged input + coverage
         self.decoder = BevDecoder(dec_in, config.decoder_channels, self.num_classes, self.feat_hw, grid.shape,
                                   skip_channels=self.prior_channels)
@@ -134,6 +132,21 @@ class BiMapper(nn.Module):
         self.register_buffer("rgb_std", torch.tensor(RGB_STD).view(1, 1, 3, 1, 1), persistent=False)
 
     # ------------------------------------------------------------ calibration
+    def _raw_hw(self, geo: BiMapperGeometry, rig: Rig) -> tuple[int, int] | None:
+        """``(H, W)`` shared by all cameras' delivered images (None if they differ).
+
+        Raises:
+            ConfigError: sizes differ, but ipm_skip / lv_full_res need the images batched.
+        """
+        sizes = set(geo.raw_sizes)
+        if len(sizes) != 1:
+            if self.config.ipm_skip or self.config.lv_full_res:
+                raise ConfigError(f"ipm_skip / lv_full_res batch the camera-size images: rig {rig.name!r} has "
+                                  f"cameras of different sizes {sorted(sizes)}")
+            return None
+        w, h = sizes.pop()
+        return (h, w)
+
     def set_rig(self, rig: Rig) -> None:
         """Rebuild the calibration tables for a new calibration of the same cameras.
 
@@ -145,9 +158,10 @@ class BiMapper(nn.Module):
         geo = BiMapperGeometry(rig, self.grid, self.config.input_width, self.config.plane_spec(), self.config.bev_downsample)
         if geo.input_size != self.input_size:
             raise ConfigError(f"new calibration gives input size {geo.input_size}, the model needs {self.input_size}")
+        raw_hw = self._raw_hw(geo, rig)
         for name, arr in geo.arrays().items():
             getattr(self, name).copy_(torch.from_numpy(np.ascontiguousarray(arr)))
-        self.rig = rig
+        self.rig, self.raw_hw = rig, raw_hw
 
     def tables(self) -> dict[str, torch.Tensor]:
         """The calibration tables as tensors (on the model's device)."""
@@ -170,8 +184,9 @@ class BiMapper(nn.Module):
         dev = self.rgb_mean.device
         idx = self.prior_index  # (N, Hg*Wg)
         B, N = images.shape[:2]
-        if N != self.num_cameras:
-            raise ValueError(f"got {N} cameras, the model has {self.num_cameras}")
+        if N != self.num_cameras or tuple(images.shape[2:4]) != self.raw_hw:
+            raise ValueError(f"images {tuple(images.shape)} do not match {self.num_cameras} cameras of "
+                             f"{self.raw_hw} (H, W) from the calibration")
         Hg, Wg = self.grid.shape
         HW = Hg * Wg
         valid = self.frustum.flatten(1)[None].to(torch.float32).expand(B, N, HW)  # (N, Hg, Wg) -> (B, N, HW)
