@@ -3,8 +3,8 @@
 The shipped configuration: ``create_mapper(surround6, BevGrid(), MapperConfig(method="bimapper"))``
 (the shipped weights ``bev_mapper_core/weights/bimapper_surround6_labels.safetensors``), batch 1,
 six 400x225 label images per frame; the time covers ``mapper.map`` in full: preprocessing
-(resize + one-hot), both streams, fusion, decoder, sigmoid and the copy back to numpy. IPM is
-timed on the same frames for reference.
+(resize + one-hot), the IPM prior of the skip, both streams, fusion, decoder, sigmoid and the
+copy back to numpy. IPM is timed on the same frames for reference.
 
     .venv/bin/python bench/bench_bimapper.py [--frames 20] [--repeat 3] [--threads N] [--weights FILE]
 """

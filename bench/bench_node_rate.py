@@ -24,7 +24,7 @@ REPO = pathlib.Path(__file__).resolve().parents[1]
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--method", default="ipm")
+    ap.add_argument("--method", default="bimapper", help="bimapper (the node default) or ipm")
     ap.add_argument("--hz", type=float, default=20.0, help="input rate of synchronized sets")
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--domain-id", type=int, default=150 + os.getpid() % 50)
