@@ -66,6 +66,49 @@ def main() -> None:
           f"{model.input_size[1]}x{model.input_size[0]} per camera; load {setup_ms:.0f} ms")
     print(f"Bi-Mapper (Mapper.map): {bi_best:8.1f} ms/frame (best of {args.repeat}; median {bi_med:.1f})")
     print(f"IPM       (Mapper.map): {ipm_best:8.1f} ms/frame (best of {args.repeat}; median {ipm_med:.1f})")
+    print("forward pass by part (ms, best of 5 on the first frame):")
+    for name, ms in profile_parts(model, rig, frames[0]).items():
+        print(f"  {name:28s} {ms:7.1f}")
+
+
+def profile_parts(model, rig, frame: dict) -> dict[str, float]:
+    """Time each part of the forward pass on one frame: what limits the rate."""
+    import numpy as np
+    import torch
+
+    raw = torch.from_numpy(np.stack([frame[n] for n in rig.names]))[None]  # (1, N, H, W)
+
+    def best(fn, n=5):
+        fn()
+        times = []
+        for _ in range(n):
+            t = time.perf_counter()
+            fn()
+            times.append((time.perf_counter() - t) * 1000.0)
+        return min(times)
+
+    out = {}
+    with torch.inference_mode():
+        x = model.preprocess(raw)
+        out["preprocess (resize, one-hot)"] = best(lambda: model.preprocess(raw))
+        prior = None
+        if model.config.ipm_skip:
+            prior = model.ipm_prior(raw)
+            out["IPM prior (skip)"] = best(lambda: model.ipm_prior(raw))
+        res = model.forward_preprocessed(x, None, None, prior)
+        if model.use_gv:
+            def gv():
+                f = model.cam_encoder(x.flatten(0, 1))  # (N, C, hf, wf)
+                return model.gv(f.view(1, model.num_cameras, *f.shape[1:]), None)
+            out["GV stream"] = best(gv)
+        if model.use_lv:
+            out["LV stream"] = best(lambda: model.lv(x, model.tables(), None))
+        fused = res["gv_feat"] if res["gv_feat"] is not None else res["lv_feat"]
+        if fused is None:  # streams "none"
+            fused = x.new_zeros(1, model.config.bev_channels, *model.feat_hw)
+        out["BEV decoder (+ skip head)"] = best(lambda: model.decoder(fused, prior))
+        out["whole forward"] = best(lambda: model(raw))
+    return out
 
 
 if __name__ == "__main__":
