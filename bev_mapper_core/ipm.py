@@ -85,7 +85,8 @@ class IpmMapper(Mapper):
         self._lut = label_lut(self.classes).astype(np.float32)  # (NUM_LABELS, C)
 
     @classmethod
-    def preflight(cls, config: MapperConfig, rig_name: str, grid: BevGrid | None = None) -> None:
+    def preflight(cls, config: MapperConfig, rig_name: str, grid: BevGrid | None = None,
+                  cameras: tuple[str, ...] | None = None) -> None:
         """IPM needs label images."""
         if config.input_kind != "labels":
             raise ConfigError(

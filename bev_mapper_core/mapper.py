@@ -99,9 +99,10 @@ class Mapper(ABC):
         self.set_rig(rig)
 
     @classmethod
-    def preflight(cls, config: MapperConfig, rig_name: str, grid: BevGrid | None = None) -> None:
+    def preflight(cls, config: MapperConfig, rig_name: str, grid: BevGrid | None = None,
+                  cameras: tuple[str, ...] | None = None) -> None:
         """Check what can be checked before any calibration is known (weights, input kind,
-        the grid the weights were trained for when ``grid`` is given).
+        and, when given, the grid and camera names the weights were trained for).
 
         Lets a node fail at start-up with a clear error instead of at its first frame.
 
@@ -202,12 +203,13 @@ def mapper_class(method: str) -> type[Mapper]:
     return target
 
 
-def preflight(config: MapperConfig, rig_name: str, grid: BevGrid | None = None) -> None:
+def preflight(config: MapperConfig, rig_name: str, grid: BevGrid | None = None,
+              cameras: tuple[str, ...] | None = None) -> None:
     """Run the method's start-up checks (see :meth:`Mapper.preflight`)."""
     cls = mapper_class(config.method)
     check = getattr(cls, "preflight", None)
     if check is not None:
-        check(config, rig_name, grid)
+        check(config, rig_name, grid, cameras)
 
 
 def create_mapper(rig: Rig, grid: BevGrid, config: MapperConfig) -> Mapper:

@@ -75,7 +75,7 @@ class MapperNode(Node):
         declare_parameters(self)
         self.cfg = node_config_from_params(read_parameters(self))  # raises on bad parameters
         cfg = self.cfg
-        preflight(cfg.mapper, self.get_parameter("rig").value, cfg.grid)  # e.g. missing weights: fail now
+        preflight(cfg.mapper, self.get_parameter("rig").value, cfg.grid, cfg.cameras)  # e.g. missing weights: fail now
         self.factory = RclpyFactory()
         self.stats = NodeStats()
         self._last_logged: dict[str, float] = {}

@@ -192,6 +192,8 @@ def test_node_survives_broken_input(ros, drive):
         (["-p", "method:=ipm", "-p", "input_kind:=rgb"], "label images only"),
         (["-p", "input_kind:=rgb"], "none shipped for rig 'surround6' / input 'rgb'"),
         (["-p", "grid.resolution:=0.25"], "weights were trained for grid"),
+        (["-p", "rig:=mine"], "none shipped for rig 'mine'"),
+        (["-p", "cameras:=[front,back]", "-p", "use_tf:=true"], "weights were trained for cameras"),
         (["-p", "sync_slop_s:=fast"], "expecting type 'DOUBLE'"),
     ],
 )

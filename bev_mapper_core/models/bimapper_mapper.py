@@ -72,17 +72,19 @@ class BiMapperMapper(Mapper):
             return Path(config.weights)
         path = default_weights_path(rig_name, config.input_kind)
         if not path.is_file():
+            shipped = sorted(p.name for p in WEIGHTS_DIR.glob("bimapper_*.safetensors"))
             raise ConfigError(
                 f"no Bi-Mapper weights given and none shipped for rig {rig_name!r} / input "
-                f"{config.input_kind!r} (looked for {path}); train one and pass weights=<file>, "
-                f"or use method 'ipm'"
+                f"{config.input_kind!r} (shipped: {', '.join(shipped) or 'none'}); set the rig, "
+                f"train weights and pass weights=<file>, or use method 'ipm'"
             )
         return path
 
     @classmethod
-    def preflight(cls, config: MapperConfig, rig_name: str, grid: BevGrid | None = None) -> None:
-        """The weights file exists and is a Bi-Mapper safetensors file for this input kind, rig
-        and (when given) grid."""
+    def preflight(cls, config: MapperConfig, rig_name: str, grid: BevGrid | None = None,
+                  cameras: tuple[str, ...] | None = None) -> None:
+        """The weights file exists and is a Bi-Mapper safetensors file for this input kind, rig,
+        classes and (when given) grid and camera names (in rig order)."""
         path = cls.weights_path(config, rig_name)
         meta = read_metadata(path)
         if meta["input_kind"] != config.input_kind:
@@ -93,6 +95,9 @@ class BiMapperMapper(Mapper):
         unknown = [c for c in config.classes or () if c not in meta["classes"]]
         if unknown:
             raise WeightsError(f"{path}: classes {unknown} are not among the weights' classes {list(meta['classes'])}")
+        if cameras is not None and list(cameras) != list(meta["cameras"]):
+            raise WeightsError(f"{path}: weights were trained for cameras {list(meta['cameras'])} (in this "
+                               f"order), but {list(cameras)} are configured; or use method 'ipm'")
         if grid is not None:
             try:
                 check_metadata(meta, path, grid=grid)
@@ -100,7 +105,7 @@ class BiMapperMapper(Mapper):
                 raise WeightsError(f"{e}; use weights trained for this grid, or method 'ipm'") from None
 
     def __init__(self, rig: Rig, grid: BevGrid, config: MapperConfig) -> None:
-        self.preflight(config, rig.name, grid)  # the clear errors first (missing file, rig, grid)
+        self.preflight(config, rig.name, grid, rig.names)  # the clear errors first (file, rig, grid, cameras)
         path = self.weights_path(config, rig.name)
         meta = read_metadata(path)
         weight_classes = tuple(meta["classes"])
