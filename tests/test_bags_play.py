@@ -117,7 +117,7 @@ def test_play_through_mapper_node(drive, tmp_path):
     log = tmp_path / "node.log"
     node_proc = start_process(
         ["bev_mapper_ros.mapper_node", "--ros-args", "--params-file", str(PARAMS_FILE), *NODE_GRID,
-         "-p", "sync_timeout_s:=0.3"], domain, log)
+         "-p", "sync_timeout_s:=5.0"], domain, log)  # no partial sets under load: they differ from the core's
     rclpy.init(domain_id=domain)
     node = rclpy.create_node("bev_play_test")
     grids: dict[int, OccupancyGrid] = {}
