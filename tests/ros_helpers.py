@@ -60,3 +60,27 @@ def spin_until(node, predicate, timeout: float, step: float = 0.02) -> bool:
         if predicate():
             return True
     return predicate()
+
+
+def core_map_as_received(mapper, grid, images: dict, node_data, max_missing: int = 2):
+    """The core's prediction on the cameras the node actually mapped, and the names it lacked.
+
+    Images go over sensor-data QoS (best effort): on a loaded machine DDS may lose one, and the
+    node then maps the set without it once its sync timeout passes (as designed). The node's
+    unknown cells (-1 in ``node_data``, an OccupancyGrid's data) tell which cameras it had: the
+    camera subset, at most ``max_missing`` short, whose coverage gives the same unknown cells.
+    Fails if none does.
+    """
+    import itertools  # noqa: PLC0415
+
+    import numpy as np  # noqa: PLC0415
+
+    node_unknown = np.asarray(node_data, np.int8) == -1
+    names = list(images)
+    for k in range(max_missing + 1):
+        for lost in itertools.combinations(names, k):
+            pred = mapper.map({n: images[n] for n in names if n not in lost})
+            unknown = grid.to_occupancy(np.zeros(grid.shape, np.float32), pred.known) == -1
+            if np.array_equal(unknown, node_unknown):
+                return pred, lost
+    raise AssertionError(f"the node's unknown cells match no set of cameras with at most {max_missing} missing")

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import yaml
 
-from ros_helpers import REPO, free_domain_id, rclpy, ros_env, spin_until, start_process, stop_process
+from ros_helpers import REPO, core_map_as_received, free_domain_id, rclpy, ros_env, spin_until, start_process, stop_process
 
 from bags import topics as T
 from bags.cli import main
@@ -159,13 +159,19 @@ def test_play_through_mapper_node(drive, tmp_path):
     rig, grid = _node_view(bag)
     mapper = create_mapper(rig, grid, MapperConfig(method="ipm"))
     with BagReader(bag) as r:
-        core = {f.stamp_ns: mapper.map(f.labels) for f in r.frames(rgb=False, gt=False)}
+        labels = {f.stamp_ns: f.labels for f in r.frames(rgb=False, gt=False)}
     di = BEV_CLASS_NAMES.index("drivable")
+    complete = 0
     for s, msg in grids.items():
         got = np.asarray(msg.data, np.int8)
-        np.testing.assert_array_equal(got, grid.to_occupancy(core[s].probs[di], core[s].known))
-        np.testing.assert_array_equal(got, offline[s])
+        # A camera's image lost by best-effort DDS under load is mapped as missing (by the core too).
+        pred, lost = core_map_as_received(mapper, grid, labels[s], got)
+        np.testing.assert_array_equal(got, grid.to_occupancy(pred.probs[di], pred.known))
+        if not lost:
+            complete += 1
+            np.testing.assert_array_equal(got, offline[s])
         assert (msg.info.width, msg.info.height) == (grid.width, grid.height)
+    assert complete >= 1, "every set lost a camera"
     assert max((np.asarray(m.data) == 100).sum() for m in grids.values()) > 500
 
 
