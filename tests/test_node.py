@@ -52,7 +52,7 @@ def ros(tmp_path, request):
     """A running mapper_node process and a test node on a private domain.
 
     Parametrize indirectly with the node's ``sync_timeout_s`` (default 5 s: on a loaded machine a
-    short timeout emits partial sets, which would not equal the core's all-camera output).
+    short timeout maps a set without an image that is merely slow).
     """
     timeout_s = getattr(request, "param", 5.0)
     domain = free_domain_id()
