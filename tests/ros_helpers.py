@@ -75,12 +75,11 @@ def core_map_as_received(mapper, grid, images: dict, node_data, max_missing: int
 
     import numpy as np  # noqa: PLC0415
 
-    node_unknown = np.asarray(node_data, np.int8) == -1
+    _, node_known = grid.from_occupancy(node_data, grid.width, grid.height)
     names = list(images)
     for k in range(max_missing + 1):
         for lost in itertools.combinations(names, k):
             pred = mapper.map({n: images[n] for n in names if n not in lost})
-            unknown = grid.to_occupancy(np.zeros(grid.shape, np.float32), pred.known) == -1
-            if np.array_equal(unknown, node_unknown):
+            if np.array_equal(pred.known, node_known):
                 return pred, lost
     raise AssertionError(f"the node's unknown cells match no set of cameras with at most {max_missing} missing")
