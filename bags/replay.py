@@ -33,7 +33,7 @@ import numpy as np
 from bev_mapper_core.classes import bev_picture, resolve_classes
 from bev_mapper_core.grid import BevGrid
 from bev_mapper_core.mapper import BevPrediction, MapperConfig, create_mapper
-from bev_mapper_core.metrics import MetricAccumulator
+from bev_mapper_core.metrics import SCOPES, MetricAccumulator, scope_masks
 from msg_adapters import make_image, make_occupancy_grid
 
 from . import topics as T
@@ -44,7 +44,6 @@ from .writer import STORAGES, BagWriter
 
 log = logging.getLogger(__name__)
 
-SCOPES = ("visible", "ground")
 OUT_PREFIX = "/bev/"
 IMAGE_TOPIC = "/bev/image"
 BAG_DIR, FRAMES_DIR, METRICS_FILE, GIF_FILE = "bev_bag", "frames", "metrics.json", "replay.gif"
@@ -334,18 +333,14 @@ def _metrics(options, scorer: "_Scorer", grid, mapped, skipped, latencies, damag
     }
 
 
-def _mean(values) -> float | None:
-    vals = [v for v in values if v is not None]
-    return sum(vals) / len(vals) if vals else None
-
-
 class _Scorer:
-    """Scores predictions against a frame's GT in the chosen scope.
+    """Scores a frame's prediction against its GT with the one
+    :class:`~bev_mapper_core.metrics.MetricAccumulator`, in the chosen scope.
 
-    ``visible``: one :class:`MetricAccumulator` over the cells whose GT is known (not -1).
-    ``ground`` (with a ground visibility layer): flat classes are scored where the ground is
-    seen too; object classes keep the visible scope, since an object hides its own ground.
-    The two accumulators' results are merged into one document (means recomputed).
+    The per-class masks come from :func:`~bev_mapper_core.metrics.scope_masks`: ``visible``
+    scores the cells whose GT is known (not -1); ``ground`` (with a ground visibility layer)
+    scores flat classes only where the ground is seen too, object classes keep the visible
+    scope, since an object hides its own ground. Classes the bag has no GT for are not scored.
     """
 
     def __init__(self, grid: BevGrid, pred_names, gt_names, ground: bool) -> None:
@@ -353,50 +348,23 @@ class _Scorer:
         self.classes = resolve_classes(names) if names else ()
         self.unscored = [c for c in pred_names if c not in gt_names]
         self.scope_used = None if not names else ("ground" if ground else "visible")
-        split = [[c.name for c in self.classes if c.flat], [c.name for c in self.classes
-                                                             if not c.flat]]
-        groups = split if ground else [list(names)]
-        self.order = names
-        self.groups = []
-        for i, group in enumerate(groups):
-            if group:
-                self.groups.append((MetricAccumulator(grid, group),
-                                    [list(pred_names).index(c) for c in group],
-                                    [list(gt_names).index(c) for c in group],
-                                    ground and i == 0))
+        self.acc = MetricAccumulator(grid, names) if names else None
+        self._names = names
+        self._pred_idx = [list(pred_names).index(c) for c in names]
         self._gt_idx = [list(gt_names).index(c) for c in names]
 
     def update(self, frame, pred: BevPrediction):
         """Score one frame; returns ``(gt (C', H, W) bool, visible (H, W))`` or ``(None, None)``."""
-        if not self.groups or frame.gt is None:
+        if self.acc is None or frame.gt is None:
             return None, None
-        for acc, p_idx, g_idx, use_ground in self.groups:
-            mask = frame.gt_known[g_idx].all(axis=0)
-            if use_ground and frame.ground_visibility is not None:
-                mask = mask & frame.ground_visibility
-            acc.update(pred.probs[p_idx], frame.gt[g_idx] >= 0.5, mask, pred.known)
-        return frame.gt[self._gt_idx] >= 0.5, frame.gt_known[self._gt_idx].all(axis=0)
+        gt = frame.gt[self._gt_idx] >= 0.5  # (C', H, W)
+        visible = frame.gt_known[self._gt_idx].all(axis=0)  # (H, W)
+        masks = scope_masks(self._names, visible, frame.ground_visibility, self.scope_used)
+        self.acc.update(pred.probs[self._pred_idx], gt, masks, pred.known)
+        return gt, visible
 
     def result(self) -> dict:
-        """The merged :meth:`MetricAccumulator.result` of all groups, classes in mapper order."""
-        if not self.groups:
+        """:meth:`MetricAccumulator.result` over the scored classes, in mapper order."""
+        if self.acc is None:
             return {"frames": 0, "classes": {}, "miou": None, "map": None, "iou_by_range": {}}
-        results = [acc.result() for acc, *_ in self.groups]
-        if len(results) == 1:
-            return results[0]
-        classes = {}
-        for r in results:
-            classes.update(r["classes"])
-        classes = {c: classes[c] for c in self.order}
-        by_range = {}
-        for band in results[0]["iou_by_range"]:
-            row = {}
-            for r in results:
-                row.update({k: v for k, v in r["iou_by_range"][band].items() if k != "miou"})
-            row = {c: row[c] for c in self.order}
-            row["miou"] = _mean(row.values())
-            by_range[band] = row
-        return {"frames": results[0]["frames"], "classes": classes,
-                "miou": _mean(m["iou"] for m in classes.values()),
-                "map": _mean(m["precision"] for m in classes.values()),
-                "iou_by_range": by_range}
+        return self.acc.result()

@@ -36,16 +36,20 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
+from .classes import resolve_classes
 from .errors import ConfigError, InputError
 from .grid import BevGrid
 
 __all__ = [
     "DEFAULT_CLIP_M",
+    "SCOPES",
     "MetricAccumulator",
     "chamfer",
+    "default_range_bands",
     "format_table",
     "iou",
     "mean_iou",
+    "scope_masks",
 ]
 
 #: Default Chamfer clipping distance in metres (HDMapNet's evaluation ``--CD_threshold`` = 5).
@@ -203,6 +207,47 @@ def chamfer(pred, gt, resolution: float, clip: float = DEFAULT_CLIP_M, mask=None
     return cd_p, cd_l, 0.5 * (cd_p + cd_l)
 
 
+# ----------------------------------------------------------------------------- scopes
+#: Scoring scopes: ``visible`` scores every class on the cells some camera sees (GT not -1);
+#: ``ground`` scores flat classes (road, markings, sidewalk) only where the cell's *ground* point
+#: is seen too, object classes keep the visible scope (an object hides its own ground).
+SCOPES = ("visible", "ground")
+#: Width of the default range bands, metres.
+RANGE_BAND_M = 10.0
+
+
+def scope_masks(class_names: Sequence[str], visible, ground=None, scope: str = "visible") -> np.ndarray:
+    """Per-class scoring masks ``(C, H, W)`` bool for :meth:`MetricAccumulator.update`.
+
+    Args:
+        class_names: BEV class names in layer order (flatness from :mod:`~.classes`).
+        visible: ``(H, W)`` bool, cells whose ground truth is known (seen by a camera).
+        ground: ``(H, W)`` bool, cells whose ground point is seen, or None (then ``scope``
+            ``ground`` falls back to ``visible``).
+        scope: one of :data:`SCOPES`.
+
+    Raises:
+        ConfigError: unknown scope or class name.
+    """
+    if scope not in SCOPES:
+        raise ConfigError(f"scope must be one of {list(SCOPES)}, got {scope!r}")
+    visible = _check_bool("visible", visible, 2)
+    classes = resolve_classes(tuple(class_names))
+    out = np.repeat(visible[None], len(classes), axis=0)  # (H, W) -> (C, H, W)
+    if scope == "ground" and ground is not None:
+        ground = _check_mask("ground", ground, visible.shape)
+        for c, cls in enumerate(classes):
+            if cls.flat:
+                out[c] &= ground
+    return out
+
+
+def default_range_bands(grid: BevGrid) -> tuple[tuple[float, float], ...]:
+    """Consecutive :data:`RANGE_BAND_M` bands from 0 m up to the farthest cell centre of ``grid``."""
+    top = int(math.floor(float(grid.ranges.max()) / RANGE_BAND_M)) + 1
+    return tuple((RANGE_BAND_M * i, RANGE_BAND_M * (i + 1)) for i in range(top))
+
+
 # ----------------------------------------------------------------------------- accumulator
 def _band_label(lo: float, hi: float) -> str:
     return f"{lo:g}-{hi:g}"
@@ -216,7 +261,10 @@ class MetricAccumulator:
         class_names: one name per layer, in layer order (e.g. ``BEV_CLASS_NAMES``).
         range_bands: ``((lo, hi), ...)`` in metres; a cell belongs to a band when
             ``lo <= grid.ranges < hi`` (half-open). ``hi`` may be ``math.inf``. Default (None):
-            consecutive 10 m bands ``(0, 10), (10, 20), ...`` up to the farthest cell of ``grid``.
+            consecutive 10 m bands ``(0, 10), (10, 20), ...`` up to the farthest cell of ``grid``
+            (:func:`default_range_bands`). Every scorer of the package (``bev-bag replay``,
+            ``bev-train eval``, validation during training) uses this default, so their
+            by-range tables line up.
             Bands may overlap; cells outside every band still count in the overall metrics.
         threshold: a cell is predicted positive when ``probs >= threshold``.
         clip: Chamfer clipping distance in metres (see :func:`chamfer`).
@@ -267,8 +315,7 @@ class MetricAccumulator:
 
         ranges = grid.ranges  # (H, W) metres
         if range_bands is None:
-            top = int(math.floor(float(ranges.max()) / 10.0)) + 1
-            range_bands = tuple((10.0 * i, 10.0 * (i + 1)) for i in range(top))
+            range_bands = default_range_bands(grid)
         bands = []
         for band in range_bands:
             try:
@@ -327,7 +374,13 @@ class MetricAccumulator:
         gt = _check_bool("gt", gt, 3)
         if gt.shape != shape:
             raise InputError(f"gt shape {gt.shape} does not match (classes, H, W) = {shape}")
-        visibility = _check_mask("visibility", visibility, self.grid.shape)
+        if visibility is not None and np.ndim(visibility) == 3:
+            visibility = _check_bool("visibility", visibility, 3)
+            if visibility.shape != shape:
+                raise InputError(f"per-class visibility shape {visibility.shape} does not match "
+                                 f"(classes, H, W) = {shape}")
+        else:
+            visibility = _check_mask("visibility", visibility, self.grid.shape)
         known = _check_mask("known", known, self.grid.shape)
         finite = np.isfinite(probs)
         if known is not None:
@@ -342,8 +395,9 @@ class MetricAccumulator:
         Args:
             probs: ``(C, H, W)`` float class probabilities; positive where ``>= threshold``.
             gt: ``(C, H, W)`` bool ground truth.
-            visibility: optional ``(H, W)`` bool; with ``use_visibility`` only these cells are
-                scored (prediction and ground truth outside it are ignored).
+            visibility: optional ``(H, W)`` bool, or ``(C, H, W)`` bool per class (see
+                :func:`scope_masks`); with ``use_visibility`` only these cells are scored
+                (prediction and ground truth outside it are ignored).
             known: optional ``(H, W)`` bool; cells where it is False count as predicted negative
                 for every class (the mapper has no opinion there, so ground truth there is missed).
 
@@ -360,7 +414,7 @@ class MetricAccumulator:
             pred &= known
         mask = visibility if (self.use_visibility and visibility is not None) else None
         if mask is not None:
-            pred &= mask
+            pred &= mask  # (H, W) broadcasts over classes; (C, H, W) is per class
             gt = gt & mask
 
         inter = (pred & gt).reshape(C, -1)  # (C, H*W)

@@ -5,7 +5,9 @@ Every method goes through the same public path as the ROS node and ``bev-bag rep
 ``create_mapper(rig, grid, MapperConfig(...)).map({camera: full-size label image})``; the
 result is compared with the drive's ground truth inside its ``visibility`` mask (cells some
 camera sees, object cells included), with the mapper's ``known`` mask applied (unknown cells
-count as negative). Range bands are 0-10, 10-20, 20-30, 30+ m.
+count as negative). Every score goes through :func:`score_frameset`, which uses the one
+:class:`~bev_mapper_core.metrics.MetricAccumulator` with its default range bands (the same as
+``bev-bag replay``'s) and per-class scope masks.
 """
 
 from __future__ import annotations
@@ -13,40 +15,66 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
 from ..grid import BevGrid
 from ..mapper import MapperConfig, create_mapper
-from ..metrics import MetricAccumulator
+from ..metrics import MetricAccumulator, scope_masks
 from ..rig import Rig
 from .data import FrameSet, synth_frameset
 
-RANGE_BANDS = ((0.0, 10.0), (10.0, 20.0), (20.0, 30.0), (30.0, float("inf")))
 
+def score_frameset(predict: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], frames: FrameSet,
+                   grid: BevGrid, class_names: Sequence[str], batch: int = 1, limit: int | None = None,
+                   scope: str = "visible", progress: str | None = None) -> dict:
+    """The one scoring loop over a :class:`FrameSet` (``bev-train eval`` and validation).
 
-def evaluate_mapper(mapper, frames: FrameSet, grid: BevGrid, mask: str = "visibility",
-                    progress: bool = False) -> dict:
-    """MetricAccumulator result of ``mapper`` over full-resolution ``frames`` (+ ``ms_per_frame``)."""
-    acc = MetricAccumulator(grid, mapper.class_names, range_bands=RANGE_BANDS)
-    names = frames.camera_names
-    idx = range(len(frames))
+    Args:
+        predict: ``labels (B, N, h, w) uint8 -> (probs (B, C, H, W) float, known (B, H, W) bool)``.
+        frames: the frames, in order; the first ``limit`` are scored (None = all).
+        scope: ``visible`` (the drive's ``visibility``) or ``ground`` (flat classes where the
+            ground is seen), see :func:`~bev_mapper_core.metrics.scope_masks`.
+        progress: a tqdm description, or None for no bar.
+
+    Returns:
+        :meth:`MetricAccumulator.result` (default range bands, the same as ``bev-bag replay``)
+        plus ``ms_per_frame`` of ``predict``.
+    """
+    acc = MetricAccumulator(grid, class_names)
+    n = len(frames) if limit is None else min(limit, len(frames))
+    starts = range(0, n, batch)
     if progress:
         from tqdm import tqdm
 
-        idx = tqdm(idx, desc=f"eval {mapper.name}", unit="frame", mininterval=5)
-    t_map = 0.0
-    for i in idx:
-        images = {n: frames.labels[i, c] for c, n in enumerate(names)}
+        starts = tqdm(starts, desc=progress, unit="batch", mininterval=5)
+    t_pred = 0.0
+    for s in starts:
+        idx = np.arange(s, min(s + batch, n))
         t0 = time.perf_counter()
-        pred = mapper.map(images)
-        t_map += time.perf_counter() - t0
-        vis = frames.mask[i] if mask == "visibility" else frames.ground_mask[i]
-        acc.update(pred.probs, frames.target[i], vis, pred.known)
+        probs, known = predict(frames.labels[idx])
+        t_pred += time.perf_counter() - t0
+        for j, i in enumerate(idx):
+            masks = scope_masks(class_names, frames.mask[i], frames.ground_mask[i], scope)
+            acc.update(probs[j], frames.target[i], masks, known[j])
     res = acc.result()
-    res["ms_per_frame"] = 1000.0 * t_map / max(len(frames), 1)
+    res["ms_per_frame"] = 1000.0 * t_pred / max(n, 1)
     return res
+
+
+def evaluate_mapper(mapper, frames: FrameSet, grid: BevGrid, scope: str = "visible",
+                    progress: bool = False) -> dict:
+    """:func:`score_frameset` of a :class:`~bev_mapper_core.mapper.Mapper` over full-resolution
+    ``frames``, one frame at a time through ``mapper.map`` (as the node and replay call it)."""
+    names = frames.camera_names
+
+    def predict(labels: np.ndarray):  # (1, N, H, W) -> (1, C, H, W), (1, H, W)
+        pred = mapper.map({n: labels[0, c] for c, n in enumerate(names)})
+        return pred.probs[None], pred.known[None]
+
+    return score_frameset(predict, frames, grid, mapper.class_names, scope=scope,
+                          progress=f"eval {mapper.name}" if progress else None)
 
 
 def held_out_frames(rig: Rig, grid: BevGrid, classes: Sequence[str], seeds: Sequence[int], frames: int = 20,
