@@ -30,7 +30,7 @@ from typing import Iterator
 
 import numpy as np
 
-from bev_mapper_core.classes import bev_picture, resolve_classes
+from bev_mapper_core.classes import bev_picture, class_cover, resolve_classes
 from bev_mapper_core.grid import BevGrid
 from bev_mapper_core.mapper import BevPrediction, MapperConfig, create_mapper
 from bev_mapper_core.metrics import SCOPES, MetricAccumulator, scope_masks
@@ -211,8 +211,12 @@ def _run(options, reader, rig, grid, mapper, out, tmp_frames, notes) -> ReplayRe
     has_ground = T.GROUND_VISIBILITY in reader.topics
     scorer = _Scorer(grid, mapper.class_names, gt_names,
                      ground=options.scope == "ground" and has_ground)
+    if gt_names and scorer.mapped:
+        notes.append("classes scored against GT layers of the same definition: "
+                     + ", ".join(f"{c} = {' + '.join(g)}" for c, g in scorer.mapped.items()))
     if gt_names and scorer.unscored:
-        notes.append(f"classes without GT in the bag are not scored: {scorer.unscored}")
+        notes.append(f"WARNING: NOT SCORED: {scorer.unscored}: the bag has no GT layer of that definition "
+                     f"(its GT layers: {list(gt_names)}); mIoU is over {list(scorer.class_map)} only")
     if options.scope == "ground" and gt_names and not has_ground:
         notes.append("scope 'ground' requested but the bag has no /bev/visibility/ground: "
                      "scoring visible cells only")
@@ -325,6 +329,8 @@ def _metrics(options, scorer: "_Scorer", grid, mapped, skipped, latencies, damag
         "map": res["map"],
         "iou_by_range": res["iou_by_range"],
         "unscored_classes": scorer.unscored,
+        "miou_classes": list(scorer.class_map),
+        "class_map": scorer.mapped,
         "latency_ms": _percentiles(latencies),
         "grid": asdict(grid),
         "output_bag": {"path": BAG_DIR, "storage": options.storage, "messages": bag_counts},
@@ -344,21 +350,33 @@ class _Scorer:
     """
 
     def __init__(self, grid: BevGrid, pred_names, gt_names, ground: bool) -> None:
-        names = tuple(c for c in pred_names if c in gt_names)
+        #: predicted class -> the GT layers that mean the same (see ``class_cover``)
+        self.class_map = {}
+        for c in pred_names:
+            cover = class_cover(c, tuple(gt_names)) if gt_names else None
+            if cover is not None:
+                self.class_map[c] = cover
+        names = tuple(self.class_map)
         self.classes = resolve_classes(names) if names else ()
-        self.unscored = [c for c in pred_names if c not in gt_names]
+        self.unscored = [c for c in pred_names if c not in self.class_map]
         self.scope_used = None if not names else ("ground" if ground else "visible")
         self.acc = MetricAccumulator(grid, names) if names else None
         self._names = names
         self._pred_idx = [list(pred_names).index(c) for c in names]
-        self._gt_idx = [list(gt_names).index(c) for c in names]
+        self._gt_idx = [[list(gt_names).index(g) for g in self.class_map[c]] for c in names]
+
+    @property
+    def mapped(self) -> dict[str, list[str]]:
+        """Predicted classes scored against GT layers of other names: ``{class: [gt layers]}``."""
+        return {c: list(g) for c, g in self.class_map.items() if g != (c,)}
 
     def update(self, frame, pred: BevPrediction):
         """Score one frame; returns ``(gt (C', H, W) bool, visible (H, W))`` or ``(None, None)``."""
         if self.acc is None or frame.gt is None:
             return None, None
-        gt = frame.gt[self._gt_idx] >= 0.5  # (C', H, W)
-        visible = frame.gt_known[self._gt_idx].all(axis=0)  # (H, W)
+        # a class covered by several GT layers is their union, known where all of them are
+        gt = np.stack([(frame.gt[idx] >= 0.5).any(axis=0) for idx in self._gt_idx])  # (C', H, W)
+        visible = np.stack([frame.gt_known[idx].all(axis=0) for idx in self._gt_idx]).all(axis=0)  # (H, W)
         masks = scope_masks(self._names, visible, frame.ground_visibility, self.scope_used)
         self.acc.update(pred.probs[self._pred_idx], gt, masks, pred.known)
         return gt, visible

@@ -98,6 +98,10 @@ def run(args: argparse.Namespace) -> int:
     m = result.metrics
     if m["frames_scored"]:
         print(format_table(m))
+        over = m["miou_classes"]
+        print(f"mIoU over {len(over)} class(es): {', '.join(over)}"
+              + (f"; NOT scored (no GT of that definition): {', '.join(m['unscored_classes'])}"
+                 if m["unscored_classes"] else ""))
         print(f"scope: {m['scope_used']}")
     lat = m["latency_ms"]
     lat_text = f"; mapping p50 {lat['p50']} ms, p95 {lat['p95']} ms" if lat["p50"] is not None else ""

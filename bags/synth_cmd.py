@@ -13,6 +13,7 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from bev_mapper_core.classes import BEV_CLASSES, CAM2BEV_CLASSES, class_cover
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.grid import BevGrid
 from bev_mapper_core.rig import PRESETS, Rig, preset_rig
@@ -80,9 +81,22 @@ def synth_bag(options: SynthBagOptions) -> DriveSummary:
         "bev_mapper.grid": json.dumps(asdict(options.grid)),
         "bev_mapper.synth": json.dumps(asdict(options.synth)),
     }
-    frames = generate_drive(rig, options.grid, options.synth)
-    return write_drive(options.out, rig, options.grid, frames, storage=options.storage,
+    classes = gt_classes(rig.name)
+    frames = generate_drive(rig, options.grid, options.synth, classes)
+    return write_drive(options.out, rig, options.grid, frames, classes=classes, storage=options.storage,
                        force=options.force, custom_data=custom)
+
+
+def gt_classes(rig_name: str) -> tuple:
+    """GT layers of a synthetic bag: the standard classes, plus, for the Cam2BEV rig, the layers
+    of Cam2BEV's class set that the standard ones cannot express (``static``: curbs, sidewalks,
+    obstacles, buildings, terrain), so that models of either class set are scored on it."""
+    if rig_name != "cam2bev4":
+        return BEV_CLASSES
+    names = {c.name for c in BEV_CLASSES}
+    extra = tuple(c for c in CAM2BEV_CLASSES if c.name not in names
+                  and class_cover(c.name, tuple(names)) is None)
+    return BEV_CLASSES + extra
 
 
 def configure(p: argparse.ArgumentParser) -> None:

@@ -101,6 +101,31 @@ def resolve_classes(names) -> tuple[BevClass, ...]:
     return tuple(bev_class(n) for n in names)
 
 
+def class_cover(name: str, available) -> tuple[str, ...] | None:
+    """Layers among ``available`` (class names) that together mean exactly the class ``name``.
+
+    Used to score a prediction against ground truth of another class set (Cam2BEV's ``road``
+    against the standard ``drivable``, or the other way round): the same name, else the classes
+    whose label sets lie inside ``name``'s and together cover it exactly. Their union is then
+    the same layer, since a BEV layer is the set of cells carrying one of its labels. ``None``
+    when no such cover exists (e.g. Cam2BEV's ``static`` against the standard seven, which have
+    no obstacle, building or terrain layer).
+
+    Raises:
+        ConfigError: an unknown class name.
+    """
+    if name in available:
+        return (name,)
+    want = set(bev_class(name).labels)
+    labels = {n: set(bev_class(n).labels) for n in available}
+    parts = [n for n, lab in labels.items() if lab <= want]
+    # keep the largest parts: a layer inside another part adds nothing to the union
+    parts = [n for n in parts if not any(labels[n] < labels[m] for m in parts)]
+    if parts and set().union(*(labels[n] for n in parts)) == want:
+        return tuple(parts)
+    return None
+
+
 def label_lut(classes) -> np.ndarray:
     """Boolean table ``(NUM_LABELS, C)``: ``lut[label, c]`` is True if label belongs to class c."""
     lut = np.zeros((NUM_LABELS, len(classes)), dtype=bool)

@@ -174,8 +174,11 @@ class DriveRenderer:
 
 
 def generate_drive(rig: Rig, grid: BevGrid,
-                   config: SynthConfig = SynthConfig()) -> Iterator[SynthFrame]:
+                   config: SynthConfig = SynthConfig(), classes=BEV_CLASSES) -> Iterator[SynthFrame]:
     """Generate a synthetic drive: ``config.frames`` :class:`SynthFrame` s, lazily.
+
+    ``classes`` are the GT layers of each frame's ``gt`` (default: the standard classes; the
+    renderer only uses them for the GT, the images do not depend on them).
 
     The world is built (and the arguments checked) when this is called; frames are rendered as
     they are iterated. Same ``(rig, grid, config)`` -> bit-identical frames.
@@ -190,6 +193,7 @@ def generate_drive(rig: Rig, grid: BevGrid,
     if not isinstance(config, SynthConfig):
         raise ConfigError(f"config must be a SynthConfig, got {type(config).__name__}")
     renderer = DriveRenderer(build_world(config), rig, grid)
+    renderer.lut = label_lut(tuple(classes))  # (NUM_LABELS, C): GT of the requested classes
 
     def frames() -> Iterator[SynthFrame]:
         for k in range(config.frames):
