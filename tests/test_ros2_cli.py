@@ -94,6 +94,14 @@ def test_ament_layout_command_reports_errors(tmp_path, capsys):
         write_layout(tmp_path / "venv", source=tmp_path / "nowhere")
 
 
+def readme_block(name: str) -> list[str]:
+    """The command lines of the README's ``<!-- NAME:begin -->`` ... ``<!-- NAME:end -->`` block."""
+    text = (REPO / "README.md").read_text()
+    m = re.search(rf"<!-- {name}:begin[^>]*-->\s*```bash\n(.*?)```\s*<!-- {name}:end -->", text, re.S)
+    assert m, f"README.md has no {name} block"
+    return [ln for ln in m.group(1).splitlines() if ln.strip()]
+
+
 def _wait_output(proc_log: pathlib.Path, pattern: str, timeout: float) -> bool:
     end = time.monotonic() + timeout
     while time.monotonic() < end:
@@ -159,15 +167,17 @@ def test_colcon_build_then_ros2_run(tmp_path):
             shutil.copy2(src, dst)
     env = cli_env(free_domain_id(9))
     env.pop("AMENT_PREFIX_PATH")
+    lines = readme_block("colcon")
+    build = [ln for ln in lines if ln.startswith(("colcon build", "source install/"))]
+    run = [ln for ln in lines if ln.startswith("ros2 run ")]
+    assert len(build) == 2 and len(run) == 1, lines
     script = (
         "set -e\n"
-        "colcon build --event-handlers console_direct- >colcon.log 2>&1\n"
-        "source install/setup.bash\n"
+        f"{build[0]} --event-handlers console_direct- >colcon.log 2>&1\n"
+        f"{build[1]}\n"
         "ros2 pkg prefix bev_mapper_ros\n"
-        "timeout -s INT 20 ros2 run bev_mapper_ros mapper_node --ros-args "
-        "--params-file \"$(ros2 pkg prefix --share bev_mapper_ros)/config/front1.yaml\" -p method:=ipm "
-        ">node.log 2>&1 &\n"
-        "for i in $(seq 200); do grep -q 'mapping' node.log && break; sleep 0.1; done\n"
+        f"timeout -s INT 30 {run[0]} >node.log 2>&1 &\n"
+        "for i in $(seq 300); do grep -q 'mapping' node.log && break; sleep 0.1; done\n"
         "cat node.log\n"
         "kill -INT %1; wait %1 || true\n"
     )
@@ -177,3 +187,50 @@ def test_colcon_build_then_ros2_run(tmp_path):
     assert "mapping ['front'] with ipm" in res.stdout, res.stdout
     # the workspace's copy of the package, not the checkout's, ran
     assert (ws / "install" / "bev_mapper_ros" / "lib" / "bev_mapper_ros" / "mapper_node").is_file()
+
+
+def test_readme_live_commands_verbatim(layout, tmp_path):
+    """After ``bash scripts/demo.sh``, the README's live section, line for line: ``ros2 run`` the
+    node, play the demo drive, and ``ros2 topic echo --once`` prints a grid."""
+    shells: list[list[str]] = []
+    for ln in readme_block("live"):
+        if re.match(r"# shell \d", ln):
+            shells.append([])
+        elif not ln.startswith("#"):
+            shells[-1].append(ln)
+    assert len(shells) == 3 and all(sh[0] == "source .venv/bin/activate" for sh in shells), shells
+    env = cli_env(free_domain_id(11))
+    for k in ("VIRTUAL_ENV", "AMENT_PREFIX_PATH"):
+        env.pop(k)  # the README's `source .venv/bin/activate` sets them
+    env["PATH"] = os.environ.get("PATH", "")
+    if not (REPO / "data" / "demo_drive" / "metadata.yaml").is_file():  # what the README's first command does
+        demo = subprocess.run(["bash", "scripts/demo.sh", "--no-pictures", "--max-frames", "1"], cwd=REPO,
+                              env={**env, "BEV_DEMO_OUT": str(tmp_path / "demo")}, capture_output=True, text=True,
+                              timeout=300)
+        assert demo.returncode == 0, demo.stderr
+    logs = [tmp_path / f"shell{i + 1}.log" for i in range(3)]
+    procs = []
+    try:
+        for i in (0, 1):
+            with open(logs[i], "w") as log:
+                procs.append(subprocess.Popen(["bash", "-c", "\n".join(shells[i])], cwd=REPO, env=env, stdout=log,
+                                              stderr=subprocess.STDOUT, start_new_session=True))
+            if i == 0:
+                assert _wait_output(logs[0], r"mapping \[", 60), logs[0].read_text()
+        echo = subprocess.run(["bash", "-c", "\n".join(shells[2])], cwd=REPO, env=env, capture_output=True,
+                              text=True, timeout=120)
+        assert echo.returncode == 0, echo.stderr + logs[0].read_text() + logs[1].read_text()
+        assert "width: 400" in echo.stdout and "height: 200" in echo.stdout, echo.stdout
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGINT)
+        for p in procs:
+            try:
+                p.wait(20)
+            except subprocess.TimeoutExpired:
+                os.killpg(p.pid, signal.SIGKILL)
+                p.wait(5)
+    node_log = logs[0].read_text()
+    assert procs[0].returncode == 0, node_log
+    assert "[ERROR]" not in node_log and "Traceback" not in node_log, node_log
