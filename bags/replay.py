@@ -24,7 +24,7 @@ import json
 import logging
 import shutil
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
 
@@ -192,7 +192,7 @@ def replay(options: ReplayOptions) -> ReplayResult:
         if grid is None:
             grid = options.grid or BevGrid()
             notes.append(f"the bag has no GT layers: mapping onto {grid.describe()}, no metrics")
-        elif options.grid is not None and options.grid != grid:
+        elif options.grid is not None and not options.grid.isclose(grid):
             raise BagContentError(
                 f"the bag's GT grid is {grid.describe()}; grid flags only apply to bags without GT")
         mapper = create_mapper(rig, grid, options.mapper)
@@ -327,7 +327,7 @@ def _metrics(options, scorer: "_Scorer", grid, mapped, skipped, latencies, damag
         "iou_by_range": res["iou_by_range"],
         "unscored_classes": scorer.unscored,
         "latency_ms": _percentiles(latencies),
-        "grid": asdict(grid),
+        "grid": grid.to_dict(),
         "output_bag": {"path": BAG_DIR, "storage": options.storage, "messages": bag_counts},
         "complete": damage is None,
         "damage": damage,
