@@ -135,6 +135,11 @@ def test_bev_bag_choices_come_from_the_constants():
     assert tuple(_action(replay, "--storage").choices) == STORAGES
     assert sorted(_action(synth, "--rig").choices) == sorted(PRESETS)
     assert tuple(_action(synth, "--storage").choices) == STORAGES
+    # every input kind has a bag topic and a default node topic
+    from bags.topics import IMAGE_KINDS
+    from bev_mapper_ros.config import DEFAULT_TOPICS
+
+    assert set(IMAGE_KINDS) == set(INPUT_KINDS) == set(DEFAULT_TOPICS)
 
 
 def test_bev_bag_defaults_are_the_dataclass_defaults():
