@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -144,7 +143,7 @@ def describe(path: Path) -> dict:
             "cameras": cams,
             "ego_frame": reader.ego_frame,
             "gt_layers": gt,
-            "gt_grid": asdict(grid) if grid is not None else None,
+            "gt_grid": grid.to_dict() if grid is not None else None,
             "ground_visibility": T.GROUND_VISIBILITY in reader.topics,
             "odometry": T.ODOM in reader.topics,
             "custom_data": reader.custom_data,

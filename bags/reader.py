@@ -45,8 +45,9 @@ from .sources import TopicSummary, open_source
 log = logging.getLogger(__name__)
 
 MS = 1_000_000
-#: Default synchronization of bag frames: cameras of one frame within 30 ms of each other.
-DEFAULT_SYNC = SyncConfig(slop_ns=30 * MS, timeout_ns=300 * MS, queue_size=16)
+#: Default synchronization of bag frames: the replay window of :meth:`SyncConfig.replay`
+#: (cameras of one frame within 30 ms of each other: wider than the node's live window).
+DEFAULT_SYNC = SyncConfig.replay()
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,7 @@ import json
 import logging
 import shutil
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
 
@@ -191,7 +191,7 @@ def replay(options: ReplayOptions) -> ReplayResult:
         if grid is None:
             grid = options.grid or BevGrid()
             notes.append(f"the bag has no GT layers: mapping onto {grid.describe()}, no metrics")
-        elif options.grid is not None and options.grid != grid:
+        elif options.grid is not None and not options.grid.isclose(grid):
             raise BagContentError(
                 f"the bag's GT grid is {grid.describe()}; grid flags only apply to bags without GT")
         mapper = create_mapper(rig, grid, options.mapper)
@@ -332,7 +332,7 @@ def _metrics(options, scorer: "_Scorer", grid, mapped, skipped, latencies, damag
         "miou_classes": list(scorer.class_map),
         "class_map": scorer.mapped,
         "latency_ms": _percentiles(latencies),
-        "grid": asdict(grid),
+        "grid": grid.to_dict(),
         "output_bag": {"path": BAG_DIR, "storage": options.storage, "messages": bag_counts},
         "complete": damage is None,
         "damage": damage,

@@ -46,20 +46,21 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, required=True, help="output directory")
     p.add_argument("--method", default=MapperConfig.method, choices=available_methods(),
                    help=f"mapping method (default {MapperConfig.method}: the shipped weights of the bag's rig)")
-    p.add_argument("--weights", default=None, help="safetensors weights (learned methods)")
-    p.add_argument("--device", default="cpu", help="torch device of learned methods")
-    p.add_argument("--input", dest="input_kind", default="labels", choices=INPUT_KINDS,
+    p.add_argument("--weights", default=MapperConfig.weights, help="safetensors weights (learned methods)")
+    p.add_argument("--device", default=MapperConfig.device, help="torch device of learned methods")
+    p.add_argument("--input", dest="input_kind", default=MapperConfig.input_kind, choices=INPUT_KINDS,
                    help="camera images to map: semantic labels or RGB")
     p.add_argument("--classes", nargs="+", default=None, metavar="CLASS",
                    help="BEV classes to produce (default: the method's)")
-    p.add_argument("--scope", default="visible", choices=SCOPES,
+    p.add_argument("--scope", default=ReplayOptions.scope, choices=SCOPES,
                    help="cells that are scored (see below)")
-    p.add_argument("--max-frames", type=int, default=None, help="stop after N mapped frames")
+    p.add_argument("--max-frames", type=int, default=ReplayOptions.max_frames,
+                   help="stop after N mapped frames")
     p.add_argument("--no-pictures", action="store_true", help="write no PNG pictures")
-    p.add_argument("--picture-every", type=int, default=10, metavar="K",
-                   help="a picture of every K-th mapped frame (default 10)")
+    p.add_argument("--picture-every", type=int, default=ReplayOptions.picture_every, metavar="K",
+                   help=f"a picture of every K-th mapped frame (default {ReplayOptions.picture_every})")
     p.add_argument("--gif", action="store_true", help="also write an animated replay.gif")
-    p.add_argument("--storage", choices=STORAGES, default="mcap", help="storage of bev_bag/")
+    p.add_argument("--storage", choices=STORAGES, default=ReplayOptions.storage, help="storage of bev_bag/")
     p.add_argument("--force", action="store_true", help="replace existing outputs in DIR")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     g = BevGrid()

@@ -78,7 +78,7 @@ def synth_bag(options: SynthBagOptions) -> DriveSummary:
     custom = {
         "bev_mapper.rig": rig.name,
         "bev_mapper.scale": repr(options.scale),
-        "bev_mapper.grid": json.dumps(asdict(options.grid)),
+        "bev_mapper.grid": json.dumps(options.grid.to_dict()),
         "bev_mapper.synth": json.dumps(asdict(options.synth)),
     }
     classes = gt_classes(rig.name)
@@ -101,17 +101,17 @@ def gt_classes(rig_name: str) -> tuple:
 
 def configure(p: argparse.ArgumentParser) -> None:
     """Arguments of ``bev-bag synth``."""
-    g = BevGrid()
+    g, o, sc = BevGrid(), SynthBagOptions, SynthConfig  # the defaults live there
     p.add_argument("out", type=Path, help="output rosbag2 directory")
-    p.add_argument("--rig", default="surround6", choices=sorted(PRESETS), help="rig preset")
-    p.add_argument("--scale", type=float, default=1.0,
+    p.add_argument("--rig", default=o.rig, choices=sorted(PRESETS), help="rig preset")
+    p.add_argument("--scale", type=float, default=o.scale,
                    help="image scale of every camera (e.g. 0.25 for quick tests)")
-    p.add_argument("--frames", type=int, default=50, help="number of frames")
-    p.add_argument("--seed", type=int, default=0, help="random seed")
-    p.add_argument("--rate-hz", type=float, default=10.0, help="frame rate")
-    p.add_argument("--jitter-ms", type=float, default=0.0,
+    p.add_argument("--frames", type=int, default=sc.frames, help="number of frames")
+    p.add_argument("--seed", type=int, default=sc.seed, help="random seed")
+    p.add_argument("--rate-hz", type=float, default=sc.rate_hz, help="frame rate")
+    p.add_argument("--jitter-ms", type=float, default=sc.jitter_ms,
                    help="max abs per-camera stamp offset from the frame stamp")
-    p.add_argument("--storage", choices=STORAGES, default="mcap", help="rosbag2 storage plugin")
+    p.add_argument("--storage", choices=STORAGES, default=o.storage, help="rosbag2 storage plugin")
     p.add_argument("--force", action="store_true", help="overwrite an existing bag at OUT")
     p.add_argument("--grid-x-min", type=float, default=g.x_min, help="BEV grid x min (m)")
     p.add_argument("--grid-x-max", type=float, default=g.x_max, help="BEV grid x max (m)")

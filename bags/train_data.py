@@ -55,7 +55,7 @@ def bag_frameset(paths: Sequence[str | Path], classes: Sequence[str], rig: Rig, 
                 raise ConfigError(f"{path}: no GT topics for classes {missing} (has {list(r.gt_classes)})")
             if r.rig().names != rig.names:
                 raise ConfigError(f"{path}: cameras {list(r.rig().names)} differ from {list(rig.names)}")
-            if r.grid() != grid:
+            if not r.grid().isclose(grid):
                 raise ConfigError(f"{path}: GT grid {r.grid().describe()} differs from {grid.describe()}")
             for f in r.frames(rgb=False, labels=True, gt=True, odom=False):
                 if f.gt is None or not all(n in f.labels for n in rig.names):

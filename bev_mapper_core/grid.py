@@ -16,7 +16,7 @@ it around.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import astuple, dataclass, fields
 from functools import cached_property
 
 import numpy as np
@@ -25,6 +25,12 @@ from .errors import GridError
 
 #: OccupancyGrid value for "unknown".
 OCC_UNKNOWN = -1
+
+#: Two grids are the same grid when each bound and the resolution agree within this many metres
+#: (see :meth:`BevGrid.isclose`). 1 um is far below any cell size, and far above the float64
+#: noise of grids that travelled through JSON, YAML or ``OccupancyGrid`` (float32 resolution,
+#: undone by ``msg_adapters``).
+GRID_TOL_M = 1e-6
 
 
 @dataclass(frozen=True)
@@ -40,6 +46,7 @@ class BevGrid:
     (x) by 200 rows (y).
     """
 
+    # The one place these defaults are written: node parameters and CLI flags read them here.
     x_min: float = -30.0
     x_max: float = 30.0
     y_min: float = -15.0
@@ -62,6 +69,44 @@ class BevGrid:
                 raise GridError(
                     f"grid {name} extent {span} m is not a whole number of {self.resolution} m cells"
                 )
+
+    # ------------------------------------------------------------- identity
+    def isclose(self, other: "BevGrid", tol: float = GRID_TOL_M) -> bool:
+        """True when ``other`` is the same grid: same cell counts, and every bound and the
+        resolution within ``tol`` metres (default :data:`GRID_TOL_M`).
+
+        This is the comparison to use between grids of different origin (weights metadata, a
+        bag's GT layers, parameters). ``==`` stays the exact dataclass equality (consistent
+        with ``hash``).
+        """
+        if not isinstance(other, BevGrid):
+            return False
+        return self.shape == other.shape and all(
+            abs(a - b) <= tol for a, b in zip(astuple(self), astuple(other)))
+
+    def to_dict(self) -> dict[str, float]:
+        """``{"x_min", "x_max", "y_min", "y_max", "resolution"}`` in field order (for JSON/YAML)."""
+        return {f.name: float(getattr(self, f.name)) for f in fields(self)}
+
+    @classmethod
+    def from_dict(cls, d) -> "BevGrid":
+        """Inverse of :meth:`to_dict`.
+
+        Raises:
+            GridError: a key is missing or unknown, a value is not a number, or the grid is invalid.
+        """
+        names = [f.name for f in fields(cls)]
+        try:
+            missing, unknown = sorted(set(names) - set(d)), sorted(set(d) - set(names))
+        except TypeError:
+            raise GridError(f"a grid must be a mapping of {names}, got {d!r}") from None
+        if missing or unknown:
+            raise GridError(f"grid needs exactly the keys {names}; missing {missing}, unknown {unknown}")
+        try:
+            values = {n: float(d[n]) for n in names}
+        except (TypeError, ValueError):
+            raise GridError(f"grid values must be numbers, got {dict(d)}") from None
+        return cls(**values)
 
     # ------------------------------------------------------------------ sizes
     @property

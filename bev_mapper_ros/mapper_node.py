@@ -27,7 +27,6 @@ from bev_mapper_core.mapper import create_mapper, preflight
 from msg_adapters import (
     FrameSynchronizer,
     RclpyFactory,
-    SyncConfig,
     camera_info_to_model,
     compressed_to_array,
     header_stamp_ns,
@@ -75,7 +74,7 @@ class MapperNode(Node):
         declare_parameters(self)
         self.cfg = node_config_from_params(read_parameters(self))  # raises on bad parameters
         cfg = self.cfg
-        preflight(cfg.mapper, self.get_parameter("rig").value, cfg.grid, cfg.cameras)  # e.g. missing weights: fail now
+        preflight(cfg.mapper, cfg.rig, cfg.grid, cfg.cameras)  # e.g. missing weights: fail now
         self.factory = RclpyFactory()
         self.stats = NodeStats()
         self._last_logged: dict[str, float] = {}
@@ -83,14 +82,10 @@ class MapperNode(Node):
         self._mapper_version = -1
         use_tf = cfg.use_tf
         self.calibration = LiveCalibration(
-            self.get_parameter("rig").value, cfg.cameras, cfg.base_frame,
+            cfg.rig, cfg.cameras, cfg.base_frame,
             dict(cfg.extrinsics), _tf_lookup_for(self) if use_tf else None,
         )
-        self.sync = FrameSynchronizer(
-            cfg.cameras,
-            SyncConfig(slop_ns=int(cfg.sync_slop_s * 1e9), timeout_ns=int(cfg.sync_timeout_s * 1e9)),
-            callback=self._on_set,
-        )
+        self.sync = FrameSynchronizer(cfg.cameras, cfg.sync_config(), callback=self._on_set)
         self.slot: LatestSlot = LatestSlot()
         self.worker = Worker(self.slot, self._process, self._on_worker_error)
 

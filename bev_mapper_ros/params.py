@@ -1,7 +1,8 @@
 """ROS parameter declarations of the mapper node, with descriptors and validation.
 
 Every parameter maps onto a field of :class:`bev_mapper_ros.config.NodeConfig` (or the core
-dataclasses inside it); :func:`declare_parameters` declares them on a node and
+dataclasses inside it, see :data:`bev_mapper_ros.config.PARAM_FIELDS`), whose default it
+declares; :func:`declare_parameters` declares them on a node and
 :func:`read_parameters` reads them back as the flat dict that
 :func:`bev_mapper_ros.config.node_config_from_params` takes.
 """
@@ -13,40 +14,43 @@ from rclpy.exceptions import ParameterUninitializedException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from bev_mapper_core.mapper import INPUT_KINDS, MapperConfig, available_methods
+from bev_mapper_core.mapper import INPUT_KINDS, available_methods
 
-from .config import NodeConfigError
+from .config import PARAM_FIELDS, NodeConfigError, parameter_defaults
 
 _T = ParameterType
-# name -> (default, type, read_only, description)
-PARAMETERS: dict[str, tuple] = {
-    "rig": ("", _T.PARAMETER_STRING, True, "rig name (selects shipped default weights)"),
-    "cameras": ([""], _T.PARAMETER_STRING_ARRAY, True, "camera names, in rig order"),
-    "input_kind": ("labels", _T.PARAMETER_STRING, True, f"one of {list(INPUT_KINDS)}"),
-    "image_topic": ("", _T.PARAMETER_STRING, True,
+# name -> (type, read_only, description); the default comes from the dataclass field the
+# parameter sets (config.PARAM_FIELDS), never from here.
+_DECLARATIONS: dict[str, tuple] = {
+    "rig": (_T.PARAMETER_STRING, True, "rig name (selects shipped default weights)"),
+    "cameras": (_T.PARAMETER_STRING_ARRAY, True, "camera names, in rig order"),
+    "input_kind": (_T.PARAMETER_STRING, True, f"one of {list(INPUT_KINDS)}"),
+    "image_topic": (_T.PARAMETER_STRING, True,
                     "image topic pattern with {camera}; '' = /cameras/{camera}/labels or /image_raw"),
-    "camera_info_topic": ("/cameras/{camera}/camera_info", _T.PARAMETER_STRING, True,
-                          "CameraInfo topic pattern with {camera}"),
-    "compressed": (False, _T.PARAMETER_BOOL, True, "subscribe to <image_topic>/compressed"),
-    "method": (MapperConfig.method, _T.PARAMETER_STRING, True,
+    "camera_info_topic": (_T.PARAMETER_STRING, True, "CameraInfo topic pattern with {camera}"),
+    "compressed": (_T.PARAMETER_BOOL, True, "subscribe to <image_topic>/compressed"),
+    "method": (_T.PARAMETER_STRING, True,
                f"mapping method, one of {list(available_methods())} (bimapper: shipped weights per rig)"),
-    "weights": ("", _T.PARAMETER_STRING, True, "safetensors weights ('' = shipped default)"),
-    "device": ("cpu", _T.PARAMETER_STRING, True, "torch device of learned methods"),
-    "threads": (0, _T.PARAMETER_INTEGER, True,
+    "weights": (_T.PARAMETER_STRING, True, "safetensors weights ('' = shipped default)"),
+    "device": (_T.PARAMETER_STRING, True, "torch device of learned methods"),
+    "threads": (_T.PARAMETER_INTEGER, True,
                 "CPU threads of learned methods; 0 = all CPUs but one (left to the callbacks)"),
-    "classes": ([""], _T.PARAMETER_STRING_ARRAY, True, "classes to publish ([] = all)"),
-    "grid.x_min": (-30.0, _T.PARAMETER_DOUBLE, True, "grid extent along x (m)"),
-    "grid.x_max": (30.0, _T.PARAMETER_DOUBLE, True, "grid extent along x (m)"),
-    "grid.y_min": (-15.0, _T.PARAMETER_DOUBLE, True, "grid extent along y (m)"),
-    "grid.y_max": (15.0, _T.PARAMETER_DOUBLE, True, "grid extent along y (m)"),
-    "grid.resolution": (0.15, _T.PARAMETER_DOUBLE, True, "cell size (m)"),
-    "base_frame": ("base_link", _T.PARAMETER_STRING, True, "frame of the output grids"),
-    "sync_slop_s": (0.02, _T.PARAMETER_DOUBLE, True, "max stamp spread in a synchronized set (s)"),
-    "sync_timeout_s": (0.2, _T.PARAMETER_DOUBLE, True, "wait for missing cameras this long (s)"),
-    "use_tf": (True, _T.PARAMETER_BOOL, True, "look extrinsics up in TF when tf2_ros is importable"),
-    "output_prefix": ("bev", _T.PARAMETER_STRING, True, "output topics: <prefix>/<class>, <prefix>/image"),
-    "diagnostics_period_s": (1.0, _T.PARAMETER_DOUBLE, True, "period of /diagnostics (s)"),
+    "classes": (_T.PARAMETER_STRING_ARRAY, True, "classes to publish ([] = all)"),
+    "grid.x_min": (_T.PARAMETER_DOUBLE, True, "grid extent along x (m)"),
+    "grid.x_max": (_T.PARAMETER_DOUBLE, True, "grid extent along x (m)"),
+    "grid.y_min": (_T.PARAMETER_DOUBLE, True, "grid extent along y (m)"),
+    "grid.y_max": (_T.PARAMETER_DOUBLE, True, "grid extent along y (m)"),
+    "grid.resolution": (_T.PARAMETER_DOUBLE, True, "cell size (m)"),
+    "base_frame": (_T.PARAMETER_STRING, True, "frame of the output grids"),
+    "sync_slop_s": (_T.PARAMETER_DOUBLE, True, "max stamp spread in a synchronized set (s)"),
+    "sync_timeout_s": (_T.PARAMETER_DOUBLE, True, "wait for missing cameras this long (s)"),
+    "use_tf": (_T.PARAMETER_BOOL, True, "look extrinsics up in TF when tf2_ros is importable"),
+    "output_prefix": (_T.PARAMETER_STRING, True, "output topics: <prefix>/<class>, <prefix>/image"),
+    "diagnostics_period_s": (_T.PARAMETER_DOUBLE, True, "period of /diagnostics (s)"),
 }
+_DEFAULTS = parameter_defaults()
+# name -> (default, type, read_only, description), in PARAM_FIELDS order
+PARAMETERS: dict[str, tuple] = {name: (_DEFAULTS[name], *_DECLARATIONS[name]) for name in PARAM_FIELDS}
 _RANGES = {
     "sync_slop_s": (0.0, 10.0),
     "sync_timeout_s": (0.001, 60.0),

@@ -24,13 +24,9 @@ def rig_parameters(rig: Rig, grid: BevGrid | None = None, method: str = MapperCo
     params = {
         "rig": rig.name,
         "cameras": list(rig.names),
-        "input_kind": "labels",
+        "input_kind": MapperConfig.input_kind,
         "method": method,
-        "grid": {
-            "x_min": grid.x_min, "x_max": grid.x_max,
-            "y_min": grid.y_min, "y_max": grid.y_max,
-            "resolution": grid.resolution,
-        },
+        "grid": grid.to_dict(),
         "extrinsics": {},
     }
     for cam in rig.cameras:

@@ -15,12 +15,10 @@ from typing import Any
 import numpy as np
 
 from bev_mapper_core.errors import GridError
-from bev_mapper_core.grid import BevGrid
+from bev_mapper_core.grid import GRID_TOL_M, BevGrid
 
 from .errors import GridMessageError
 from .factory import MessageFactory, make_header, make_point, make_quaternion
-
-_ORIGIN_TOL = 1e-6  # metres
 
 
 def _f32(value: float) -> float:
@@ -93,8 +91,10 @@ def grid_from_info(info: Any) -> BevGrid:
 
 
 def check_grid_info(info: Any, grid: BevGrid) -> None:
-    """Raise :class:`GridMessageError` unless ``info`` describes exactly ``grid``."""
-    if not np.isclose(float(info.resolution), grid.resolution, rtol=1e-6, atol=0.0):
+    """Raise :class:`GridMessageError` unless ``info`` describes ``grid``: same cell counts,
+    resolution and origin within the grid tolerance :data:`~bev_mapper_core.grid.GRID_TOL_M`
+    (as :meth:`BevGrid.isclose`)."""
+    if abs(_f32(info.resolution) - grid.resolution) > GRID_TOL_M:
         raise GridMessageError(
             f"OccupancyGrid resolution {_f32(info.resolution)} m differs from the grid's "
             f"{grid.resolution} m"
@@ -106,7 +106,7 @@ def check_grid_info(info: Any, grid: BevGrid) -> None:
         )
     ox, oy = float(info.origin.position.x), float(info.origin.position.y)
     gx, gy = grid.origin_xy
-    if abs(ox - gx) > _ORIGIN_TOL or abs(oy - gy) > _ORIGIN_TOL:
+    if abs(ox - gx) > GRID_TOL_M or abs(oy - gy) > GRID_TOL_M:
         raise GridMessageError(f"OccupancyGrid origin ({ox}, {oy}) differs from the grid's ({gx}, {gy})")
     _check_orientation(info.origin.orientation)
 

