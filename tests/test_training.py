@@ -9,11 +9,11 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
+from bags import train_cli as cli  # noqa: E402
 from bev_mapper_core.errors import ConfigError  # noqa: E402
 from bev_mapper_core.grid import BevGrid  # noqa: E402
-from bev_mapper_core.models import load_state  # noqa: E402
+from bev_mapper_core.models import BiMapper, load_state  # noqa: E402
 from bev_mapper_core.rig import preset_rig  # noqa: E402
-from bev_mapper_core.training import cli  # noqa: E402
 from bev_mapper_core.training.config import TrainConfig  # noqa: E402
 from bev_mapper_core.training.data import (  # noqa: E402
     VAL_SEED_BASE,
@@ -25,28 +25,29 @@ from bev_mapper_core.training.data import (  # noqa: E402
     train_seeds,
     val_seeds,
 )
-from bev_mapper_core.training.trainer import BiMapper, model_config, train  # noqa: E402
+from bev_mapper_core.training.trainer import train  # noqa: E402
 
 TINY_GRID = (-8.0, 8.0, -4.0, 4.0, 0.5)  # 16 m x 8 m at 0.5 m: 32 x 16 cells
 RIG = "cam2bev4"
 
 
 def tiny_cfg(tmp_path, **kw) -> TrainConfig:
+    """A tiny run from flat keys (as flags and old YAML give them)."""
     base = dict(rig=RIG, classes="cam2bev", out=str(tmp_path / "run"), epochs=2, batch=2, lr=1e-3, seed=3,
                 train_drives=1, val_drives=1, frames_per_drive=3, stride=2, cache=str(tmp_path / "cache"),
                 threads=1, input_width=48, gv_hidden=16, grid=TINY_GRID, progress=False)
     base.update(kw)
-    return TrainConfig(**base)
+    return TrainConfig.from_dict(base)
 
 
 @pytest.fixture(scope="module")
 def tiny_data(tmp_path_factory):
     """(train, val) FrameSets of one 3-frame drive each, labels at the model input size."""
     cache = tmp_path_factory.mktemp("cache")
-    cfg = TrainConfig(rig=RIG, classes="cam2bev", train_drives=1, val_drives=1, input_width=48, gv_hidden=16,
-                      grid=TINY_GRID, progress=False, seed=3)
-    rig, grid = preset_rig(RIG), cfg.bev_grid()
-    size = BiMapper(model_config(cfg), rig, grid).input_size
+    cfg = TrainConfig.from_dict(dict(rig=RIG, classes="cam2bev", train_drives=1, val_drives=1, input_width=48,
+                                     gv_hidden=16, grid=TINY_GRID, progress=False, seed=3))
+    rig, grid = preset_rig(RIG), cfg.grid
+    size = BiMapper(cfg.model, rig, grid).input_size
     tr = synth_frameset(rig, grid, cfg.class_names, train_seeds(3, 1), 3, 2, cache, size)
     va = synth_frameset(rig, grid, cfg.class_names, val_seeds(1), 3, 2, cache, size)
     return tr, va, cache
@@ -87,8 +88,8 @@ def test_dataset_is_deterministic_per_seed(tmp_path):
 
 def test_resized_cache_matches_model_preprocess():
     rig = preset_rig(RIG)
-    model = BiMapper(model_config(TrainConfig(rig=RIG, classes="cam2bev", input_width=48, gv_hidden=16,
-                                              grid=TINY_GRID)), rig, BevGrid(*TINY_GRID))
+    cfg = TrainConfig.from_dict(dict(rig=RIG, classes="cam2bev", input_width=48, gv_hidden=16, grid=TINY_GRID))
+    model = BiMapper(cfg.model, rig, cfg.grid)
     rng = np.random.default_rng(0)
     full = rng.integers(0, 14, size=(1, 4, 302, 482)).astype(np.uint8)  # includes ids >= NUM_LABELS
     small = resize_labels(full, model.input_size)
@@ -121,7 +122,7 @@ def test_resume_continues_from_the_saved_epoch(tmp_path, tiny_data):
     assert any("resumed" in s and "epoch 2" in s for s in logs)
     assert resumed["epoch"] == full["epoch"] == 2 and resumed["step"] == full["step"] == 6
     rig, cfg = preset_rig(RIG), tiny_cfg(tmp_path)
-    ma, mb = (BiMapper(model_config(cfg), rig, cfg.bev_grid()) for _ in range(2))
+    ma, mb = (BiMapper(cfg.model, rig, cfg.grid) for _ in range(2))
     load_state(ma, tmp_path / "a" / "last.safetensors")
     load_state(mb, tmp_path / "b" / "last.safetensors")
     for (ka, va_), (kb, vb) in zip(ma.state_dict().items(), mb.state_dict().items()):
@@ -164,13 +165,13 @@ def test_config_from_yaml(tmp_path):
     p = tmp_path / "c.yaml"
     p.write_text("rig: cam2bev4\nepochs: 3\nstreams: gv\nval_seeds: [900000005]\n")
     cfg = TrainConfig.from_yaml(p, epochs=4)
-    assert cfg.rig == "cam2bev4" and cfg.epochs == 4 and cfg.streams == "gv" and cfg.val_seeds == (900000005,)
-    assert cfg.class_names == ("road", "vehicle", "static")
+    assert cfg.rig == "cam2bev4" and cfg.epochs == 4 and cfg.model.streams == "gv" and cfg.val_seeds == (900000005,)
+    assert cfg.class_names == cfg.model.classes == ("road", "vehicle", "static")
     p.write_text("epochs: 3\nwhat: 1\n")
     with pytest.raises(ConfigError):
         TrainConfig.from_yaml(p)
     # paper schedule scaled: lr step at 10/30, mutual both ways from the 5th of 30 epochs
-    assert TrainConfig(epochs=30).lr_step == 10 and TrainConfig(epochs=30).mutual_start == 4
+    assert TrainConfig(epochs=30).lr_step == 10 and TrainConfig(epochs=30).loss.mutual_start(30) == 4
     assert TrainConfig(epochs=9).lr_step == 3
 
 
