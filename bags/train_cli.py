@@ -156,6 +156,7 @@ def train_parser(method: str | None = None) -> argparse.ArgumentParser:
 
 
 def eval_parser() -> argparse.ArgumentParser:
+    """The ``bev-train eval`` parser (defaults: TrainConfig's and MapperConfig's)."""
     p = _Parser(prog="bev-train eval", description="Score a mapper on held-out synthetic drives.")
     p.add_argument("--rig", default=DEFAULTS["rig"], choices=sorted(PRESETS))
     p.add_argument("--method", default=MapperConfig.method, help="a registered mapper (ipm, bimapper, ...)")
@@ -174,6 +175,7 @@ def eval_parser() -> argparse.ArgumentParser:
 
 
 def run_eval(argv: list[str]) -> int:
+    """``bev-train eval``: score a mapper on held-out drives, print tables (and write ``--json``)."""
     a = eval_parser().parse_args(argv)
     import torch
 
@@ -203,6 +205,7 @@ def run_eval(argv: list[str]) -> int:
 
 
 def run_train(argv: list[str]) -> int:
+    """``bev-train [train]``: build the TrainConfig (YAML + flags), pick the data source, train."""
     a = vars(train_parser(_method_name(argv)).parse_args(argv))
     from bev_mapper_core.training.trainer import train
 
@@ -220,6 +223,7 @@ def run_train(argv: list[str]) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Console entry point; returns the exit status (0, 1 on errors, 2 on usage errors)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
         if argv[:1] == ["eval"]:

@@ -26,8 +26,9 @@ from .sources import DataNeeds, TrainData
 
 #: ``pos_weight`` settings: ``auto`` (see :func:`class_pos_weight`) or ``none`` (plain BCE, paper).
 POS_WEIGHTS = ("auto", "none")
-#: Paper: mutual learning both ways from the 5th of 30 epochs (0-based 4), scaled to the run.
-PAPER_MUTUAL_START = 4
+#: Paper: mutual learning both ways from the 5th of 30 epochs (0-based 4; the loss config's
+#: default), scaled to the run's epochs.
+PAPER_MUTUAL_START = BiMapperLossConfig.mutual_start_epoch
 #: GV MLP width of the model ``bev-train`` builds by default (BiMapperConfig's None, one hidden
 #: unit per BEV feature cell as in HDMapNet, is too large to train on a CPU).
 TRAIN_GV_HIDDEN = 128
@@ -72,7 +73,8 @@ class BiMapperTraining:
 
     def loss_config(self, epochs: int, pos_weight: tuple[float, ...] | None = None) -> BiMapperLossConfig:
         """The loss configuration of a run of ``epochs`` epochs."""
-        return BiMapperLossConfig(asl_weight=1.0 if self.asl else 0.0, mutual_start_epoch=self.mutual_start(epochs),
+        return BiMapperLossConfig(asl_weight=BiMapperLossConfig.asl_weight if self.asl else 0.0,
+                                  mutual_start_epoch=self.mutual_start(epochs),
                                   mutual_mode=self.mutual, pos_weight=pos_weight)
 
 

@@ -196,6 +196,7 @@ class TrainConfig:
 
     @property
     def held_out_seeds(self) -> tuple[int, ...]:
+        """Seeds of the held-out drives (``val_seeds``, else ``data.val_seeds(val_drives)``)."""
         from .data import val_seeds
 
         return self.val_seeds if self.val_seeds is not None else val_seeds(self.val_drives)
@@ -208,6 +209,7 @@ class TrainConfig:
         return max(1, round(self.epochs * PAPER_LR_STEP / PAPER_EPOCHS))
 
     def lr_at(self, epoch: int) -> float:
+        """Learning rate of ``epoch`` (0-based): ``lr``, times ``lr_gamma`` from :attr:`lr_step` on."""
         return self.lr * (self.lr_gamma if epoch >= self.lr_step else 1.0)
 
     # --------------------------------------------------------------------- I/O
