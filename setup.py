@@ -43,7 +43,7 @@ setup(
     entry_points={
         "console_scripts": [
             "bev-bag = bags.cli:main",
-            "bev-train = bev_mapper_core.training.cli:main",
+            "bev-train = bags.train_cli:main",
             "mapper_node = bev_mapper_ros.mapper_node:main",
         ],
     },

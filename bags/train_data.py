@@ -1,7 +1,8 @@
 """Training data from rosbag2 files that carry GT topics (``/bev/gt/<class>``), for ``bev-train --bag``.
 
-Lives outside ``bev_mapper_core`` because reading bags needs rosbags; the training CLI imports
-this module lazily, only when ``--bag`` is given. Frames become the same in-memory
+Lives outside ``bev_mapper_core`` because reading bags needs rosbags; the ``bev-train`` entry
+point (:mod:`bags.train_cli`) hands :class:`BagSource` to the core's trainer when ``--bag`` is
+given (the core never imports ``bags``). Frames become the same in-memory
 :class:`~bev_mapper_core.training.data.FrameSet` as the synthetic drives:
 
 * label images of every camera in rig order (frames where a camera's labels are missing or
@@ -15,14 +16,16 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.grid import BevGrid
 from bev_mapper_core.rig import Rig
+from bev_mapper_core.training.config import TrainConfig
 from bev_mapper_core.training.data import FrameSet, resize_labels
+from bev_mapper_core.training.sources import DataNeeds, DataSource, TrainData
 
 from .reader import BagReader
 
@@ -75,4 +78,23 @@ def bag_frameset(paths: Sequence[str | Path], classes: Sequence[str], rig: Rig, 
     return FrameSet(np.stack(L), np.stack(T), np.stack(M), np.stack(G), rig.names)
 
 
-__all__ = ["bag_frameset", "bag_rig_grid"]
+class BagSource(DataSource):
+    """``cfg.bag`` for training, ``cfg.val_bag`` held out; rig and grid from the first bag."""
+
+    name = "bag"
+
+    def rig_grid(self, cfg: TrainConfig) -> tuple[Rig, BevGrid]:
+        if not cfg.bag:
+            raise ConfigError("the bag data source needs bags (--bag)")
+        return bag_rig_grid(cfg.bag[0])
+
+    def load(self, cfg: TrainConfig, rig: Rig, grid: BevGrid, needs: DataNeeds,
+             log: Callable[[str], None]) -> TrainData:
+        self.check(needs)
+        train = bag_frameset(cfg.bag, cfg.class_names, rig, grid, needs.image_size)
+        if not cfg.val_bag:
+            raise ConfigError("training on bags needs held-out bags (--val-bag)")
+        return TrainData(train, bag_frameset(cfg.val_bag, cfg.class_names, rig, grid, needs.image_size))
+
+
+__all__ = ["BagSource", "bag_frameset", "bag_rig_grid"]

@@ -1,7 +1,11 @@
-"""bev_mapper_core must stay framework-free: no rclpy, no *_msgs, no rosbags."""
+"""bev_mapper_core must stay framework-free: no rclpy, no *_msgs, no rosbags, and nothing from
+the packages above it (bags, msg_adapters, bev_mapper_ros): the entry points hand things down."""
 
 import ast
 import pathlib
+import re
+import subprocess
+import sys
 
 import pytest
 
@@ -9,6 +13,8 @@ from import_check import ros_modules_loaded_by
 
 CORE = pathlib.Path(__file__).resolve().parents[1] / "bev_mapper_core"
 FORBIDDEN = ("rclpy", "rosbags", "mcap", "tf2_ros", "launch", "launch_ros", "rosidl_runtime_py")
+#: The project's packages that build on the core; the core imports none of them.
+UPPER = ("bags", "msg_adapters", "bev_mapper_ros")
 
 
 def imported_modules(path: pathlib.Path):
@@ -31,6 +37,29 @@ def test_core_sources_import_no_ros():
             if top in FORBIDDEN or top.endswith("_msgs") or top.endswith("_interfaces"):
                 offenders.append(f"{f.relative_to(CORE.parent)}:{line} imports {mod}")
     assert not offenders, "\n".join(offenders)
+
+
+def test_core_imports_nothing_from_the_packages_above_it():
+    """Not at module level, not lazily inside a function, not as a ``"module:Class"`` registry string."""
+    offenders = []
+    target = re.compile(rf"^({'|'.join(UPPER)})([.:]|$)")
+    for f in sorted(CORE.rglob("*.py")):
+        for mod, line in imported_modules(f):
+            if mod.split(".")[0] in UPPER:
+                offenders.append(f"{f.relative_to(CORE.parent)}:{line} imports {mod}")
+        for node in ast.walk(ast.parse(f.read_text(), filename=str(f))):
+            if isinstance(node, ast.Constant) and isinstance(node.value, str) and target.match(node.value):
+                offenders.append(f"{f.relative_to(CORE.parent)}:{node.lineno} names {node.value!r}")
+    assert not offenders, "\n".join(offenders)
+
+
+def test_importing_core_loads_no_upper_package():
+    code = ("import pkgutil, importlib, sys, bev_mapper_core\n"
+            "for m in pkgutil.walk_packages(bev_mapper_core.__path__, 'bev_mapper_core.'):\n"
+            "    if not m.name.endswith('__main__'): importlib.import_module(m.name)\n"
+            f"print(sorted(k for k in sys.modules if k.split('.')[0] in {UPPER!r}))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
 
 
 def test_importing_core_loads_no_ros_module():

@@ -90,8 +90,12 @@ class BiMapperConfig:
         if self.fusion not in FUSIONS:
             raise ConfigError(f"fusion must be one of {FUSIONS}, got {self.fusion!r}")
         for name in ("input_width", "neck_channels", "bev_channels", "bev_downsample", "unet_channels", "decoder_channels"):
-            if getattr(self, name) < 1:
-                raise ConfigError(f"{name} must be >= 1, got {getattr(self, name)}")
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ConfigError(f"{name} must be an integer >= 1, got {v!r}")
+        if self.gv_hidden is not None and (isinstance(self.gv_hidden, bool) or not isinstance(self.gv_hidden, int)
+                                           or self.gv_hidden < 1):
+            raise ConfigError(f"gv_hidden must be an integer >= 1 or None, got {self.gv_hidden!r}")
         self.plane_spec()  # validates the plane
         self.encoder_config(3)  # validates the encoder
 

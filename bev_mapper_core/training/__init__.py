@@ -1,3 +1,6 @@
-"""Training and evaluation of the learned methods (Bi-Mapper): synthetic-drive data
-(:mod:`.data`), the training loop (:mod:`.trainer`), evaluation of any Mapper (:mod:`.evaluate`)
-and the ``bev-train`` command (:mod:`.cli`). Importing the submodules that train imports torch."""
+"""Training and evaluation of the learned methods: the one training loop (:mod:`.trainer`), the
+method plug-in interface and registry (:mod:`.method`; Bi-Mapper's plug-in in
+:mod:`.bimapper_method`), the run configuration (:mod:`.config`), data sources (:mod:`.sources`;
+synthetic drives in :mod:`.data`) and evaluation of any Mapper (:mod:`.evaluate`). The
+``bev-train`` command is :mod:`bags.train_cli` (it adds the bag data source). Importing the
+submodules that train imports torch."""

@@ -1,29 +1,44 @@
-"""Typed, frozen training configuration (``bev-train`` flags and ``--config`` YAML map onto it)."""
+"""Typed, frozen training configuration (``bev-train`` flags and ``--config`` YAML map onto it).
+
+A :class:`TrainConfig` holds the run settings (rig, data, schedule, output), the BEV grid as a
+:class:`~bev_mapper_core.grid.BevGrid`, and the training method's own config objects: ``model``
+(its architecture, e.g. :class:`~bev_mapper_core.models.BiMapperConfig`) and ``loss`` (its
+training settings, e.g. :class:`~.bimapper_method.BiMapperTraining`). Serialised (``to_dict``,
+saved in ``last.json``) it is a mapping with ``grid``, ``model`` and ``loss`` sub-mappings.
+
+:meth:`TrainConfig.from_dict` also reads the flat form that ``bev-train`` flags produce and that
+runs written before the plug-in split saved: method fields at top level (``streams``,
+``ipm_skip``, ``asl``, ...), ``input`` / ``classes`` for the model's ``input_kind`` / classes,
+``grid`` as ``[x_min, x_max, y_min, y_max, resolution]`` or ``null``.
+"""
 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import MISSING, asdict, dataclass, field, fields
 from pathlib import Path
+from typing import Any
 
 from ..classes import BEV_CLASS_NAMES, CAM2BEV_CLASSES, resolve_classes
-from ..errors import ConfigError
+from ..errors import BevMapperError, ConfigError
 from ..grid import BevGrid
-from ..models.config import FUSIONS, STREAMS
-from ..models.losses import MUTUAL_MODES
 from ..rig import PRESETS
+from .method import method_class
 
-METHODS = ("bimapper",)
-#: Paper schedule (Bi-Mapper, 30 epochs): lr x0.1 at epoch 10, mutual learning from the 5th.
-PAPER_EPOCHS, PAPER_LR_STEP, PAPER_MUTUAL_START = 30, 10, 4
+#: Paper schedule (Bi-Mapper, 30 epochs): lr x0.1 at epoch 10.
+PAPER_EPOCHS, PAPER_LR_STEP = 30, 10
 CAM2BEV_CLASS_NAMES = tuple(c.name for c in CAM2BEV_CLASSES)
+#: Class-set name used when a run names none (see :func:`class_set`).
+AUTO_CLASSES = "auto"
+#: Flat keys of the model config under another name: flat key -> model field.
+MODEL_ALIASES = {"input": "input_kind"}
 
 
 def class_set(name_or_list, rig: str) -> tuple[str, ...]:
     """``auto`` (Cam2BEV's road / vehicle / static for ``cam2bev4``, else the standard set),
     ``standard``, ``cam2bev``, or a comma-separated list / sequence of class names."""
     if isinstance(name_or_list, str):
-        if name_or_list == "auto":
+        if name_or_list == AUTO_CLASSES:
             return CAM2BEV_CLASS_NAMES if rig == "cam2bev4" else BEV_CLASS_NAMES
         if name_or_list == "standard":
             return BEV_CLASS_NAMES
@@ -36,48 +51,69 @@ def class_set(name_or_list, rig: str) -> tuple[str, ...]:
     return names
 
 
+def _jsonable(obj) -> dict:
+    """A config dataclass as a JSON-ready dict (tuples as lists)."""
+    d = obj.to_dict() if hasattr(obj, "to_dict") else asdict(obj)
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
+
+
+def _build(cls: type, d: dict, what: str):
+    """``cls(**d)`` with unknown keys and wrong types as ConfigError."""
+    names = {f.name for f in fields(cls)}
+    extra = sorted(set(d) - names)
+    if extra:
+        raise ConfigError(f"unknown {what} keys {extra}; known: {sorted(names)}")
+    try:
+        return cls(**d)
+    except BevMapperError:
+        raise
+    except (TypeError, ValueError) as e:
+        raise ConfigError(f"bad {what} ({e})") from None
+
+
+def _grid(v) -> BevGrid:
+    """A BevGrid from a BevGrid, a mapping, the old 5-sequence, or None (the default grid)."""
+    if v is None:
+        return BevGrid()
+    if isinstance(v, BevGrid):
+        return v
+    if isinstance(v, dict):
+        return _build(BevGrid, v, "grid")
+    if isinstance(v, (list, tuple)) and len(v) == 5:
+        return BevGrid(*(float(x) for x in v))
+    raise ConfigError(f"grid must be a mapping of x_min, x_max, y_min, y_max, resolution (or those 5 values), got {v!r}")
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """Everything a training run depends on (saved beside every checkpoint).
 
     Args:
-        method: learned method (``bimapper``).
+        method: registered training method (:func:`~.method.train_methods`).
         rig: preset rig name (ignored for the cameras when training on bags: the bag's rig).
-        input: ``labels`` (the synthetic drives and bags carry label images; ``rgb`` untested).
-        classes: ``auto`` / ``standard`` / ``cam2bev`` / comma list (see :func:`class_set`).
         out: run directory.
         epochs, frames_per_epoch (None = every training frame), batch, lr, seed.
         lr_step_epoch: 0-based epoch from which lr is multiplied by ``lr_gamma``; None = the
             paper's epoch 10 of 30 scaled to ``epochs``.
-        mutual_start_epoch: 0-based epoch from which GV also teaches LV (AML); None = the
-            paper's 5th of 30 scaled to ``epochs``.
         train_drives, val_drives, frames_per_drive, stride: synthetic data (see ``data.py``).
         val_seeds: explicit held-out drive seeds (default: ``val_seeds(val_drives)``).
         val_frames: frames of the held-out set scored after each epoch (None = all).
         cache: drive cache directory (None = render in memory every run).
         device, threads: torch device and CPU threads.
         resume: continue ``out``'s last checkpoint.
-        streams, fusion, asl, mutual: ablation switches (model streams, fusion, Across-Space
-            Loss on/off, mutual-learning mode).
-        lv_full_res: the LV stream samples camera-size images (BiMapperConfig.lv_full_res).
-        ipm_skip: full-resolution IPM prior into the decoder head (BiMapperConfig.ipm_skip;
-            not in the paper).
-        input_width, gv_hidden: model size knobs (BiMapperConfig).
         time_budget_min: stop (checkpointed, resumable) once this much wall time has passed.
         bag, val_bag: rosbag2 paths with GT topics to train / validate on instead of drives.
         progress: tqdm progress bars.
-        grid: ``(x_min, x_max, y_min, y_max, resolution)`` of the BEV grid (None = the default
-            60 m x 30 m at 0.15 m, which the shipped weights use); synthetic data only.
-        pos_weight: ``auto``: per-class positive weight of the ego BCE,
-            ``clip(sqrt(negatives / positives), 1, 10)`` over the visible cells of the training
-            set (thin and rare layers: lane dividers, crossings, pedestrians); ``none``: plain BCE
-            as in the paper. See :func:`~.trainer.class_pos_weight`.
+        grid: the BEV grid (default: 60 m x 30 m at 0.15 m, which the shipped weights use);
+            synthetic data only (bags bring their own).
+        model: the method's architecture config (``None`` = the method's default with the
+            ``auto`` class set of ``rig``); its ``input_kind`` and ``classes`` are the run's
+            input and classes.
+        loss: the method's training settings (``None`` = its defaults).
     """
 
     method: str = "bimapper"
     rig: str = "surround6"
-    input: str = "labels"
-    classes: str = "auto"
     out: str = "runs/bimapper"
     epochs: int = 30
     frames_per_epoch: int | None = None
@@ -85,7 +121,6 @@ class TrainConfig:
     lr: float = 1e-3
     lr_gamma: float = 0.1
     lr_step_epoch: int | None = None
-    mutual_start_epoch: int | None = None
     seed: int = 0
     train_drives: int = 40
     val_drives: int = 6
@@ -97,43 +132,37 @@ class TrainConfig:
     device: str = "cpu"
     threads: int = 2
     resume: bool = False
-    streams: str = "both"
-    fusion: str = "sum"
-    lv_full_res: bool = False
-    ipm_skip: bool = False
-    asl: bool = True
-    mutual: str = "async"
-    input_width: int = 112
-    gv_hidden: int | None = 128
     time_budget_min: float | None = None
     bag: tuple[str, ...] | None = None
     val_bag: tuple[str, ...] | None = None
     progress: bool = True
-    grid: tuple[float, float, float, float, float] | None = None
-    pos_weight: str = "auto"
+    grid: BevGrid = field(default_factory=BevGrid)
+    model: Any = None
+    loss: Any = None
 
     def __post_init__(self) -> None:
-        if self.grid is not None:
-            if len(self.grid) != 5:
-                raise ConfigError(f"grid must be (x_min, x_max, y_min, y_max, resolution), got {self.grid!r}")
-            object.__setattr__(self, "grid", tuple(float(v) for v in self.grid))
-            self.bev_grid()  # validates
         for name in ("val_seeds", "bag", "val_bag"):
             v = getattr(self, name)
             if v is not None:
                 object.__setattr__(self, name, tuple(v) if not isinstance(v, str) else (v,))
-        if self.method not in METHODS:
-            raise ConfigError(f"method must be one of {METHODS}, got {self.method!r}")
+        if not isinstance(self.grid, BevGrid):
+            raise ConfigError(f"grid must be a BevGrid, got {self.grid!r} (TrainConfig.from_dict converts mappings)")
+        cls = method_class(self.method)  # ConfigError for an unknown method
         if self.rig not in PRESETS:
             raise ConfigError(f"unknown rig {self.rig!r}; presets: {sorted(PRESETS)}")
-        if self.input not in ("labels", "rgb"):
-            raise ConfigError(f"input must be 'labels' or 'rgb', got {self.input!r}")
-        class_set(self.classes, self.rig)
-        for name in ("epochs", "batch", "train_drives", "val_drives", "frames_per_drive", "stride", "threads", "input_width"):
+        if self.model is None:
+            object.__setattr__(self, "model", cls.default_model_config(class_set(AUTO_CLASSES, self.rig)))
+        if self.loss is None:
+            object.__setattr__(self, "loss", cls.loss_config_type())
+        for name, typ in (("model", cls.model_config_type), ("loss", cls.loss_config_type)):
+            if not isinstance(getattr(self, name), typ):
+                raise ConfigError(f"{name} of method {self.method!r} must be a {typ.__name__}, "
+                                  f"got {type(getattr(self, name)).__name__}")
+        for name in ("epochs", "batch", "train_drives", "val_drives", "frames_per_drive", "stride", "threads"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ConfigError(f"{name} must be an integer >= 1, got {v!r}")
-        for name in ("frames_per_epoch", "val_frames", "gv_hidden"):
+        for name in ("frames_per_epoch", "val_frames"):
             v = getattr(self, name)
             if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
                 raise ConfigError(f"{name} must be an integer >= 1, got {v!r}")
@@ -141,20 +170,10 @@ class TrainConfig:
             raise ConfigError(f"lr must be a finite number > 0, got {self.lr!r}")
         if not (0 < self.lr_gamma <= 1):
             raise ConfigError(f"lr_gamma must be in (0, 1], got {self.lr_gamma}")
-        for name in ("lr_step_epoch", "mutual_start_epoch"):
-            v = getattr(self, name)
-            if v is not None and (not isinstance(v, int) or v < 0):
-                raise ConfigError(f"{name} must be an integer >= 0, got {v!r}")
+        if self.lr_step_epoch is not None and (not isinstance(self.lr_step_epoch, int) or self.lr_step_epoch < 0):
+            raise ConfigError(f"lr_step_epoch must be an integer >= 0, got {self.lr_step_epoch!r}")
         if not isinstance(self.seed, int) or self.seed < 0:
             raise ConfigError(f"seed must be an integer >= 0, got {self.seed!r}")
-        if self.streams not in STREAMS:
-            raise ConfigError(f"streams must be one of {STREAMS}, got {self.streams!r}")
-        if self.fusion not in FUSIONS:
-            raise ConfigError(f"fusion must be one of {FUSIONS}, got {self.fusion!r}")
-        if self.pos_weight not in ("auto", "none"):
-            raise ConfigError(f"pos_weight must be 'auto' or 'none', got {self.pos_weight!r}")
-        if self.mutual not in MUTUAL_MODES:
-            raise ConfigError(f"mutual must be one of {MUTUAL_MODES}, got {self.mutual!r}")
         if self.device.split(":")[0] not in ("cpu", "cuda"):
             raise ConfigError(f"device must be cpu or cuda[:N], got {self.device!r}")
         if self.time_budget_min is not None and not self.time_budget_min > 0:
@@ -164,21 +183,20 @@ class TrainConfig:
         if self.val_bag is not None and self.bag is None:
             raise ConfigError("val_bag needs bag")
         # The splits must be disjoint (checked here so that a bad config fails before any work).
-        from .data import check_disjoint, train_seeds, val_seeds
+        from .data import check_disjoint, train_seeds
 
         if self.bag is None:
             check_disjoint(train_seeds(self.seed, self.train_drives), self.held_out_seeds)
 
     # ------------------------------------------------------------------ derived
-    def bev_grid(self) -> BevGrid:
-        return BevGrid() if self.grid is None else BevGrid(*self.grid)
-
     @property
     def class_names(self) -> tuple[str, ...]:
-        return class_set(self.classes, self.rig)
+        """The BEV classes trained (the model config's)."""
+        return tuple(self.model.classes)
 
     @property
     def held_out_seeds(self) -> tuple[int, ...]:
+        """Seeds of the held-out drives (``val_seeds``, else ``data.val_seeds(val_drives)``)."""
         from .data import val_seeds
 
         return self.val_seeds if self.val_seeds is not None else val_seeds(self.val_drives)
@@ -190,33 +208,60 @@ class TrainConfig:
             return self.lr_step_epoch
         return max(1, round(self.epochs * PAPER_LR_STEP / PAPER_EPOCHS))
 
-    @property
-    def mutual_start(self) -> int:
-        """0-based epoch from which both streams teach (paper: the 5th of 30 -> 4, scaled)."""
-        if self.mutual_start_epoch is not None:
-            return self.mutual_start_epoch
-        return round(self.epochs * PAPER_MUTUAL_START / PAPER_EPOCHS)
-
     def lr_at(self, epoch: int) -> float:
+        """Learning rate of ``epoch`` (0-based): ``lr``, times ``lr_gamma`` from :attr:`lr_step` on."""
         return self.lr * (self.lr_gamma if epoch >= self.lr_step else 1.0)
 
     # --------------------------------------------------------------------- I/O
     def to_dict(self) -> dict:
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+        """JSON-ready mapping: run fields, ``grid``, ``model`` and ``loss`` as sub-mappings."""
+        d = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("grid", "model", "loss")}
+        d = {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
+        return {**d, "grid": asdict(self.grid), "model": _jsonable(self.model), "loss": _jsonable(self.loss)}
 
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
-        names = {f.name for f in fields(cls)}
-        extra = sorted(set(d) - names)
-        if extra:
-            raise ConfigError(f"unknown training config keys {extra}; known: {sorted(names)}")
-        try:
-            return cls(**d)
-        except TypeError as e:
-            raise ConfigError(f"bad training config ({e})") from None
+        """A config from :meth:`to_dict`'s mapping, from flat keys (flags, old run files), or a mix.
+
+        Keys that are not TrainConfig fields go to the method's configs: ``input`` -> the model's
+        ``input_kind``, ``classes`` (``auto`` / ``standard`` / ``cam2bev`` / names, resolved for the
+        rig) -> its ``classes``, any other model-config field -> ``model``, loss-config field ->
+        ``loss``. Flat keys override the ``model`` / ``loss`` sub-mappings. Unknown keys raise.
+        """
+        d = dict(d)
+        run = {f.name for f in fields(cls)}
+        method = method_class(d.get("method", _default("method")))
+        model_fields = {f.name for f in fields(method.model_config_type)}
+        loss_fields = {f.name for f in fields(method.loss_config_type)}
+        model_kw = dict(_mapping(d.pop("model", None), "model"))
+        loss_kw = dict(_mapping(d.pop("loss", None), "loss"))
+        unknown = []
+        for k in [k for k in d if k not in run]:
+            v = d.pop(k)
+            if k in MODEL_ALIASES:
+                model_kw[MODEL_ALIASES[k]] = v
+            elif k in model_fields:
+                model_kw[k] = v
+            elif k in loss_fields:
+                loss_kw[k] = v
+            else:
+                unknown.append(k)
+        if unknown:
+            known = sorted(run | model_fields | loss_fields | set(MODEL_ALIASES))
+            raise ConfigError(f"unknown training config keys {sorted(unknown)}; known: {known}")
+        rig = d.get("rig", _default("rig"))
+        if rig not in PRESETS:
+            raise ConfigError(f"unknown rig {rig!r}; presets: {sorted(PRESETS)}")
+        base = _jsonable(method.default_model_config(class_set(AUTO_CLASSES, rig)))
+        model_kw["classes"] = class_set(model_kw.get("classes", AUTO_CLASSES), rig)
+        d["model"] = _build(method.model_config_type, {**base, **model_kw}, f"{method.name} model config")
+        d["loss"] = _build(method.loss_config_type, loss_kw, f"{method.name} loss config")
+        d["grid"] = _grid(d.get("grid"))
+        return _build(cls, d, "training config")
 
     @classmethod
     def from_yaml(cls, path: str | Path, **overrides) -> "TrainConfig":
+        """The YAML mapping at ``path`` (see :meth:`from_dict`) with flat ``overrides`` on top."""
         import yaml
 
         try:
@@ -235,6 +280,31 @@ class TrainConfig:
     RESUMABLE_CHANGES = ("epochs", "resume", "time_budget_min", "progress", "device", "threads", "val_frames", "cache")
 
     def resume_compatible(self, other: "TrainConfig") -> list[str]:
-        """Fields that differ from ``other`` and would make resuming meaningless."""
+        """Fields (``model.streams`` for nested ones) that differ from ``other`` and would make
+        resuming meaningless."""
         a, b = self.to_dict(), other.to_dict()
-        return [k for k in a if k not in self.RESUMABLE_CHANGES and a[k] != b[k]]
+        diff = []
+        for k, v in a.items():
+            if k in self.RESUMABLE_CHANGES or v == b.get(k):
+                continue
+            if isinstance(v, dict) and isinstance(b.get(k), dict):
+                diff += [f"{k}.{n}" for n in sorted(set(v) | set(b[k])) if v.get(n) != b[k].get(n)]
+            else:
+                diff.append(k)
+        return diff
+
+
+def _default(name: str):
+    """Default of TrainConfig field ``name`` (the one source of it)."""
+    f = TrainConfig.__dataclass_fields__[name]
+    return f.default if f.default is not MISSING else f.default_factory()
+
+
+def _mapping(v, what: str) -> dict:
+    if v is None:
+        return {}
+    if hasattr(v, "__dataclass_fields__"):
+        return _jsonable(v)
+    if not isinstance(v, dict):
+        raise ConfigError(f"{what} must be a mapping of field: value, got {v!r}")
+    return v

@@ -1,14 +1,19 @@
-"""``bev-train``: train Bi-Mapper, or score a mapper on held-out drives (``bev-train eval``).
+"""``bev-train``: train a learned method (Bi-Mapper), or score a mapper on held-out drives (``bev-train eval``).
 
 Training::
 
     bev-train --method bimapper --rig surround6 --input labels --out runs/NAME \\
         [--config run.yaml] [--epochs E] [--frames-per-epoch F] [--batch B] [--lr 1e-3] [--seed S]
         [--val-seeds 900000000,900000001 | --val-drives N] [--cache DIR | --no-cache]
-        [--device cpu|cuda] [--resume] [--streams both|gv|lv] [--fusion sum|concat]
-        [--no-asl] [--mutual async|sync|lv|gv|none] [--bag PATH ... --val-bag PATH ...]
+        [--device cpu|cuda] [--resume] [--bag PATH ... --val-bag PATH ...]
+        [method flags, Bi-Mapper's: --streams both|gv|lv|none --fusion sum|concat --no-asl
+         --mutual async|sync|lv|gv|none --pos-weight auto|none --ipm-skip --lv-full-res ...]
 
-Flags override the YAML file, which overrides the :class:`TrainConfig` defaults.
+Flags override the YAML file, which overrides the :class:`TrainConfig` defaults. The method's
+flags come from its plug-in (:attr:`TrainMethod.cli_flags`), choices and defaults from the
+constants and dataclasses that own them. This entry point lives in ``bags`` because ``--bag``
+needs the bag data source (:class:`bags.train_data.BagSource`), which it hands to the core's
+trainer; ``bev_mapper_core`` never imports ``bags``.
 
 Evaluation (any registered mapper, through ``create_mapper`` like the node and the bag tool)::
 
@@ -23,10 +28,18 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import fields
+from pathlib import Path
 
-from ..errors import BevMapperError
+from bev_mapper_core.errors import BevMapperError
+from bev_mapper_core.mapper import INPUT_KINDS, MapperConfig
+from bev_mapper_core.rig import PRESETS
+from bev_mapper_core.training.config import AUTO_CLASSES, TrainConfig
+from bev_mapper_core.training.method import CliFlag, method_class, train_methods
 
 EXIT_ERROR, EXIT_USAGE = 1, 2
+#: TrainConfig's field defaults (the flags and the eval command take theirs from here).
+DEFAULTS = {f.name: f.default for f in fields(TrainConfig)}
 
 
 class _Parser(argparse.ArgumentParser):
@@ -73,21 +86,53 @@ def _pos_float(s: str) -> float:
     return v
 
 
-def train_parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="bev-train", description="Train Bi-Mapper on synthetic drives (or bags with GT).",
+def _add_flag(p, f: CliFlag) -> None:
+    """Add a method's :class:`CliFlag` (default suppressed: the config dataclass has it)."""
+    kw = {"dest": f.dest, "help": f.help, "default": argparse.SUPPRESS}
+    if f.action:
+        kw["action"] = f.action
+    if f.choices is not None:
+        kw["choices"] = list(f.choices)
+    if f.min_value is not None:
+        kw["type"] = _int_at_least(f.min_value)
+    p.add_argument(f.flag, **kw)
+
+
+def _method_name(argv: list[str]) -> str:
+    """The training method ``argv`` asks for (``--method``, else the ``--config`` file's, else
+    the default), to know which method flags to offer; unknown names are left to the parser."""
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--method")
+    pre.add_argument("--config")
+    a, _ = pre.parse_known_args(argv)
+    name = a.method
+    if name is None and a.config:
+        import yaml
+
+        try:
+            d = yaml.safe_load(Path(a.config).read_text())
+            name = d.get("method") if isinstance(d, dict) else None
+        except (OSError, yaml.YAMLError):
+            name = None  # TrainConfig.from_yaml reports the file
+    return name if name in train_methods() else DEFAULTS["method"]
+
+
+def train_parser(method: str | None = None) -> argparse.ArgumentParser:
+    """The ``bev-train`` parser with the flags of training method ``method`` (default: the default)."""
+    cls = method_class(method or DEFAULTS["method"])
+    p = _Parser(prog="bev-train", description="Train a learned BEV method on synthetic drives (or bags with GT).",
                 epilog="`bev-train eval --help` scores a mapper on held-out drives.", argument_default=argparse.SUPPRESS)
     p.add_argument("--config", help="YAML file of TrainConfig fields (flags override it)")
-    p.add_argument("--method", choices=["bimapper"])
-    p.add_argument("--rig", choices=["surround6", "cam2bev4", "front1"])
-    p.add_argument("--input", choices=["labels", "rgb"])
-    p.add_argument("--classes", help="auto | standard | cam2bev | comma list (auto: cam2bev for cam2bev4)")
+    p.add_argument("--method", choices=list(train_methods()))
+    p.add_argument("--rig", choices=sorted(PRESETS))
+    p.add_argument("--input", choices=list(INPUT_KINDS), help="the model's input kind")
+    p.add_argument("--classes", help=f"{AUTO_CLASSES} | standard | cam2bev | comma list ({AUTO_CLASSES}: cam2bev for cam2bev4)")
     p.add_argument("--out", help="run directory")
     p.add_argument("--epochs", type=_pos_int)
     p.add_argument("--frames-per-epoch", dest="frames_per_epoch", type=_pos_int)
     p.add_argument("--batch", type=_pos_int)
     p.add_argument("--lr", type=_pos_float)
     p.add_argument("--lr-step-epoch", dest="lr_step_epoch", type=_nonneg_int, help="0-based; default paper 10/30 scaled")
-    p.add_argument("--mutual-start-epoch", dest="mutual_start_epoch", type=_nonneg_int, help="0-based; default paper 4/30 scaled")
     p.add_argument("--seed", type=_nonneg_int)
     p.add_argument("--train-drives", dest="train_drives", type=_pos_int)
     p.add_argument("--val-drives", dest="val_drives", type=_pos_int)
@@ -100,56 +145,49 @@ def train_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", help="cpu | cuda[:N]")
     p.add_argument("--threads", type=_pos_int)
     p.add_argument("--resume", action="store_true", default=argparse.SUPPRESS)
-    p.add_argument("--streams", choices=["both", "gv", "lv", "none"], help="none: only with --ipm-skip (ablation control)")
-    p.add_argument("--fusion", choices=["sum", "concat"])
-    p.add_argument("--no-asl", dest="asl", action="store_false", default=argparse.SUPPRESS)
-    p.add_argument("--lv-full-res", dest="lv_full_res", action="store_true", default=argparse.SUPPRESS,
-                   help="LV stream's IPM samples the camera-size images (as the paper)")
-    p.add_argument("--ipm-skip", dest="ipm_skip", action="store_true", default=argparse.SUPPRESS,
-                   help="full-resolution IPM prior into the decoder head, logits start at IPM's (not in the paper)")
-    p.add_argument("--mutual", choices=["async", "sync", "lv", "gv", "none"])
-    p.add_argument("--pos-weight", dest="pos_weight", choices=["auto", "none"], help="BCE class weights (none = paper)")
-    p.add_argument("--input-width", dest="input_width", type=_pos_int)
-    p.add_argument("--gv-hidden", dest="gv_hidden", type=_pos_int)
     p.add_argument("--time-budget", dest="time_budget_min", type=_pos_float, help="minutes; stop (resumable) after")
     p.add_argument("--bag", nargs="+", help="rosbag2 paths with GT topics to train on")
     p.add_argument("--val-bag", dest="val_bag", nargs="+", help="held-out rosbag2 paths with GT")
     p.add_argument("--no-progress", dest="progress", action="store_false", default=argparse.SUPPRESS)
+    g = p.add_argument_group(f"{cls.name} options")
+    for f in cls.cli_flags:
+        _add_flag(g, f)
     return p
 
 
 def eval_parser() -> argparse.ArgumentParser:
+    """The ``bev-train eval`` parser (defaults: TrainConfig's and MapperConfig's)."""
     p = _Parser(prog="bev-train eval", description="Score a mapper on held-out synthetic drives.")
-    p.add_argument("--rig", default="surround6", choices=["surround6", "cam2bev4", "front1"])
-    p.add_argument("--method", default="bimapper")
+    p.add_argument("--rig", default=DEFAULTS["rig"], choices=sorted(PRESETS))
+    p.add_argument("--method", default=MapperConfig.method, help="a registered mapper (ipm, bimapper, ...)")
     p.add_argument("--weights", default=None, help="Bi-Mapper weights (default: the shipped file)")
-    p.add_argument("--classes", default="auto")
-    p.add_argument("--val-drives", type=_pos_int, default=6)
+    p.add_argument("--classes", default=AUTO_CLASSES)
+    p.add_argument("--val-drives", type=_pos_int, default=DEFAULTS["val_drives"])
     p.add_argument("--val-seeds", type=_int_list, default=None)
-    p.add_argument("--frames-per-drive", type=_pos_int, default=20)
-    p.add_argument("--stride", type=_pos_int, default=3)
-    p.add_argument("--cache", default="data/cache")
-    p.add_argument("--device", default="cpu")
-    p.add_argument("--threads", type=_pos_int, default=2)
+    p.add_argument("--frames-per-drive", type=_pos_int, default=DEFAULTS["frames_per_drive"])
+    p.add_argument("--stride", type=_pos_int, default=DEFAULTS["stride"])
+    p.add_argument("--cache", default=DEFAULTS["cache"])
+    p.add_argument("--device", default=DEFAULTS["device"])
+    p.add_argument("--threads", type=_pos_int, default=DEFAULTS["threads"])
     p.add_argument("--json", default=None, help="write the metrics here")
     p.add_argument("--name", default=None, help="row name for the markdown summary")
     return p
 
 
 def run_eval(argv: list[str]) -> int:
+    """``bev-train eval``: score a mapper on held-out drives, print tables (and write ``--json``)."""
     a = eval_parser().parse_args(argv)
     import torch
 
-    from ..grid import BevGrid
-    from ..metrics import format_table
-    from ..rig import preset_rig
-    from .config import class_set
-    from .data import val_seeds
-    from .evaluate import evaluate, save_result, summary_header, summary_row
-
     import os
 
-    from ..models.bimapper_mapper import THREADS_ENV
+    from bev_mapper_core.grid import BevGrid
+    from bev_mapper_core.metrics import format_table
+    from bev_mapper_core.models.bimapper_mapper import THREADS_ENV
+    from bev_mapper_core.rig import preset_rig
+    from bev_mapper_core.training.config import class_set
+    from bev_mapper_core.training.data import val_seeds
+    from bev_mapper_core.training.evaluate import evaluate, save_result, summary_header, summary_row
 
     os.environ[THREADS_ENV] = str(a.threads)  # the Bi-Mapper Mapper sets its own thread count
     torch.set_num_threads(a.threads)
@@ -167,19 +205,25 @@ def run_eval(argv: list[str]) -> int:
 
 
 def run_train(argv: list[str]) -> int:
-    a = vars(train_parser().parse_args(argv))
-    from .config import TrainConfig
-    from .trainer import train
+    """``bev-train [train]``: build the TrainConfig (YAML + flags), pick the data source, train."""
+    a = vars(train_parser(_method_name(argv)).parse_args(argv))
+    from bev_mapper_core.training.trainer import train
 
     path = a.pop("config", None)
     cfg = TrainConfig.from_yaml(path, **a) if path else TrainConfig.from_dict(a)
-    doc = train(cfg, log=lambda m: print(m, flush=True))
+    source = None  # the trainer's default: synthetic drives
+    if cfg.bag:
+        from .train_data import BagSource  # rosbags only when training on bags
+
+        source = BagSource()
+    doc = train(cfg, log=lambda m: print(m, flush=True), data=source)
     print(json.dumps({"out": cfg.out, "epoch": doc["epoch"] + 1, "step": doc["step"],
                       "best_val_miou": doc["best_val_miou"], "train_seconds": round(doc["train_seconds"], 1)}))
     return 0
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Console entry point; returns the exit status (0, 1 on errors, 2 on usage errors)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
         if argv[:1] == ["eval"]:

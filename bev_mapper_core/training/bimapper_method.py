@@ -1,0 +1,165 @@
+"""Bi-Mapper's training plug-in: model build, ``BCE + ASL + 0.1 * AML`` loss, class weights,
+the asynchronous mutual-learning schedule (see :mod:`bev_mapper_core.models.losses`).
+
+``cfg.model`` is a :class:`~bev_mapper_core.models.BiMapperConfig`, ``cfg.loss`` a
+:class:`BiMapperTraining`; the ``bev-train`` flags ``--streams --fusion --lv-full-res --ipm-skip
+--input-width --gv-hidden`` set the former, ``--no-asl --mutual --mutual-start-epoch
+--pos-weight`` the latter.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import torch
+
+from ..errors import ConfigError
+from ..models import BiMapper, BiMapperConfig, BiMapperLossConfig, bimapper_loss, load_state, save_weights
+from ..models.config import FUSIONS, STREAMS
+from ..models.losses import MUTUAL_MODES
+from .config import PAPER_EPOCHS
+from .data import FrameSet
+from .method import CliFlag, TrainMethod
+from .sources import DataNeeds, TrainData
+
+#: ``pos_weight`` settings: ``auto`` (see :func:`class_pos_weight`) or ``none`` (plain BCE, paper).
+POS_WEIGHTS = ("auto", "none")
+#: Paper: mutual learning both ways from the 5th of 30 epochs (0-based 4; the loss config's
+#: default), scaled to the run's epochs.
+PAPER_MUTUAL_START = BiMapperLossConfig.mutual_start_epoch
+#: GV MLP width of the model ``bev-train`` builds by default (BiMapperConfig's None, one hidden
+#: unit per BEV feature cell as in HDMapNet, is too large to train on a CPU).
+TRAIN_GV_HIDDEN = 128
+
+
+@dataclass(frozen=True)
+class BiMapperTraining:
+    """Bi-Mapper's training settings (turned into a :class:`BiMapperLossConfig` per run).
+
+    Args:
+        asl: Across-Space Loss on (weight 1, paper) or off.
+        mutual: mutual-learning mode (:data:`MUTUAL_MODES`; ``async`` = the paper's AML).
+        mutual_start_epoch: 0-based epoch from which GV also teaches LV; None = the paper's
+            5th of 30 scaled to the run's epochs.
+        pos_weight: ``auto``: per-class positive weight of the ego BCE,
+            ``clip(sqrt(negatives / positives), 1, 10)`` over the visible cells of the training
+            set (thin and rare layers: lane dividers, crossings, pedestrians); ``none``: plain BCE
+            as in the paper. See :func:`class_pos_weight`.
+    """
+
+    asl: bool = True
+    mutual: str = BiMapperLossConfig.mutual_mode
+    mutual_start_epoch: int | None = None
+    pos_weight: str = "auto"
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.asl, bool):
+            raise ConfigError(f"asl must be true or false, got {self.asl!r}")
+        if self.mutual not in MUTUAL_MODES:
+            raise ConfigError(f"mutual must be one of {MUTUAL_MODES}, got {self.mutual!r}")
+        v = self.mutual_start_epoch
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 0):
+            raise ConfigError(f"mutual_start_epoch must be an integer >= 0, got {v!r}")
+        if self.pos_weight not in POS_WEIGHTS:
+            raise ConfigError(f"pos_weight must be one of {POS_WEIGHTS}, got {self.pos_weight!r}")
+
+    def mutual_start(self, epochs: int) -> int:
+        """0-based epoch from which both streams teach (paper: the 5th of 30 -> 4, scaled)."""
+        if self.mutual_start_epoch is not None:
+            return self.mutual_start_epoch
+        return round(epochs * PAPER_MUTUAL_START / PAPER_EPOCHS)
+
+    def loss_config(self, epochs: int, pos_weight: tuple[float, ...] | None = None) -> BiMapperLossConfig:
+        """The loss configuration of a run of ``epochs`` epochs."""
+        return BiMapperLossConfig(asl_weight=BiMapperLossConfig.asl_weight if self.asl else 0.0,
+                                  mutual_start_epoch=self.mutual_start(epochs),
+                                  mutual_mode=self.mutual, pos_weight=pos_weight)
+
+
+def class_pos_weight(frames: FrameSet, max_weight: float = 10.0) -> tuple[float, ...]:
+    """Per-class BCE positive weights ``clip(sqrt(neg / pos), 1, max_weight)`` over visible cells.
+
+    A deviation from the paper (plain BCE): with a training budget of a few hundred steps the
+    thin and rare layers (lane dividers, crossings, boundaries, pedestrians: 0.05-2 % of the
+    cells) otherwise stay at zero IoU; the square root keeps the weighting mild.
+    """
+    m = frames.mask[:, None]  # (M, 1, H, W)
+    pos = np.count_nonzero(frames.target & m, axis=(0, 2, 3)).astype(np.float64)
+    tot = float(np.count_nonzero(frames.mask))
+    w = np.sqrt(np.maximum(tot - pos, 1.0) / np.maximum(pos, 1.0))
+    return tuple(float(round(v, 3)) for v in np.clip(w, 1.0, max_weight))
+
+
+class BiMapperMethod(TrainMethod):
+    """Bi-Mapper (Li et al., RA-L 2023) trained as in the paper, plus the documented deviations
+    (``pos_weight``, ``ipm_skip``)."""
+
+    name = "bimapper"
+    model_config_type = BiMapperConfig
+    loss_config_type = BiMapperTraining
+    cli_flags = (
+        CliFlag("--streams", "streams", choices=STREAMS, help="none: only with --ipm-skip (ablation control)"),
+        CliFlag("--fusion", "fusion", choices=FUSIONS),
+        CliFlag("--no-asl", "asl", action="store_false", help="without the Across-Space Loss"),
+        CliFlag("--lv-full-res", "lv_full_res", action="store_true",
+                help="LV stream's IPM samples the camera-size images (as the paper)"),
+        CliFlag("--ipm-skip", "ipm_skip", action="store_true",
+                help="full-resolution IPM prior into the decoder head, logits start at IPM's (not in the paper)"),
+        CliFlag("--mutual", "mutual", choices=MUTUAL_MODES),
+        CliFlag("--mutual-start-epoch", "mutual_start_epoch", min_value=0,
+                help=f"0-based; default paper {PAPER_MUTUAL_START}/{PAPER_EPOCHS} scaled"),
+        CliFlag("--pos-weight", "pos_weight", choices=POS_WEIGHTS, help="BCE class weights (none = paper)"),
+        CliFlag("--input-width", "input_width", min_value=1),
+        CliFlag("--gv-hidden", "gv_hidden", min_value=1),
+    )
+
+    @classmethod
+    def default_model_config(cls, classes: tuple[str, ...]) -> BiMapperConfig:
+        return BiMapperConfig(classes=tuple(classes), gv_hidden=TRAIN_GV_HIDDEN)
+
+    def build_model(self) -> BiMapper:
+        return BiMapper(self.cfg.model, self.rig, self.grid)
+
+    def describe(self) -> str:
+        return f"input {self.model.input_size}, classes {list(self.cfg.class_names)}"
+
+    def schedule(self) -> str:
+        return f"mutual both ways from epoch {self.cfg.loss.mutual_start(self.cfg.epochs) + 1}"
+
+    def data_needs(self) -> DataNeeds:
+        # Full-resolution LV input and the IPM prior need the camera-size images in memory (else:
+        # stored resized, exactly as preprocess would).
+        full = self.cfg.model.lv_full_res or self.cfg.model.ipm_skip
+        return DataNeeds(image_size=None if full else self.model.input_size)
+
+    def prepare(self, data: TrainData, log: Callable[[str], None]) -> None:
+        pw = class_pos_weight(data.train) if self.cfg.loss.pos_weight == "auto" else None
+        self.loss_cfg = self.cfg.loss.loss_config(self.cfg.epochs, pw)
+        if pw is not None:
+            log(f"BCE positive weights {dict(zip(self.cfg.class_names, pw))}")
+
+    def loss(self, batch: dict, epoch: int, step: int) -> tuple[torch.Tensor, dict[str, float]]:
+        dev = self.device
+        outputs = self.model(batch["images"].to(dev))
+        return bimapper_loss(outputs, {"target": batch["target"].to(dev), "mask": batch["mask"].to(dev)}, epoch,
+                             self.loss_cfg)
+
+    def predict(self, batch: dict) -> tuple[np.ndarray, np.ndarray]:
+        out = self.model(batch["images"].to(self.device))
+        probs = torch.sigmoid(out["logits"]).float().cpu().numpy()
+        known = self.model.known().cpu().numpy()[0]  # (1, H, W) -> (H, W), the same for every frame
+        return probs, np.broadcast_to(known, (len(probs), *known.shape))
+
+    def save(self, path) -> None:
+        save_weights(self.model, path)
+
+    def load(self, path) -> None:
+        load_state(self.model, path)
+
+    def checkpoint_info(self) -> dict:
+        return {"model_config": self.model.config.to_dict(), "rig": self.model.rig.name}
+
+
+__all__ = ["BiMapperMethod", "BiMapperTraining", "POS_WEIGHTS", "class_pos_weight"]

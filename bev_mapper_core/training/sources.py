@@ -1,0 +1,141 @@
+"""Where training frames come from: a data source the entry point hands to :func:`~.trainer.train`.
+
+A method declares what it trains on as :class:`DataNeeds` (image size; later unlabeled frames,
+frame sequences, ego poses); the trainer asks the run's :class:`DataSource` for a
+:class:`TrainData` that honours them. A source that cannot provide a need says so with a
+:class:`~bev_mapper_core.errors.ConfigError` before any training starts.
+
+Sources here (framework-free): :class:`SynthSource` (seeded synthetic drives, cached) and
+:class:`InMemorySource` (ready FrameSets, for tests and notebooks). The rosbag2 source lives in
+``bags.train_data`` (it needs rosbags) and is passed in by the ``bev-train`` entry point.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Callable, ClassVar, Iterator
+
+from ..errors import ConfigError
+from ..grid import BevGrid
+from ..rig import Rig, preset_rig
+from .data import FrameSet, synth_frameset, train_seeds
+
+if TYPE_CHECKING:  # typing only: config imports the method registry, not this module
+    from .config import TrainConfig
+
+
+@dataclass(frozen=True)
+class DataNeeds:
+    """What a training method needs from the data side.
+
+    Args:
+        image_size: ``(h, w)``: store label images resized to this model input size (exactly
+            as the model's preprocess would); ``None``: camera-size images.
+        unlabeled: also a stream of frames without GT (S2G2's consistency loss).
+        sequence_length: frames per sample; > 1 = windows of consecutive frames of one drive
+            (FocusBEV's temporal fusion).
+        poses: each frame carries its ego pose (FocusBEV warps its memory bank with them).
+    """
+
+    image_size: tuple[int, int] | None = None
+    unlabeled: bool = False
+    sequence_length: int = 1
+    poses: bool = False
+
+    def __post_init__(self) -> None:
+        if self.sequence_length < 1:
+            raise ConfigError(f"sequence_length must be >= 1, got {self.sequence_length}")
+
+    def extras(self) -> frozenset[str]:
+        """Needs beyond labeled single frames: ``unlabeled``, ``sequences``, ``poses``."""
+        return frozenset(n for n, on in (("unlabeled", self.unlabeled), ("sequences", self.sequence_length > 1),
+                                         ("poses", self.poses)) if on)
+
+
+@dataclass
+class TrainData:
+    """The frames of one run: ``train`` (labeled), ``val`` (held out, scored every epoch)."""
+
+    train: FrameSet
+    val: FrameSet
+
+    def steps(self, batch: int, limit: int | None = None) -> int:
+        """Batches in one epoch of :meth:`batches`."""
+        return math.ceil(min(limit or len(self.train), len(self.train)) / batch)
+
+    def batches(self, batch: int, seed: int, epoch: int, limit: int | None = None) -> Iterator[dict]:
+        """One epoch of training batches, order a function of ``(seed, epoch)`` (see FrameSet.batches).
+
+        Labeled single frames today; a source that honours ``unlabeled`` / ``sequences`` adds its
+        frames here (e.g. ``{"labeled": ..., "unlabeled": ...}``), not in the training loop.
+        """
+        return self.train.batches(batch, seed, epoch, limit=limit)
+
+
+class DataSource(ABC):
+    """Gives a run its rig, grid and frames."""
+
+    #: short name for messages
+    name: ClassVar[str] = "data"
+    #: :meth:`DataNeeds.extras` this source can provide
+    supports: ClassVar[frozenset[str]] = frozenset()
+
+    def check(self, needs: DataNeeds) -> None:
+        """Raise ConfigError if ``needs`` asks for something this source cannot provide."""
+        missing = sorted(needs.extras() - self.supports)
+        if missing:
+            raise ConfigError(f"the {self.name} data source cannot provide {missing}, which the method needs")
+
+    @abstractmethod
+    def rig_grid(self, cfg: "TrainConfig") -> tuple[Rig, BevGrid]:
+        """The rig and BEV grid the run trains for."""
+
+    @abstractmethod
+    def load(self, cfg: "TrainConfig", rig: Rig, grid: BevGrid, needs: DataNeeds,
+             log: Callable[[str], None]) -> TrainData:
+        """The run's frames, honouring ``needs`` (call :meth:`check` first)."""
+
+
+class SynthSource(DataSource):
+    """Seeded synthetic drives of the preset rig (``cfg.train_drives`` / held-out seeds), cached."""
+
+    name = "synthetic"
+
+    def rig_grid(self, cfg: "TrainConfig") -> tuple[Rig, BevGrid]:
+        if cfg.bag:
+            raise ConfigError("training on bags needs the bag data source (the bev-train command passes it)")
+        return preset_rig(cfg.rig), cfg.grid
+
+    def load(self, cfg: "TrainConfig", rig: Rig, grid: BevGrid, needs: DataNeeds,
+             log: Callable[[str], None]) -> TrainData:
+        self.check(needs)
+        t0 = time.time()
+        train = synth_frameset(rig, grid, cfg.class_names, train_seeds(cfg.seed, cfg.train_drives),
+                               cfg.frames_per_drive, cfg.stride, cfg.cache, needs.image_size, progress=cfg.progress)
+        val = synth_frameset(rig, grid, cfg.class_names, cfg.held_out_seeds, cfg.frames_per_drive, cfg.stride,
+                             cfg.cache, needs.image_size, progress=cfg.progress)
+        log(f"data: {len(train)} training / {len(val)} held-out frames ({time.time() - t0:.1f} s)")
+        return TrainData(train, val)
+
+
+class InMemorySource(DataSource):
+    """FrameSets already in memory (stored at the size the method needs), for the preset rig."""
+
+    name = "in-memory"
+
+    def __init__(self, train: FrameSet, val: FrameSet) -> None:
+        self.data = TrainData(train, val)
+
+    def rig_grid(self, cfg: "TrainConfig") -> tuple[Rig, BevGrid]:
+        return preset_rig(cfg.rig), cfg.grid
+
+    def load(self, cfg: "TrainConfig", rig: Rig, grid: BevGrid, needs: DataNeeds,
+             log: Callable[[str], None]) -> TrainData:
+        self.check(needs)
+        return self.data
+
+
+__all__ = ["DataNeeds", "DataSource", "InMemorySource", "SynthSource", "TrainData"]
