@@ -93,8 +93,8 @@ def test_score_frameset_equals_a_hand_loop_and_batches_do_not_matter():
     probs = rng.random((M, len(names), *GRID.shape)).astype(np.float32)
     known = rng.random((M, *GRID.shape)) > 0.1
 
-    def predict(lab):  # (B, N, h, w) -> (B, C, H, W), (B, H, W)
-        idx = [int(x[0, 0, 0]) for x in lab]
+    def predict(batch):  # images (B, N, h, w) -> (B, C, H, W), (B, H, W)
+        idx = [int(x[0, 0, 0]) for x in batch["images"].numpy()]
         return probs[idx], known[idx]
 
     for scope in ("visible", "ground"):

@@ -26,13 +26,15 @@ from ..rig import Rig
 from .data import FrameSet, synth_frameset
 
 
-def score_frameset(predict: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], frames: FrameSet,
+def score_frameset(predict: Callable[[dict], tuple[np.ndarray, np.ndarray]], frames: FrameSet,
                    grid: BevGrid, class_names: Sequence[str], batch: int = 1, limit: int | None = None,
                    scope: str = "visible", progress: str | None = None) -> dict:
     """The one scoring loop over a :class:`FrameSet` (``bev-train eval`` and validation).
 
     Args:
-        predict: ``labels (B, N, h, w) uint8 -> (probs (B, C, H, W) float, known (B, H, W) bool)``.
+        predict: a batch of :meth:`FrameSet.batch` (``images`` (B, N, h, w) uint8 tensor, ...)
+            ``-> (probs (B, C, H, W) float, known (B, H, W) bool)`` numpy; a training method's
+            :meth:`~.method.TrainMethod.predict` is one.
         frames: the frames, in order; the first ``limit`` are scored (None = all).
         scope: ``visible`` (the drive's ``visibility``) or ``ground`` (flat classes where the
             ground is seen), see :func:`~bev_mapper_core.metrics.scope_masks`.
@@ -53,7 +55,7 @@ def score_frameset(predict: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]
     for s in starts:
         idx = np.arange(s, min(s + batch, n))
         t0 = time.perf_counter()
-        probs, known = predict(frames.labels[idx])
+        probs, known = predict(frames.batch(idx))
         t_pred += time.perf_counter() - t0
         for j, i in enumerate(idx):
             masks = scope_masks(class_names, frames.mask[i], frames.ground_mask[i], scope)
@@ -69,7 +71,8 @@ def evaluate_mapper(mapper, frames: FrameSet, grid: BevGrid, scope: str = "visib
     ``frames``, one frame at a time through ``mapper.map`` (as the node and replay call it)."""
     names = frames.camera_names
 
-    def predict(labels: np.ndarray):  # (1, N, H, W) -> (1, C, H, W), (1, H, W)
+    def predict(batch: dict):  # images (1, N, H, W) -> (1, C, H, W), (1, H, W)
+        labels = batch["images"].numpy()
         pred = mapper.map({n: labels[0, c] for c, n in enumerate(names)})
         return pred.probs[None], pred.known[None]
 

@@ -34,7 +34,7 @@ from safetensors.torch import save_file
 
 from ..errors import BevMapperError, ConfigError
 from ..grid import BevGrid
-from ..metrics import MetricAccumulator
+from .evaluate import score_frameset
 from .config import TrainConfig
 from .data import FrameSet
 from .method import TrainMethod, method_class
@@ -87,18 +87,16 @@ def load_optimizer(opt: torch.optim.Optimizer, path: str | os.PathLike) -> None:
 @torch.no_grad()
 def validate(method: TrainMethod, frames: FrameSet, grid: BevGrid, batch: int = 4,
              limit: int | None = None) -> dict:
-    """Metrics (MetricAccumulator.result) of ``method.predict`` over ``frames`` (in order, first ``limit``)."""
+    """Metrics of ``method.predict`` over ``frames`` (in order, first ``limit``), scored by the
+    one loop of ``bev-train eval`` (:func:`~.evaluate.score_frameset`, visible cells)."""
     model = method.model
     was = model.training
     model.eval()
-    acc = MetricAccumulator(grid, method.cfg.class_names)
-    for b in frames.batches(batch, 0, 0, limit=limit, shuffle=False):
-        probs, known = method.predict(b)
-        gt = b["target"].numpy() > 0.5
-        for i in range(len(probs)):
-            acc.update(probs[i], gt[i], b["mask"][i].numpy(), known[i])
-    model.train(was)
-    return acc.result()
+    try:
+        with torch.no_grad():
+            return score_frameset(method.predict, frames, grid, method.cfg.class_names, batch=batch, limit=limit)
+    finally:
+        model.train(was)
 
 
 @dataclass
