@@ -13,8 +13,9 @@ install`` puts console scripts into ``bin/`` only, so the set-up runs this modul
 
     python -m bev_mapper_ros.ament_layout [PREFIX]     # default: the running interpreter's prefix
 
-In a source checkout (editable install) ``share/bev_mapper_ros`` entries are symbolic links into
-the checkout, so edited config and launch files take effect without reinstalling; otherwise the
+In a source checkout (editable install) the files under ``share/bev_mapper_ros`` are symbolic
+links into the checkout, so edited config and launch files take effect without reinstalling (a
+new file needs this command again, which ``scripts/setup_venv.sh`` runs every time); otherwise the
 files that ``pip install`` placed under ``<prefix>/share/bev_mapper_ros`` are kept. The
 executables are small wrappers that run the console-script entry points with the prefix's own
 Python. Running it again is harmless (it replaces its own files only).
@@ -98,8 +99,17 @@ def write_layout(prefix: str | os.PathLike, python: str | None = None,
             if not src.exists():
                 continue
             _replace(dst)
-            dst.symlink_to(src, target_is_directory=src.is_dir())
-            written.append(dst)
+            if src.is_dir():
+                # a real directory of linked files: ``ros2 launch`` searches the share tree with
+                # os.walk, which does not follow a linked directory
+                dst.mkdir()
+                for f in sorted(src.iterdir()):
+                    if f.is_file() and not f.name.startswith("."):
+                        (dst / f.name).symlink_to(f)
+                        written.append(dst / f.name)
+            else:
+                dst.symlink_to(src)
+                written.append(dst)
     elif not (share / "package.xml").is_file():
         raise LayoutError(f"no package.xml in the checkout {source} nor in {share}: install the package first")
 

@@ -234,3 +234,45 @@ def test_readme_live_commands_verbatim(layout, tmp_path):
     node_log = logs[0].read_text()
     assert procs[0].returncode == 0, node_log
     assert "[ERROR]" not in node_log and "Traceback" not in node_log, node_log
+
+
+def test_launch_file(layout, tmp_path):
+    """``ros2 launch bev_mapper_ros mapper.launch.py``: its arguments and node fit the package; it
+    runs where launch_ros can load (a ROS distribution), else it fails only for the missing
+    ``composition_interfaces`` (no Python wheel provides it; the README says so)."""
+    import ast
+    import importlib.util
+
+    from bev_mapper_core.rig import PRESETS
+    from bev_mapper_ros.ament_layout import EXECUTABLES
+
+    tree = ast.parse((REPO / "launch" / "mapper.launch.py").read_text())
+    calls = [n for n in ast.walk(tree) if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)]
+    args = {}
+    for c in calls:
+        if c.func.id == "DeclareLaunchArgument":
+            kw = {k.arg: ast.literal_eval(k.value) for k in c.keywords if isinstance(k.value, ast.Constant)}
+            args[ast.literal_eval(c.args[0])] = kw.get("default_value")
+        if c.func.id == "Node":
+            kw = {k.arg: k.value for k in c.keywords}
+            assert ast.literal_eval(kw["package"]) == "bev_mapper_ros"
+            assert ast.literal_eval(kw["executable"]) in EXECUTABLES
+    assert set(args) == {"rig", "params_file", "method"}, args
+    assert args["rig"] in PRESETS and args["params_file"] == "" and args["method"] == ""
+    env = cli_env(free_domain_id(13))
+    share = pathlib.Path(ros2(["pkg", "prefix", "--share", "bev_mapper_ros"], env).stdout.strip())
+    for rig in PRESETS:  # the file the launch file picks for each rig is installed
+        assert (share / "config" / f"{rig}.yaml").is_file(), rig
+    if importlib.util.find_spec("composition_interfaces") is None:
+        res = ros2(["launch", "bev_mapper_ros", "mapper.launch.py", "rig:=front1", "method:=ipm"], env, timeout=60)
+        assert "composition_interfaces" in res.stdout + res.stderr, res.stdout + res.stderr
+        return
+    log = tmp_path / "launch.log"
+    with open(log, "w") as f:
+        proc = subprocess.Popen([str(ROS2), "launch", "bev_mapper_ros", "mapper.launch.py", "rig:=front1",
+                                 "method:=ipm"], env=env, stdout=f, stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        assert _wait_output(log, r"mapping \['front'\] with ipm", 60), log.read_text()
+    finally:
+        os.killpg(proc.pid, signal.SIGINT)
+        proc.wait(30)
