@@ -84,12 +84,16 @@ class BiMapperMapper(Mapper):
     def preflight(cls, config: MapperConfig, rig_name: str, grid: BevGrid | None = None,
                   cameras: tuple[str, ...] | None = None) -> None:
         """The weights file exists and is a Bi-Mapper safetensors file for this input kind, rig,
-        classes and (when given) grid and camera names (in rig order).
+        classes and (when given) grid and camera names (in rig order), and every tensor fits the
+        stored architecture (:meth:`WeightsFile.validate`): a node never starts with weights it
+        cannot run.
 
-        Reads the file's header once (:meth:`WeightsFile.open` caches it for the constructor)."""
-        WeightsFile.open(cls.weights_path(config, rig_name)).check(
-            rig_name=rig_name, cameras=cameras, grid=grid, input_kind=config.input_kind,
-            classes=config.classes)
+        Reads the file once (:meth:`WeightsFile.open` caches the header and the checked tensors
+        for the constructor)."""
+        weights = WeightsFile.open(cls.weights_path(config, rig_name))
+        weights.check(rig_name=rig_name, cameras=cameras, grid=grid, input_kind=config.input_kind,
+                      classes=config.classes)
+        weights.validate()
 
     def __init__(self, rig: Rig, grid: BevGrid, config: MapperConfig) -> None:
         self.preflight(config, rig.name, grid, rig.names)  # the clear errors first (file, rig, grid, cameras)

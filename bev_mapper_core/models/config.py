@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, fields
 
 from ..classes import BEV_CLASS_NAMES, NUM_LABELS, resolve_classes
@@ -10,6 +11,13 @@ from .efficientnet import EfficientNetConfig
 from .geometry import PlaneSpec
 
 STREAMS = ("gv", "lv", "both", "none")
+#: Sanity bounds of the size knobs, far above any model this package trains (the paper's sizes
+#: included): a configuration beyond them, e.g. from a damaged or hostile weights file, is
+#: refused before anything is allocated.
+MAX_WIDTH_PX = 4096  # input_width
+MAX_CHANNELS = 4096  # neck, BEV, U-Net, decoder widths; gv_hidden
+MAX_PLANE_CELLS = 4096 * 4096  # plane_shape[0] * plane_shape[1] (paper: 800 x 400)
+MAX_DOWNSAMPLE = 64
 FUSIONS = ("sum", "concat")
 #: ImageNet statistics used to normalise RGB input (no pretrained weights; just a standard scale).
 RGB_MEAN = (0.485, 0.456, 0.406)
@@ -89,13 +97,29 @@ class BiMapperConfig:
             raise ConfigError("streams 'none' leaves the model without input: it needs ipm_skip")
         if self.fusion not in FUSIONS:
             raise ConfigError(f"fusion must be one of {FUSIONS}, got {self.fusion!r}")
-        for name in ("input_width", "neck_channels", "bev_channels", "bev_downsample", "unet_channels", "decoder_channels"):
+        limits = {"input_width": MAX_WIDTH_PX, "neck_channels": MAX_CHANNELS, "bev_channels": MAX_CHANNELS,
+                  "bev_downsample": MAX_DOWNSAMPLE, "unet_channels": MAX_CHANNELS, "decoder_channels": MAX_CHANNELS}
+        for name, hi in limits.items():
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ConfigError(f"{name} must be an integer >= 1, got {v!r}")
+            if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= hi:
+                raise ConfigError(f"{name} must be an integer in [1, {hi}], got {v!r}")
         if self.gv_hidden is not None and (isinstance(self.gv_hidden, bool) or not isinstance(self.gv_hidden, int)
-                                           or self.gv_hidden < 1):
-            raise ConfigError(f"gv_hidden must be an integer >= 1 or None, got {self.gv_hidden!r}")
+                                           or not 1 <= self.gv_hidden <= MAX_CHANNELS):
+            raise ConfigError(f"gv_hidden must be an integer in [1, {MAX_CHANNELS}] or None, got {self.gv_hidden!r}")
+        shape = self.plane_shape
+        if (len(shape) != 2 or any(isinstance(v, bool) or not isinstance(v, int) or v < 1 for v in shape)
+                or shape[0] * shape[1] > MAX_PLANE_CELLS):
+            raise ConfigError(f"plane_shape must be two integers >= 1 with at most {MAX_PLANE_CELLS} cells, "
+                              f"got {list(shape)!r}")
+        for name in ("plane_x_range", "plane_z_range"):
+            v = getattr(self, name)
+            if len(v) != 2 or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+                                      for x in v):
+                raise ConfigError(f"{name} must be two finite numbers, got {list(v)!r}")
+        for name in ("gv_weight", "lv_weight", "drop_connect_rate"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise ConfigError(f"{name} must be a finite number >= 0, got {v!r}")
         self.plane_spec()  # validates the plane
         self.encoder_config(3)  # validates the encoder
 

@@ -64,6 +64,10 @@ def round_repeats(repeats: int, depth_mult: float) -> int:
     return int(math.ceil(depth_mult * repeats))
 
 
+#: Upper bound of ``width_mult`` / ``depth_mult`` (a sanity bound, see ``EfficientNetConfig``).
+MAX_MULT = 8.0
+
+
 @dataclass(frozen=True)
 class EfficientNetConfig:
     """Architecture of an :class:`EfficientNet` trunk.
@@ -89,8 +93,11 @@ class EfficientNetConfig:
     def __post_init__(self) -> None:
         if not 1 <= self.num_stages <= len(B0_STAGES):
             raise ConfigError(f"num_stages must be in 1..{len(B0_STAGES)}, got {self.num_stages}")
-        if self.width_mult <= 0 or self.depth_mult <= 0:
-            raise ConfigError(f"width/depth multipliers must be > 0, got {self.width_mult}, {self.depth_mult}")
+        for v in (self.width_mult, self.depth_mult):
+            # 8 = well above B7's 2.0 / 3.1: larger values come only from a damaged config
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v <= MAX_MULT:
+                raise ConfigError(f"width/depth multipliers must be in (0, {MAX_MULT}], got "
+                                  f"{self.width_mult}, {self.depth_mult}")
         if self.in_channels < 1:
             raise ConfigError(f"in_channels must be >= 1, got {self.in_channels}")
         if not 0.0 <= self.drop_connect_rate < 1.0:

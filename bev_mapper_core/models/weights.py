@@ -9,12 +9,22 @@ holds one key, ``bev_mapper``, a JSON document::
      "input_size": [h, w], "config": {BiMapperConfig fields}}
 
 :class:`WeightsFile` reads a file's header and document once (cached per file version) and
-offers the start-up checks (:meth:`~WeightsFile.check`) and the model
-(:meth:`~WeightsFile.build_model`). Loading checks the document (method, rig name and camera
-order, input kind, classes, grid, architecture) against what the caller expects and every tensor's name, shape and dtype against
-the model built from it; any mismatch, a missing or extra tensor, a non-finite value, or a file
-that is not valid safetensors raises :class:`WeightsError`. Calibration tables are not stored:
-they are rebuilt from the rig the weights are used with.
+offers the start-up checks (:meth:`~WeightsFile.check`, :meth:`~WeightsFile.validate`) and the
+model (:meth:`~WeightsFile.build_model`).
+
+* Opening checks the document's schema and bounds (types, known classes, a grid of at most
+  :data:`MAX_GRID_CELLS` cells, an architecture within ``BiMapperConfig``'s sanity bounds) before
+  anything is allocated.
+* :meth:`~WeightsFile.validate` (the mapper's preflight runs it) builds the stored architecture
+  for a stand-in rig of the stored cameras and loads every tensor into it: names, shapes, dtypes
+  and finite values are checked before a node starts, not at its first frame. The checked
+  tensors stay cached with the document, so the model built later reads no file again.
+* Loading checks the document (rig name and camera order, input kind, classes, grid,
+  architecture) against what the caller expects.
+
+Any mismatch, a missing or extra tensor, a non-finite value, or a file that is not valid
+safetensors raises :class:`WeightsError`. Calibration tables are not stored: they are rebuilt
+from the rig the weights are used with.
 """
 
 from __future__ import annotations
@@ -30,18 +40,61 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import save_file
 
+from ..camera import CameraModel
+from ..classes import resolve_classes
 from ..errors import BevMapperError, ConfigError
 from ..grid import BevGrid
-from ..rig import Rig
+from ..rig import Rig, RigCamera
 from .bimapper import BiMapper, BiMapperConfig
+from .config import MAX_WIDTH_PX
 
 FORMAT = "bev_mapper.bimapper"
 VERSION = 1
 META_KEY = "bev_mapper"
 
 
+#: Most BEV cells a weights file's grid may have (the default grid has 80,000; 4096 x 4096 is
+#: far beyond any model here): a larger claim is refused before anything is allocated.
+MAX_GRID_CELLS = 4096 * 4096
+
+
 class WeightsError(BevMapperError, ValueError):
     """A weights file is unreadable, corrupt, or does not fit the requested model."""
+
+
+def _check_schema(meta: dict, path: Path) -> None:
+    """Types and bounds of a metadata document (see the module docstring)."""
+    def bad(what: str) -> WeightsError:
+        return WeightsError(f"{path}: metadata {what}")
+
+    if not isinstance(meta["rig"], str):
+        raise bad(f"'rig' must be a string, got {meta['rig']!r}")
+    cams = meta["cameras"]
+    if (not isinstance(cams, list) or not cams or any(not isinstance(c, str) or not c for c in cams)
+            or len(set(cams)) != len(cams)):
+        raise bad(f"'cameras' must be a list of distinct camera names, got {cams!r}")
+    if meta["input_kind"] not in ("labels", "rgb"):
+        raise bad(f"'input_kind' must be 'labels' or 'rgb', got {meta['input_kind']!r}")
+    classes = meta["classes"]
+    if not isinstance(classes, list) or not classes or any(not isinstance(c, str) for c in classes):
+        raise bad(f"'classes' must be a list of class names, got {classes!r}")
+    try:
+        resolve_classes(tuple(classes))
+    except ConfigError as e:
+        raise bad(f"names an unknown class ({e})") from None
+    size = meta["input_size"]
+    if (not isinstance(size, list) or len(size) != 2
+            or any(isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= MAX_WIDTH_PX for v in size)):
+        raise bad(f"'input_size' must be [height, width] in 1..{MAX_WIDTH_PX}, got {size!r}")
+    if not isinstance(meta["config"], dict) or not isinstance(meta["grid"], dict):
+        raise bad("'config' and 'grid' must be mappings")
+    cfg, grid = config_from_metadata(meta, path)  # bounded by BiMapperConfig / BevGrid checks
+    if grid.width * grid.height > MAX_GRID_CELLS:
+        raise bad(f"grid has {grid.width} x {grid.height} cells, more than {MAX_GRID_CELLS}")
+    if cfg.input_kind != meta["input_kind"] or list(cfg.classes) != list(classes):
+        raise bad("'input_kind' / 'classes' differ from the stored architecture's")
+    if size[1] != cfg.input_width:
+        raise bad(f"'input_size' width {size[1]} differs from the architecture's input_width {cfg.input_width}")
 
 
 def model_metadata(model: BiMapper) -> dict:
@@ -88,6 +141,7 @@ def _parse_metadata(path: Path) -> dict:
         raise WeightsError(f"{path}: metadata lacks {sorted(missing)}")
     if meta["method"] != "bimapper":
         raise WeightsError(f"{path}: weights are for method {meta['method']!r}, not 'bimapper'")
+    _check_schema(meta, path)
     return meta
 
 
@@ -107,7 +161,7 @@ def config_from_metadata(meta: dict, path: str | os.PathLike = "weights") -> tup
     """The architecture config and grid stored in a metadata document."""
     try:
         return BiMapperConfig.from_dict(meta["config"]), BevGrid.from_dict(meta["grid"])
-    except (BevMapperError, TypeError, KeyError) as e:
+    except (BevMapperError, TypeError, KeyError, ValueError, OverflowError) as e:
         raise WeightsError(f"{path}: stored config/grid is invalid ({e})") from None
 
 
@@ -154,12 +208,14 @@ class WeightsFile:
     """
 
     _CACHE_SIZE = 8
+    #: file version -> {"meta": document, "state": checked tensors or None, "validated": bool}
     _cache: "OrderedDict[tuple, dict]" = OrderedDict()
     _lock = threading.Lock()
 
-    def __init__(self, path: str | os.PathLike, meta: dict) -> None:
+    def __init__(self, path: str | os.PathLike, meta: dict, entry: dict | None = None) -> None:
         self.path = Path(path)
         self.meta = meta
+        self._entry = entry if entry is not None else {"meta": meta, "state": None, "validated": False}
 
     @classmethod
     def open(cls, path: str | os.PathLike) -> "WeightsFile":
@@ -178,16 +234,16 @@ class WeightsFile:
             raise WeightsError(f"weights file {path} does not exist")
         key = (str(path.resolve()), st.st_ino, st.st_mtime_ns, st.st_size)
         with cls._lock:
-            meta = cls._cache.get(key)
-            if meta is not None:
+            entry = cls._cache.get(key)
+            if entry is not None:
                 cls._cache.move_to_end(key)
-        if meta is None:
-            meta = _parse_metadata(path)
+        if entry is None:
+            entry = {"meta": _parse_metadata(path), "state": None, "validated": False}
             with cls._lock:
-                cls._cache[key] = meta
+                cls._cache[key] = entry
                 while len(cls._cache) > cls._CACHE_SIZE:
                     cls._cache.popitem(last=False)
-        return cls(path, meta)
+        return cls(path, entry["meta"], entry)
 
     @classmethod
     def clear_cache(cls) -> None:
@@ -270,21 +326,26 @@ class WeightsFile:
         if list(meta["input_size"]) != list(model.input_size):
             raise WeightsError(f"{path}: weights expect input size {meta['input_size']}, the model has {list(model.input_size)}")
         expected = model.state_dict()
+        state = self._entry["state"]
+        if state is None:
+            state = self._read_tensors(expected)
+            self._entry["state"] = state
+        else:
+            _check_tensors(path, {k: (tuple(t.shape), t.dtype) for k, t in state.items()}, expected)
+        model.load_state_dict(state, strict=True)
+
+    def _read_tensors(self, expected: dict) -> dict:
+        """Every tensor of the file, after its header matched ``expected`` (names, shapes, dtypes:
+        nothing is read for a file that does not fit), each checked for non-finite values."""
+        path = self.path
         try:
             with safe_open(str(path), framework="pt") as f:
-                keys = set(f.keys())
-                missing, extra = sorted(set(expected) - keys), sorted(keys - set(expected))
-                if missing or extra:
-                    raise WeightsError(f"{path}: tensors missing {missing[:5]}{'...' if len(missing) > 5 else ''}, "
-                                       f"unexpected {extra[:5]}{'...' if len(extra) > 5 else ''}")
+                header = {k: (tuple(f.get_slice(k).get_shape()), _DTYPES.get(f.get_slice(k).get_dtype()))
+                          for k in f.keys()}
+                _check_tensors(path, header, expected)
                 state = {}
-                for k, ref in expected.items():
-                    shape = tuple(f.get_slice(k).get_shape())
-                    if shape != tuple(ref.shape):
-                        raise WeightsError(f"{path}: tensor {k!r} has shape {shape}, the model needs {tuple(ref.shape)}")
+                for k in expected:
                     t = f.get_tensor(k)
-                    if t.dtype != ref.dtype:
-                        raise WeightsError(f"{path}: tensor {k!r} is {t.dtype}, the model needs {ref.dtype}")
                     if t.is_floating_point() and not torch.isfinite(t).all():
                         raise WeightsError(f"{path}: tensor {k!r} has non-finite values")
                     state[k] = t
@@ -292,7 +353,27 @@ class WeightsFile:
             raise
         except Exception as e:
             raise WeightsError(f"{path}: cannot read tensors ({e})") from None
-        model.load_state_dict(state, strict=True)
+        return state
+
+    def validate(self) -> None:
+        """The full check a node needs before it starts: build the stored architecture for a
+        stand-in rig of the stored cameras (the tensors' shapes do not depend on calibration)
+        and load every tensor into it (names, shapes, dtypes, finite values). Done once per file
+        version; the checked tensors are kept for :meth:`build_model`.
+
+        Raises:
+            WeightsError: the first problem found.
+        """
+        if self._entry["validated"]:
+            return
+        cfg, grid = config_from_metadata(self.meta, self.path)
+        h, w = self.meta["input_size"]
+        try:
+            model = BiMapper(cfg, standin_rig(self.meta["rig"], tuple(self.meta["cameras"]), (w, h)), grid)
+        except (BevMapperError, ValueError, RuntimeError) as e:
+            raise WeightsError(f"{self.path}: cannot build the stored model ({e})") from None
+        self.load_into(model)
+        self._entry["validated"] = True
 
     def build_model(self, rig: Rig, grid: BevGrid | None = None, *, input_kind: str | None = None,
                     classes: tuple[str, ...] | None = None,
@@ -312,6 +393,39 @@ class WeightsFile:
             raise WeightsError(f"{path}: cannot build the stored model for rig {rig.name!r} ({e})") from None
         self.load_into(model)
         return model.to(device).eval()
+
+
+_DTYPES = {"F32": torch.float32, "F64": torch.float64, "F16": torch.float16, "BF16": torch.bfloat16,
+           "I64": torch.int64, "I32": torch.int32, "I16": torch.int16, "I8": torch.int8, "U8": torch.uint8,
+           "BOOL": torch.bool}
+
+
+def _check_tensors(path: Path, found: dict, expected: dict) -> None:
+    """``found`` (name -> (shape, dtype)) against a model's ``expected`` state dict."""
+    missing, extra = sorted(set(expected) - set(found)), sorted(set(found) - set(expected))
+    if missing or extra:
+        raise WeightsError(f"{path}: tensors missing {missing[:5]}{'...' if len(missing) > 5 else ''}, "
+                           f"unexpected {extra[:5]}{'...' if len(extra) > 5 else ''}")
+    for k, ref in expected.items():
+        shape, dtype = found[k]
+        if shape != tuple(ref.shape):
+            raise WeightsError(f"{path}: tensor {k!r} has shape {shape}, the model needs {tuple(ref.shape)}")
+        if dtype != ref.dtype:
+            raise WeightsError(f"{path}: tensor {k!r} is {dtype}, the model needs {ref.dtype}")
+
+
+def standin_rig(name: str, cameras: tuple[str, ...], size: tuple[int, int]) -> Rig:
+    """A rig of forward-looking pinhole cameras delivering ``size`` = (width, height) images.
+
+    The model's tensors depend on the number of cameras and the input size only, so this rig
+    lets :meth:`WeightsFile.validate` build the stored architecture before any CameraInfo is known.
+    """
+    w, h = size
+    K = ((w / 2.0, 0.0, w / 2.0), (0.0, w / 2.0, h / 2.0), (0.0, 0.0, 1.0))
+    # optical z forward = ego x, optical x right = ego -y, optical y down = ego -z; 1.5 m up
+    ego_from_cam = ((0.0, 0.0, 1.0, 0.0), (-1.0, 0.0, 0.0, 0.0), (0.0, -1.0, 0.0, 1.5), (0.0, 0.0, 0.0, 1.0))
+    model = CameraModel(K=K, D=(0.0,) * 5, width=w, height=h)
+    return Rig(name or "standin", tuple(RigCamera(c, model, ego_from_cam) for c in cameras))
 
 
 def load_state(model: BiMapper, path: str | os.PathLike) -> None:
