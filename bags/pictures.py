@@ -29,6 +29,7 @@ from bev_mapper_core.grid import BevGrid
 MIN_PANEL_HEIGHT = 360
 _BAND = 22  # header / footer text band height (px)
 _GAP = 6  # between the panels (px)
+_FRAME = (120, 120, 120)  # outline of the maps
 #: Name of the hatch in the legend of replay pictures: unknown to the mapper, or not visible in
 #: the ground truth (both panels hatch the cells the ground truth cannot see).
 UNKNOWN_LABEL = "unknown / unseen"
@@ -73,6 +74,14 @@ def panel_scale(grid: BevGrid) -> int:
     return max(1, math.ceil(MIN_PANEL_HEIGHT / grid.width))
 
 
+def panel_boxes(grid: BevGrid) -> tuple[tuple[int, int, int, int], tuple[int, int, int, int]]:
+    """Where :func:`comparison_picture` puts the prediction and ground-truth maps: two
+    ``(x, y, width, height)`` pixel boxes."""
+    scale = panel_scale(grid)
+    w, h = grid.height * scale, grid.width * scale
+    return (_GAP, _BAND, w, h), (w + 2 * _GAP, _BAND, w, h)
+
+
 def comparison_picture(
     grid: BevGrid,
     pred: np.ndarray,
@@ -107,6 +116,7 @@ def comparison_picture(
         ious: class name -> this frame's IoU (None = undefined), shown in the legend.
     """
     scale = panel_scale(grid)
+    (lx, _, w, _), (rx, _, _, _) = panel_boxes(grid)
     pp = painter(grid, tuple(pred_classes), scale)
     gp = painter(grid, tuple(gt_classes), scale)
     hidden = None if gt is None or gt_mask is None else ~np.asarray(gt_mask, bool)
@@ -114,15 +124,17 @@ def comparison_picture(
     right = gp.unknown() if gt is None else gp.paint(np.asarray(gt, np.float32), gt_mask)
     left = _banded(left, f"prediction ({method})" if method else "prediction")
     right = _banded(right, "ground truth (visible cells)" if gt is not None else "no ground truth")
-    h, w = left.shape[:2]
+    h = left.shape[0]
     legend = pp.legend(h, ious=ious, unknown_label=UNKNOWN_LABEL,
                        header="frame IoU" if ious is not None else "legend")
     lh, lw = legend.shape[:2]
-    out = np.empty((max(h, lh) + _BAND, 2 * w + 2 * _GAP + lw, 3), np.uint8)
+    out = np.empty((max(h, lh) + _BAND, rx + w + _GAP + lw, 3), np.uint8)
     out[:] = STRIP_BG
-    out[:h, :w] = left
-    out[:h, w + _GAP:2 * w + _GAP] = right
-    out[:lh, 2 * w + 2 * _GAP:] = legend
+    for x, panel in ((lx, left), (rx, right)):
+        out[:h, x:x + w] = panel
+        # a frame around the map, so that hatched cells at its edge do not melt into the bands
+        cv2.rectangle(out, (x - 1, _BAND - 1), (x + w, h), _FRAME, 1)
+    out[:lh, rx + w + _GAP:] = legend
     if caption:
         _text(out, caption, 4, out.shape[0] - 7)
     return out

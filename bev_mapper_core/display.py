@@ -59,10 +59,10 @@ def hatch_mask(height: int, width: int) -> np.ndarray:
 def class_codes(layers: np.ndarray, threshold: float = 0.5) -> np.ndarray:
     """``(H, W)`` uint8 code of the topmost class present per cell: 0 none, ``c + 1`` class c."""
     layers = np.asarray(layers)
-    codes = np.zeros(layers.shape[1:], np.uint8)
-    for ci in range(layers.shape[0]):
-        np.putmask(codes, layers[ci] >= threshold, ci + 1)
-    return codes
+    if layers.shape[0] == 0:
+        return np.zeros(layers.shape[1:], np.uint8)
+    weights = np.arange(1, layers.shape[0] + 1, dtype=np.uint8)[:, None, None]
+    return ((layers >= threshold) * weights).max(axis=0)  # the last class present wins
 
 
 def color_table(classes: Sequence[BevClass]) -> np.ndarray:
@@ -107,7 +107,10 @@ class BevPainter:
         self.unknown_code = len(self.classes) + 1
         self.height, self.width = grid.width * self.scale, grid.height * self.scale  # display
         stripes = hatch_mask(self.height, self.width)
-        self._unknown = (self.unknown_code + stripes).astype(np.uint8)
+        self._unknown = (self.unknown_code + stripes).astype(np.uint8)  # display orientation
+        # the same codes in grid orientation (undoing to_display), to fill unknown cells before
+        # re-orienting when no upscaling follows
+        self._unknown_grid = np.ascontiguousarray(np.swapaxes(self._unknown[::-1, ::-1], 0, 1))
         self.ego_mask, self.ego_rgb = self._ego_overlay()
         self._ego_idx = np.flatnonzero(self.ego_mask)
         self._ego_vals = self.ego_rgb.reshape(-1, 3)[self._ego_idx]
@@ -148,13 +151,17 @@ class BevPainter:
     def codes(self, layers: np.ndarray, known=None, hidden=None) -> np.ndarray:
         """Display-oriented ``(height, width)`` uint8 codes (see :func:`color_table`)."""
         codes = class_codes(layers, self.threshold)
-        if known is not None:
-            codes[~np.asarray(known, bool)] = self.unknown_code
+        seen = None if known is None else np.asarray(known, bool)
         if hidden is not None:
-            codes[np.asarray(hidden, bool)] = self.unknown_code
+            seen = ~np.asarray(hidden, bool) if seen is None else seen & ~np.asarray(hidden, bool)
+        if self.scale == 1:
+            if seen is not None:
+                codes = np.where(seen, codes, self._unknown_grid)
+            return self.grid.to_display(codes)
+        if seen is not None:
+            codes = np.where(seen, codes, np.uint8(self.unknown_code))
         codes = self.grid.to_display(codes)
-        if self.scale > 1:
-            codes = np.repeat(np.repeat(codes, self.scale, axis=0), self.scale, axis=1)
+        codes = np.repeat(np.repeat(codes, self.scale, axis=0), self.scale, axis=1)
         return np.where(codes == self.unknown_code, self._unknown, codes)
 
     def paint(self, layers: np.ndarray, known=None, hidden=None, *, ego: bool = True) -> np.ndarray:
@@ -166,7 +173,7 @@ class BevPainter:
             hidden: ``(H, W)`` bool, cells to hatch as unknown as well (None = none).
             ego: draw the ego footprint.
         """
-        rgb = self.lut[self.codes(layers, known, hidden)]
+        rgb = np.take(self.lut, self.codes(layers, known, hidden), axis=0)
         if ego:
             rgb.reshape(-1, 3)[self._ego_idx] = self._ego_vals
         return rgb
@@ -242,10 +249,10 @@ class BevPainter:
         y = oy + 26
         # scale bar
         bar_m = self.scale_bar_m(width - 2 * _PAD)
-        length = int(round(bar_m * self.px_per_m))
-        cv2.line(img, (_PAD, y + 6), (_PAD + length, y + 6), STRIP_FG, 2)
-        for x in (_PAD, _PAD + length):
-            cv2.line(img, (x, y + 1), (x, y + 10), STRIP_FG, 1)
+        length = int(round(bar_m * self.px_per_m))  # pixels [_PAD, _PAD + length)
+        img[y + 5:y + 7, _PAD:_PAD + length] = STRIP_FG
+        for x in (_PAD, _PAD + length - 1):
+            img[y + 1:y + 11, x] = STRIP_FG
         put_text(img, f"{bar_m:g} m", _PAD, y + 24)
         return img
 
