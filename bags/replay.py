@@ -72,8 +72,9 @@ class ReplayOptions:
             camera); object classes keep the visible scope (see :class:`_Scorer`).
         max_frames: stop after this many mapped frames (``None`` = all).
         pictures: write PNG pictures; ``frames_every``: of every k-th mapped frame (frame 0
-            included; 1 = every frame). The default 10 keeps long drives cheap (a picture costs
-            about as much as mapping a frame with IPM).
+            included; 1 = every frame). The default 10 keeps long drives cheap: a picture
+            (drawing + PNG) costs about as much as mapping the frame with IPM (~6 ms) and
+            ~100 kB on disk.
         gif: also write an animated GIF of the pictures.
         report: write ``report.html``.
         storage: storage of the output bag.
