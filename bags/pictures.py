@@ -2,9 +2,9 @@
 
 Layers are drawn by :class:`bev_mapper_core.display.BevPainter` (forward up, left on the
 left; colours of :data:`~bev_mapper_core.classes.CLASS_COLORS`, unknown cells hatched, the ego
-footprint at the origin) beside a legend with the axes and a metres scale bar. Files are written atomically:
-:func:`write_atomic` writes a hidden temporary file next to the target and renames it, so a
-reader never sees a half-written picture.
+footprint at the origin) beside a legend with the axes and a metres scale bar. Files are
+written atomically: :func:`write_atomic` writes a hidden temporary file next to the target and
+renames it, so a reader never sees a half-written picture.
 
 GIFs use Pillow when it is installed, else OpenCV's GIF encoder (``cv2.imencodeanimation``,
 OpenCV >= 4.12); without either, :func:`encode_gif` reports why and nothing is written.

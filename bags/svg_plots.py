@@ -27,6 +27,12 @@ def _nice_max(v: float) -> float:
     return next(m * k for m in (1, 2, 2.5, 5, 10) if m * k >= v * (1 - 1e-9))
 
 
+def _num(v: float) -> str:
+    """A tick or marker value with a sensible number of decimals (no exponent)."""
+    a = abs(v)
+    return f"{v:.0f}" if a >= 100 else f"{v:.1f}" if a >= 10 else f"{v:.2f}"
+
+
 def _rgb(color) -> str:
     return color if isinstance(color, str) else "rgb({},{},{})".format(*color)
 
@@ -83,9 +89,11 @@ def bar_chart(groups: Sequence[str], series: Sequence[tuple[str, object, Sequenc
             c = color[gi] if isinstance(color, list) else color
             h = ph * min(max(v, 0.0), y_max) / y_max
             op = opacities[si] if opacities else 1.0
-            out.append(f'<rect x="{x0 + si * bw:.1f}" y="{top + ph - h:.1f}" width="{bw * 0.92:.1f}" '
-                       f'height="{h:.1f}" fill="{_rgb(c)}" fill-opacity="{op}" stroke="#333" '
-                       f'stroke-width="0.5"><title>{escape(f"{g} {name}: {y_fmt(v)}")}</title></rect>')
+            tip = escape(f"{g} {name}: {y_fmt(v)}")
+            out.append(f'<rect x="{x0 + si * bw:.1f}" y="{top + ph - h:.1f}" '
+                       f'width="{bw * 0.92:.1f}" height="{h:.1f}" fill="{_rgb(c)}" '
+                       f'fill-opacity="{op}" stroke="#333" stroke-width="0.5">'
+                       f'<title>{tip}</title></rect>')
         out.append(f'<text x="{left + gi * gw + gw / 2:.1f}" y="{top + ph + 14}" '
                    f'text-anchor="middle" {_FONT}>{escape(g)}</text>')
     if len(series) > 1:
@@ -120,12 +128,12 @@ def histogram(values: Sequence[float], *, bins: int = 20, x_label: str = "",
     for i, n in enumerate(counts):
         h = ph * n / y_max
         out.append(f'<rect x="{left + i * bw:.1f}" y="{top + ph - h:.1f}" width="{bw * 0.95:.1f}" '
-                   f'height="{h:.1f}" fill="#0072B2"><title>{lo + i * step:.2f}-'
-                   f'{lo + (i + 1) * step:.2f}: {n}</title></rect>')
+                   f'height="{h:.1f}" fill="#0072B2"><title>{_num(lo + i * step)}-'
+                   f'{_num(lo + (i + 1) * step)}: {n}</title></rect>')
     for i in range(0, bins + 1, max(1, bins // 5)):
         x = left + i * bw
         out.append(f'<text x="{x:.1f}" y="{top + ph + 14}" text-anchor="middle" {_FONT}>'
-                   f'{lo + i * step:.3g}</text>')
+                   f'{_num(lo + i * step)}</text>')
     out.append(f'<text x="{left + pw / 2:.1f}" y="{height - 6}" text-anchor="middle" {_FONT}>'
                f'{escape(x_label)}</text>')
     for k, (name, v) in enumerate((markers or {}).items()):
@@ -135,7 +143,7 @@ def histogram(values: Sequence[float], *, bins: int = 20, x_label: str = "",
         out.append(f'<line x1="{x:.1f}" y1="{top}" x2="{x:.1f}" y2="{top + ph}" stroke="#D55E00" '
                    f'stroke-width="1.5" stroke-dasharray="4 3"/>')
         out.append(f'<text x="{x + 3:.1f}" y="{top + 12 + 12 * k}" {_FONT} fill="#D55E00">'
-                   f'{escape(name)} {v:.3g}</text>')
+                   f'{escape(name)} {_num(v)}</text>')
     out.append("</svg>")
     return "\n".join(out)
 
@@ -166,8 +174,9 @@ def line_chart(xs: Sequence[float], ys: Sequence[float | None], *, x_label: str 
         out.append(f'<circle cx="{cx:.1f}" cy="{cy:.1f}" r="2.5" fill="#0072B2">'
                    f'<title>{x:g}: {100 * y if percent else y:.1f}</title></circle>')
     ticks = [x_lo + (x_hi - x_lo) * i / 4 for i in range(5)]
-    if all(float(x).is_integer() for x in xs):  # e.g. frame indices: whole ticks only
-        ticks = sorted({round(t) for t in ticks})
+    if all(float(x).is_integer() for x in xs):  # e.g. frame indices: whole, evenly spaced ticks
+        step = max(1, math.ceil((x_hi - x_lo) / 4))
+        ticks = list(range(math.ceil(x_lo), math.floor(x_hi) + 1, step))
     for x in ticks:
         out.append(f'<text x="{px(x, 0)[0]:.1f}" y="{top + ph + 14}" text-anchor="middle" {_FONT}>'
                    f'{x:.4g}</text>')

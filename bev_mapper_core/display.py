@@ -207,8 +207,8 @@ class BevPainter:
 
         Args:
             height: wanted height (px); the strip is taller when its content needs it.
-            ious: optional class name -> IoU in [0, 1] (None / NaN / missing shown as ``-``),
-                written right of each class name.
+            ious: optional class name -> IoU in [0, 1] written right of each class name
+                (None / NaN, i.e. undefined, as ``-``; classes not in it, i.e. not scored, blank).
             unknown_label: the name of the hatch swatch.
             header: optional first line (e.g. ``"frame IoU"``).
         """
@@ -225,8 +225,8 @@ class BevPainter:
         for ci, c in enumerate(self.classes):
             self._swatch(img, sx, y + 2, self.lut[ci + 1])
             put_text(img, c.name, tx, y + 11)
-            if ious is not None:
-                v = ious.get(c.name)
+            if ious is not None and c.name in ious:  # blank: not scored
+                v = ious[c.name]
                 text = "-" if v is None or not math.isfinite(v) else f"{100 * v:.0f}%"
                 put_text(img, text, width - _PAD - text_size(text)[0], y + 11)
             y += _ROW

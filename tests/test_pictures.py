@@ -123,9 +123,9 @@ def test_class_colours_are_distinct_also_for_colour_blind_viewers():
     assert min(_delta_e(CLASS_COLORS["pedestrian"], CLASS_COLORS["road_boundary"], v)
                for v, _ in _VISION_MARGINS) > 30
     # the check itself fails the old palette: pedestrian and curb reds, the same road colours
-    old = {"drivable": (128, 64, 128), "lane_divider": (255, 255, 255), "ped_crossing": (255, 200, 0),
-           "road_boundary": (255, 0, 0), "sidewalk": (244, 35, 232), "vehicle": (0, 0, 255),
-           "pedestrian": (220, 20, 60), "road": (128, 64, 128), "static": (70, 70, 70)}
+    old = {"drivable": (128, 64, 128), "lane_divider": (255, 255, 255),
+           "ped_crossing": (255, 200, 0), "road_boundary": (255, 0, 0),
+           "sidewalk": (244, 35, 232), "vehicle": (0, 0, 255), "pedestrian": (220, 20, 60), "road": (128, 64, 128), "static": (70, 70, 70)}
     bad = _too_close(old, {"empty": (200, 200, 200), "unknown": (40, 40, 40)})
     assert any(b.startswith("road_boundary/pedestrian normal") for b in bad)
     assert any(b.startswith("drivable/road") for b in bad)
@@ -372,6 +372,15 @@ def test_report_renders_in_headless_chromium(replays, tmp_path):
     # the viewer's script ran: it wrote the frame counter into the page
     rc, console, dom = _render(browser, html, None, tmp_path, "--dump-dom")
     assert rc == 0 and console == [] and "(1 / 3)" in dom
+    # a report without pictures (no viewer) runs its script without errors too
+    from bags.replay import ReplayResult  # noqa: PLC0415
+    from bags.report import render_report  # noqa: PLC0415
+
+    metrics = json.loads((outs["every"] / "metrics.json").read_text())
+    bare = tmp_path / "bare.html"
+    bare.write_text(render_report(ReplayResult(metrics, tmp_path, tmp_path, [])))
+    rc, console, _ = _render(browser, bare, tmp_path / "bare.png", tmp_path)
+    assert rc == 0 and console == []
     # and a page with a script error is caught the same way
     bad = tmp_path / "bad.html"
     bad.write_text("<!doctype html><p>x</p><script>undefinedFunction();</script>")
@@ -383,3 +392,22 @@ def test_painter_rejects_bad_scale():
     with pytest.raises(ValueError):
         BevPainter(GRID, BEV_CLASSES, scale=0)
     assert bev_class("road").color != bev_class("drivable").color
+
+
+def test_report_without_pictures_or_ground_truth(replays, tmp_path):
+    bag, _ = replays
+    out = tmp_path / "o"
+    assert main(["replay", str(bag), "--quiet", "--method", "ipm", "--out", str(out),
+                 "--no-pictures"]) == 0
+    html = (out / REPORT_FILE).read_text()
+    assert "No pictures were written" in html and 'id="frames-data"' not in html
+    assert "mIoU / mAP" in html
+    from bags.replay import ReplayResult  # noqa: PLC0415
+    from bags.report import render_report  # noqa: PLC0415
+
+    metrics = json.loads((out / "metrics.json").read_text())
+    metrics.update(frames_scored=0, classes={}, miou=None, map=None, iou_by_range={},
+                   scope_used=None)
+    html = render_report(ReplayResult(metrics, out, out / "bev_bag", []))
+    assert "nothing was scored" in html and "No frame was mapped" in html
+    assert "<svg" not in html and not re.search(r"https?://", html)
