@@ -1,9 +1,10 @@
 """Pictures of replayed frames: prediction vs ground truth side by side, PNG and GIF output.
 
-Layers are drawn with :func:`bev_mapper_core.classes.colorize_layers` and re-oriented with
-:meth:`BevGrid.to_display` (forward up, left on the left). Files are written atomically:
-:func:`write_atomic` writes a hidden temporary file next to the target and renames it, so a
-reader never sees a half-written picture.
+Layers are drawn by :class:`bev_mapper_core.display.BevPainter` (forward up, left on the
+left; colours of :data:`~bev_mapper_core.classes.CLASS_COLORS`, unknown cells hatched, the ego
+footprint at the origin) beside a legend with the axes and a metres scale bar. Files are
+written atomically: :func:`write_atomic` writes a hidden temporary file next to the target and
+renames it, so a reader never sees a half-written picture.
 
 GIFs use Pillow when it is installed, else OpenCV's GIF encoder (``cv2.imencodeanimation``,
 OpenCV >= 4.12); without either, :func:`encode_gif` reports why and nothing is written.
@@ -15,20 +16,23 @@ import io
 import math
 import os
 from pathlib import Path
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import cv2
 import numpy as np
 
-from bev_mapper_core.classes import BevClass, bev_picture
+from bev_mapper_core.classes import BevClass
+from bev_mapper_core.display import STRIP_BG, STRIP_FG, painter
 from bev_mapper_core.grid import BevGrid
 
 #: Pictures are upscaled (nearest) until the BEV panels are at least this many pixels tall.
 MIN_PANEL_HEIGHT = 360
 _BAND = 22  # header / footer text band height (px)
 _GAP = 6  # between the panels (px)
-_BG = (24, 24, 24)
-_FG = (235, 235, 235)
+_FRAME = (120, 120, 120)  # outline of the maps
+#: Name of the hatch in the legend of replay pictures: unknown to the mapper, or not visible in
+#: the ground truth (both panels hatch the cells the ground truth cannot see).
+UNKNOWN_LABEL = "unknown / unseen"
 
 
 def partial_name(path: Path) -> Path:
@@ -53,17 +57,29 @@ def write_atomic(path: str | Path, data: bytes) -> Path:
 
 
 def _text(img: np.ndarray, text: str, x: int, y: int, scale: float = 0.45) -> None:
-    cv2.putText(img, text, (x, y), cv2.FONT_HERSHEY_SIMPLEX, scale, _FG, 1, cv2.LINE_AA)
+    cv2.putText(img, text, (x, y), cv2.FONT_HERSHEY_SIMPLEX, scale, STRIP_FG, 1, cv2.LINE_AA)
 
 
-def _banded(panel: np.ndarray, title: str, factor: int) -> np.ndarray:
-    """Upscale a panel by ``factor`` (nearest) and put a title band above it."""
-    big = np.repeat(np.repeat(panel, factor, axis=0), factor, axis=1)
-    out = np.empty((big.shape[0] + _BAND, big.shape[1], 3), np.uint8)
-    out[:_BAND] = _BG
-    out[_BAND:] = big
+def _banded(panel: np.ndarray, title: str) -> np.ndarray:
+    """``panel`` with a title band above it."""
+    out = np.empty((panel.shape[0] + _BAND, panel.shape[1], 3), np.uint8)
+    out[:_BAND] = STRIP_BG
+    out[_BAND:] = panel
     _text(out, title, 4, _BAND - 7)
     return out
+
+
+def panel_scale(grid: BevGrid) -> int:
+    """Display pixels per cell of replay pictures (panels at least :data:`MIN_PANEL_HEIGHT`)."""
+    return max(1, math.ceil(MIN_PANEL_HEIGHT / grid.width))
+
+
+def panel_boxes(grid: BevGrid) -> tuple[tuple[int, int, int, int], tuple[int, int, int, int]]:
+    """Where :func:`comparison_picture` puts the prediction and ground-truth maps: two
+    ``(x, y, width, height)`` pixel boxes."""
+    scale = panel_scale(grid)
+    w, h = grid.height * scale, grid.width * scale
+    return (_GAP, _BAND, w, h), (w + 2 * _GAP, _BAND, w, h)
 
 
 def comparison_picture(
@@ -77,35 +93,50 @@ def comparison_picture(
     *,
     method: str = "",
     caption: str = "",
+    ious: Mapping[str, float | None] | None = None,
 ) -> np.ndarray:
-    """Prediction (left) and ground truth (right) side by side, as one RGB uint8 image.
+    """Prediction (left), ground truth (middle) and the legend (right), as one RGB uint8 image.
+
+    Both panels hatch the cells the ground truth cannot see (``gt_mask`` False) the same way,
+    and the prediction panel also hatches its own unknown cells: the two panels then show the
+    same, scored, cells side by side (the ``bev_bag`` keeps the whole prediction). The legend
+    (:meth:`~bev_mapper_core.display.BevPainter.legend`) names the class colours, with the
+    frame's IoU per class when ``ious`` is given, and shows the ego, the axes and a scale bar.
 
     Args:
         grid: the grid of the layers.
         pred, pred_known: predicted probabilities ``(C, H, W)`` and known mask ``(H, W)``.
         pred_classes: the classes of ``pred``'s layers.
-        gt: ground-truth layers ``(C', H, W)`` (bool or [0, 1]), or ``None`` (drawn as "no GT").
-        gt_mask: ``(H, W)`` cells where the GT is known (others drawn dark grey), or ``None``.
+        gt: ground-truth layers ``(C', H, W)`` (bool or [0, 1]), or ``None`` (drawn as "no GT",
+            all hatched).
+        gt_mask: ``(H, W)`` cells where the GT is known (others hatched), or ``None``.
         gt_classes: the classes of ``gt``'s layers.
         method: shown in the prediction's title.
-        caption: footer text (frame index, stamp, ...).
+        caption: footer text (frame index, stamp, mIoU, ...).
+        ious: class name -> this frame's IoU (None = undefined), shown in the legend.
     """
-    left = bev_picture(grid, pred, pred_classes, pred_known)
-    if gt is None:
-        right = np.full_like(left, 40)
-    else:
-        right = bev_picture(grid, np.asarray(gt, np.float32), gt_classes, gt_mask)
-    factor = max(1, math.ceil(MIN_PANEL_HEIGHT / left.shape[0]))
-    left = _banded(left, f"prediction ({method})" if method else "prediction", factor)
-    right = _banded(right, "ground truth (visible cells)" if gt is not None else "no ground truth",
-                    factor)
-    h, w = left.shape[:2]
-    out = np.empty((h + _BAND, 2 * w + _GAP, 3), np.uint8)
-    out[:] = _BG
-    out[:h, :w] = left
-    out[:h, w + _GAP:] = right
+    scale = panel_scale(grid)
+    (lx, _, w, _), (rx, _, _, _) = panel_boxes(grid)
+    pp = painter(grid, tuple(pred_classes), scale)
+    gp = painter(grid, tuple(gt_classes), scale)
+    hidden = None if gt is None or gt_mask is None else ~np.asarray(gt_mask, bool)
+    left = pp.paint(pred, pred_known, hidden)
+    right = gp.unknown() if gt is None else gp.paint(np.asarray(gt, np.float32), gt_mask)
+    left = _banded(left, f"prediction ({method})" if method else "prediction")
+    right = _banded(right, "ground truth (visible cells)" if gt is not None else "no ground truth")
+    h = left.shape[0]
+    legend = pp.legend(h, ious=ious, unknown_label=UNKNOWN_LABEL,
+                       header="frame IoU" if ious is not None else "legend")
+    lh, lw = legend.shape[:2]
+    out = np.empty((max(h, lh) + _BAND, rx + w + _GAP + lw, 3), np.uint8)
+    out[:] = STRIP_BG
+    for x, panel in ((lx, left), (rx, right)):
+        out[:h, x:x + w] = panel
+        # a frame around the map, so that hatched cells at its edge do not melt into the bands
+        cv2.rectangle(out, (x - 1, _BAND - 1), (x + w, h), _FRAME, 1)
+    out[:lh, rx + w + _GAP:] = legend
     if caption:
-        _text(out, caption, 4, h + _BAND - 7)
+        _text(out, caption, 4, out.shape[0] - 7)
     return out
 
 

@@ -8,8 +8,14 @@ own CameraInfo and ``/tf_static`` and the grid from its GT layers (``options.gri
 * ``bev_bag/``: a rosbag2 (MCAP by default) with the input CameraInfo and ``/tf_static`` plus
   ``/bev/<class>`` OccupancyGrids and ``/bev/image`` (rgb8 picture) per frame, written by
   :class:`~bags.writer.BagWriter` (temporary directory + rename);
-* ``frames/frame_NNNN.png``: prediction vs ground truth for every ``picture_every``-th frame,
-  and ``replay.gif`` on request;
+* ``frames/frame_NNNN.png``: prediction vs ground truth for every ``frames_every``-th frame
+  (every frame with ``frames_every=1``), with a legend (class colours, the frame's IoU per
+  class), the ego footprint, axes and a scale bar, and the frame's mIoU in the caption (see
+  :func:`~bags.pictures.comparison_picture`); ``replay.gif`` of the same pictures on request;
+* ``report.html``: a self-contained page (inline CSS, SVG charts and a few lines of JS, nothing
+  fetched) with the metrics table, IoU by range and per class, the latency histogram, the
+  per-frame mIoU and a viewer of ``frames/*.png`` (see :mod:`bags.report`); unless
+  ``report=False``;
 * ``metrics.json``: :class:`~bev_mapper_core.metrics.MetricAccumulator` results over the frames
   with GT, the scoring scope and mapping latency percentiles. Written last.
 
@@ -38,8 +44,10 @@ from msg_adapters import make_image, make_occupancy_grid
 
 from . import topics as T
 from .errors import BagContentError, BagCorruptError, BagError, BagExistsError
+from .frame_scores import FrameScores
 from .pictures import comparison_picture, encode_gif, encode_png, partial_name, write_atomic
 from .reader import BagReader
+from .report import render_report
 from .writer import STORAGES, BagWriter
 
 log = logging.getLogger(__name__)
@@ -47,6 +55,7 @@ log = logging.getLogger(__name__)
 OUT_PREFIX = "/bev/"
 IMAGE_TOPIC = "/bev/image"
 BAG_DIR, FRAMES_DIR, METRICS_FILE, GIF_FILE = "bev_bag", "frames", "metrics.json", "replay.gif"
+REPORT_FILE = "report.html"
 
 
 @dataclass(frozen=True)
@@ -62,8 +71,12 @@ class ReplayOptions:
             for flat classes, ``/bev/visibility/ground`` (the cell's ground point is seen by a
             camera); object classes keep the visible scope (see :class:`_Scorer`).
         max_frames: stop after this many mapped frames (``None`` = all).
-        pictures: write PNG pictures; ``picture_every``: every k-th frame (frame 0 included).
+        pictures: write PNG pictures; ``frames_every``: of every k-th mapped frame (frame 0
+            included; 1 = every frame). The default 10 keeps long drives cheap: a picture
+            (drawing + PNG) costs about as much as mapping the frame with IPM (~6 ms) and
+            ~100 kB on disk.
         gif: also write an animated GIF of the pictures.
+        report: write ``report.html``.
         storage: storage of the output bag.
         force: replace existing outputs in ``out``.
         progress: show a tqdm progress bar on stderr.
@@ -76,8 +89,9 @@ class ReplayOptions:
     scope: str = "visible"
     max_frames: int | None = None
     pictures: bool = True
-    picture_every: int = 10
+    frames_every: int = 10
     gif: bool = False
+    report: bool = True
     storage: str = "mcap"
     force: bool = False
     progress: bool = False
@@ -87,15 +101,16 @@ class ReplayOptions:
             raise BagError(f"scope must be one of {list(SCOPES)}, got {self.scope!r}")
         if self.max_frames is not None and self.max_frames < 1:
             raise BagError(f"--max-frames must be >= 1, got {self.max_frames}")
-        if self.picture_every < 1:
-            raise BagError(f"--picture-every must be >= 1, got {self.picture_every}")
+        if self.frames_every < 1:
+            raise BagError(f"--frames-every must be >= 1, got {self.frames_every}")
         if self.storage not in STORAGES:
             raise BagError(f"storage must be one of {list(STORAGES)}, got {self.storage!r}")
 
 
 @dataclass
 class ReplayResult:
-    """What :func:`replay` did: the metrics dict, output paths, damage note, GIF note."""
+    """What :func:`replay` did: the metrics dict, output paths, damage note, GIF note, and per
+    mapped frame its mapping latency (ms) and, per scored frame, its IoU per class."""
 
     metrics: dict
     out: Path
@@ -105,12 +120,16 @@ class ReplayResult:
     gif_note: str = ""
     damage: str | None = None
     notes: list[str] = field(default_factory=list)
+    latencies_ms: list[float] = field(default_factory=list)
+    frame_scores: FrameScores = field(default_factory=FrameScores)
+    report: Path | None = None
 
 
 def _check_outputs(out: Path, force: bool) -> None:
     if out.exists() and not out.is_dir():
         raise BagExistsError(f"{out} exists and is not a directory")
-    existing = [n for n in (BAG_DIR, FRAMES_DIR, METRICS_FILE, GIF_FILE) if (out / n).exists()]
+    existing = [n for n in (BAG_DIR, FRAMES_DIR, METRICS_FILE, GIF_FILE, REPORT_FILE)
+                if (out / n).exists()]
     if existing and not force:
         raise BagExistsError(f"{out} already holds replay outputs {existing}; pass --force to "
                              "replace them")
@@ -231,6 +250,7 @@ def _run(options, reader, rig, grid, mapper, out, tmp_frames, notes) -> ReplayRe
     latencies: list[float] = []
     pictures: list[Path] = []
     gif_frames: list[np.ndarray] = []
+    scores = FrameScores()
     mapped = skipped = 0
     damage = None
     frames_dir = out / FRAMES_DIR
@@ -261,11 +281,15 @@ def _run(options, reader, rig, grid, mapper, out, tmp_frames, notes) -> ReplayRe
                 copier.upto(_frame_time(frame))
                 _write_frame(bw, grid, mapper, pred, frame.stamp_ns, ego)
                 gt, mask = scorer.update(frame, pred)
-                if options.pictures and mapped % options.picture_every == 0:
+                score = None if gt is None else scores.add(
+                    frame.index, frame.stamp_ns, pred.probs, pred.known, mapper.class_names, gt,
+                    [c.name for c in scorer.classes], mask, frame.ground_visibility,
+                    scorer.scope_used, scorer.acc.threshold)
+                if options.pictures and mapped % options.frames_every == 0:
                     pic = comparison_picture(
                         grid, pred.probs, pred.known, mapper.classes, gt, mask, scorer.classes,
-                        method=options.mapper.method,
-                        caption=f"frame {frame.index}  stamp {frame.stamp_ns / 1e9:.3f} s")
+                        method=options.mapper.method, caption=_caption(frame, score),
+                        ious=None if score is None else score.ious)
                     name = f"frame_{frame.index:04d}.png"
                     write_atomic(tmp_frames / name, encode_png(pic))
                     pictures.append(frames_dir / name)
@@ -296,8 +320,24 @@ def _run(options, reader, rig, grid, mapper, out, tmp_frames, notes) -> ReplayRe
     if gif_path is None and (out / GIF_FILE).exists():
         (out / GIF_FILE).unlink()
     metrics = _metrics(options, scorer, grid, mapped, skipped, latencies, damage, bag_counts)
+    result = ReplayResult(metrics, out, out / BAG_DIR, pictures, gif_path, gif_note, damage, notes,
+                          latencies, scores)
+    if options.report:
+        result.report = write_atomic(out / REPORT_FILE, render_report(result).encode())
+    elif (out / REPORT_FILE).exists():  # stale, of an earlier replay (only with --force)
+        (out / REPORT_FILE).unlink()
     write_atomic(out / METRICS_FILE, (json.dumps(metrics, indent=2, allow_nan=False) + "\n").encode())
-    return ReplayResult(metrics, out, out / BAG_DIR, pictures, gif_path, gif_note, damage, notes)
+    return result
+
+
+def _caption(frame, score) -> str:
+    """Picture footer: frame index, stamp and the frame's mIoU over the classes defined in it."""
+    text = f"frame {frame.index}  stamp {frame.stamp_ns / 1e9:.3f} s"
+    if score is None:
+        return text + "  (no GT: not scored)"
+    defined = [v for v in score.ious.values() if v is not None]
+    miou = "-" if score.miou is None else f"{100 * score.miou:.1f}%"
+    return text + f"  mIoU {miou} over {len(defined)} class(es)"
 
 
 def _write_frame(bw: BagWriter, grid: BevGrid, mapper, pred: BevPrediction, stamp: int,

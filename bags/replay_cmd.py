@@ -15,15 +15,25 @@ from bev_mapper_core.metrics import format_table
 from .replay import SCOPES, ReplayOptions, replay
 from .writer import STORAGES
 
-HELP = "map every frame of a bag offline (no DDS), write a BEV bag, pictures and metrics.json"
+HELP = ("map every frame of a bag offline (no DDS), write a BEV bag, pictures, report.html and "
+        "metrics.json")
 
 _EPILOG = """\
 outputs in DIR (each written under a temporary name and renamed when complete):
   bev_bag/            rosbag2 with the input camera_info + /tf_static, /bev/<class>
                       OccupancyGrids and /bev/image (rgb8 picture) per frame
-  frames/*.png        prediction vs ground truth, every --picture-every frames
-  replay.gif          with --gif (Pillow, else OpenCV's GIF encoder, else skipped)
+  frames/*.png        prediction | ground truth | legend, of every --frames-every'th
+                      frame (default {every}; 1 = every frame): class colours (colour-
+                      blind safe), the frame's IoU per class and mIoU, the ego footprint
+                      (4.6 x 1.9 m), axes and a metres scale bar; cells the mapper does
+                      not know or the GT cannot see are hatched in both panels
+  replay.gif          with --gif, of the same pictures (Pillow, else OpenCV's GIF
+                      encoder, else skipped)
+  report.html         self-contained page (no network): metrics table, IoU by range
+                      and per class, latency histogram, per-frame mIoU and a viewer of
+                      frames/*.png (keep it beside frames/); --no-report skips it
   metrics.json        IoU / Chamfer per class, mIoU, IoU by range, latency p50/p95
+                      (written last)
 
 scoring scope (--scope), for bags with /bev/gt/<class> layers:
   visible  cells whose GT is known, i.e. not -1 in the /bev/gt/<class> grids (the
@@ -41,7 +51,7 @@ damage, its outputs completed, then 'error: ...' is printed and the exit status 
 def configure(p: argparse.ArgumentParser) -> None:
     """Arguments of ``bev-bag replay``."""
     p.formatter_class = argparse.RawDescriptionHelpFormatter
-    p.epilog = _EPILOG
+    p.epilog = _EPILOG.format(every=ReplayOptions.frames_every)
     p.add_argument("bag", type=Path, help="input bag: rosbag2 directory, .mcap or .db3")
     p.add_argument("--out", type=Path, required=True, help="output directory")
     p.add_argument("--method", default=MapperConfig.method, choices=available_methods(),
@@ -57,9 +67,12 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-frames", type=int, default=ReplayOptions.max_frames,
                    help="stop after N mapped frames")
     p.add_argument("--no-pictures", action="store_true", help="write no PNG pictures")
-    p.add_argument("--picture-every", type=int, default=ReplayOptions.picture_every, metavar="K",
-                   help=f"a picture of every K-th mapped frame (default {ReplayOptions.picture_every})")
+    p.add_argument("--frames-every", "--picture-every", dest="frames_every", type=int,
+                   default=ReplayOptions.frames_every, metavar="N",
+                   help="a picture of every N-th mapped frame, frame 0 included; 1 = every frame "
+                        f"(default {ReplayOptions.frames_every}; --picture-every is an old name)")
     p.add_argument("--gif", action="store_true", help="also write an animated replay.gif")
+    p.add_argument("--no-report", action="store_true", help="write no report.html")
     p.add_argument("--storage", choices=STORAGES, default=ReplayOptions.storage, help="storage of bev_bag/")
     p.add_argument("--force", action="store_true", help="replace existing outputs in DIR")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -86,7 +99,8 @@ def options_from_args(args: argparse.Namespace) -> ReplayOptions:
     return ReplayOptions(
         bag=args.bag, out=args.out, mapper=mapper, grid=grid, scope=args.scope,
         max_frames=args.max_frames, pictures=not args.no_pictures,
-        picture_every=args.picture_every, gif=args.gif, storage=args.storage, force=args.force,
+        frames_every=args.frames_every, gif=args.gif, report=not args.no_report,
+        storage=args.storage, force=args.force,
         progress=not args.quiet and sys.stderr.isatty(),
     )
 

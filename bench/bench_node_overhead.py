@@ -32,7 +32,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
 from sensor_msgs.msg import Image  # noqa: E402
 
-from bev_mapper_core.classes import colorize_layers  # noqa: E402
+from bev_mapper_core.classes import bev_picture  # noqa: E402
 from bev_mapper_core.grid import BevGrid  # noqa: E402
 from bev_mapper_core.mapper import BevPrediction, Mapper, register_method  # noqa: E402
 from bev_mapper_core.rig import preset_rig  # noqa: E402
@@ -135,8 +135,8 @@ def main() -> None:
         grids = [make_occupancy_grid(fac, grid, pred.probs[k], pred.known, stamp, "base_link")
                  for k in range(len(node.classes))]
         s2 = time.perf_counter()
-        pic = make_image(fac, np.ascontiguousarray(grid.to_display(
-            colorize_layers(pred.probs, node.classes, pred.known))), "rgb8", stamp, "base_link")
+        pic = make_image(fac, bev_picture(grid, pred.probs, node.classes, pred.known), "rgb8",
+                         stamp, "base_link")
         s3 = time.perf_counter()
         if pubs is None:
             pubs = [node._grid_pubs[c.name] for c in node.classes]

@@ -41,7 +41,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=30, help="frames of the synthetic drive")
     ap.add_argument("--seed", type=int, default=3)
     ap.add_argument("--no-pictures", action="store_true")
-    ap.add_argument("--picture-every", type=int, default=10)
+    ap.add_argument("--frames-every", type=int, default=ReplayOptions.frames_every)
     ap.add_argument("--repeat", type=int, default=2, help="replays; the best is reported")
     ap.add_argument("--keep", type=Path, default=None, help="keep the outputs here")
     args = ap.parse_args()
@@ -61,7 +61,7 @@ def main() -> None:
             t0 = time.perf_counter()
             result = replay(ReplayOptions(bag=bag, out=out, mapper=MapperConfig(method="ipm"),
                                           pictures=not args.no_pictures,
-                                          picture_every=args.picture_every))
+                                          frames_every=args.frames_every))
             walls.append(time.perf_counter() - t0)
         m = result.metrics
         wall = min(walls)
@@ -69,12 +69,12 @@ def main() -> None:
         few = max(1, m["frames"] // 3)
         t0 = time.perf_counter()
         replay(ReplayOptions(bag=bag, out=tmp / "few", max_frames=few,
-                             pictures=not args.no_pictures, picture_every=args.picture_every))
+                             pictures=not args.no_pictures, frames_every=args.frames_every))
         marginal = (wall - (time.perf_counter() - t0)) / (m["frames"] - few) if m["frames"] > few \
             else float("nan")
         fps = m["frames"] / wall
         print(f"bag: {bag} ({size / 1e6:.1f} MB, {n} frames at {rate:.2f} Hz)")
-        print(f"replay (ipm, pictures {'off' if args.no_pictures else f'every {args.picture_every}'}): "
+        print(f"replay (ipm, pictures {'off' if args.no_pictures else f'every {args.frames_every}'}): "
               f"{m['frames']} frames in {wall:.2f} s (best of {args.repeat}: "
               f"{', '.join(f'{w:.2f}' for w in walls)})")
         print(f"throughput     : {fps:7.1f} frames/s = {1000.0 / fps:6.1f} ms/frame end to end")

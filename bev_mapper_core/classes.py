@@ -62,26 +62,64 @@ class BevClass:
     color: tuple[int, int, int]
 
 
+def _rgb(hex_code: str) -> tuple[int, int, int]:
+    return tuple(int(hex_code[i:i + 2], 16) for i in (1, 3, 5))  # "#RRGGBB"
+
+
+#: Display colour (RGB) of every BEV class name, the one source of BEV colours.
+#:
+#: The nine colours are Paul Tol's *muted* qualitative scheme (https://personal.sron.nl/~pault/,
+#: "Colour schemes and templates", 2021), designed to stay distinct for colour-blind viewers.
+#: Each class name gets its own colour, so the standard set and Cam2BEV's set (``road``,
+#: ``vehicle``, ``static``; vehicle shares the standard vehicle's colour) never repeat a colour,
+#: whichever mix ``--classes`` asks for. The assignment keeps touching classes far apart, also
+#: under simulated protanopia, deuteranopia and tritanopia (``tests/test_pictures.py`` checks
+#: CIELAB distances): light cyan road surface, dark wine lane dividers and sand crossings on it,
+#: rose curbs, olive sidewalks, green vehicles and indigo pedestrians (pedestrians and curbs
+#: were both red before). Neutral greys never mean a class: :data:`EMPTY_COLOR` is a known cell
+#: with no class, :data:`UNKNOWN_COLORS` the hatch of unknown cells.
+CLASS_COLORS: dict[str, tuple[int, int, int]] = {
+    "drivable": _rgb("#88CCEE"),  # cyan
+    "lane_divider": _rgb("#882255"),  # wine
+    "ped_crossing": _rgb("#DDCC77"),  # sand
+    "road_boundary": _rgb("#CC6677"),  # rose
+    "sidewalk": _rgb("#999933"),  # olive
+    "vehicle": _rgb("#117733"),  # green
+    "pedestrian": _rgb("#332288"),  # indigo
+    "road": _rgb("#44AA99"),  # teal (Cam2BEV)
+    "static": _rgb("#AA4499"),  # purple (Cam2BEV)
+}
+#: Known cells where no class is present: near-white.
+EMPTY_COLOR: tuple[int, int, int] = (240, 240, 240)
+#: Unknown cells (the mapper's ``known`` False; in pictures also ground truth no camera sees):
+#: dark diagonal hatch, base colour and stripe colour. Greys this dark stay clear of every class
+#: colour also under colour-blind simulation (mid greys would not).
+UNKNOWN_COLORS: tuple[tuple[int, int, int], tuple[int, int, int]] = ((16, 16, 16), (46, 46, 46))
+#: Hatch geometry in display pixels: a stripe ``HATCH_WIDTH`` wide every ``HATCH_PERIOD``.
+HATCH_PERIOD, HATCH_WIDTH = 6, 2
+
+_ROAD = (Label.ROAD, Label.LANE_DIVIDER, Label.PED_CROSSING)
+
 #: The BEV classes, in layer order.
 BEV_CLASSES: tuple[BevClass, ...] = (
-    BevClass("drivable", (Label.ROAD, Label.LANE_DIVIDER, Label.PED_CROSSING), True, (128, 64, 128)),
-    BevClass("lane_divider", (Label.LANE_DIVIDER,), True, (255, 255, 255)),
-    BevClass("ped_crossing", (Label.PED_CROSSING,), True, (255, 200, 0)),
-    BevClass("road_boundary", (Label.ROAD_BOUNDARY,), True, (255, 0, 0)),
-    BevClass("sidewalk", (Label.SIDEWALK,), True, (244, 35, 232)),
-    BevClass("vehicle", (Label.VEHICLE,), False, (0, 0, 255)),
-    BevClass("pedestrian", (Label.PEDESTRIAN,), False, (220, 20, 60)),
+    BevClass("drivable", _ROAD, True, CLASS_COLORS["drivable"]),
+    BevClass("lane_divider", (Label.LANE_DIVIDER,), True, CLASS_COLORS["lane_divider"]),
+    BevClass("ped_crossing", (Label.PED_CROSSING,), True, CLASS_COLORS["ped_crossing"]),
+    BevClass("road_boundary", (Label.ROAD_BOUNDARY,), True, CLASS_COLORS["road_boundary"]),
+    BevClass("sidewalk", (Label.SIDEWALK,), True, CLASS_COLORS["sidewalk"]),
+    BevClass("vehicle", (Label.VEHICLE,), False, CLASS_COLORS["vehicle"]),
+    BevClass("pedestrian", (Label.PEDESTRIAN,), False, CLASS_COLORS["pedestrian"]),
 )
 BEV_CLASS_NAMES: tuple[str, ...] = tuple(c.name for c in BEV_CLASSES)
 #: Cam2BEV's three-class setting (road / dynamic / other static), built from the same labels.
 CAM2BEV_CLASSES: tuple[BevClass, ...] = (
-    BevClass("road", (Label.ROAD, Label.LANE_DIVIDER, Label.PED_CROSSING), True, (128, 64, 128)),
-    BevClass("vehicle", (Label.VEHICLE, Label.PEDESTRIAN), False, (0, 0, 255)),
+    BevClass("road", _ROAD, True, CLASS_COLORS["road"]),
+    BevClass("vehicle", (Label.VEHICLE, Label.PEDESTRIAN), False, CLASS_COLORS["vehicle"]),
     BevClass(
         "static",
         (Label.ROAD_BOUNDARY, Label.SIDEWALK, Label.OBSTACLE, Label.BUILDING, Label.TERRAIN),
         False,
-        (70, 70, 70),
+        CLASS_COLORS["static"],
     ),
 )
 
@@ -148,22 +186,32 @@ def colorize_labels(labels: np.ndarray) -> np.ndarray:
 
 
 def colorize_layers(layers: np.ndarray, classes=BEV_CLASSES, known=None, threshold=0.5) -> np.ndarray:
-    """RGB picture ``(H, W, 3)`` of class layers ``(C, H, W)`` (later classes drawn on top).
+    """RGB picture ``(H, W, 3)`` uint8 of class layers ``(C, H, W)``, in grid orientation.
 
-    Unknown cells (``known`` False) are drawn dark grey, empty known cells light grey.
+    Later classes are drawn on top; known empty cells are :data:`EMPTY_COLOR`, unknown cells
+    (``known`` False) the :data:`UNKNOWN_COLORS` hatch. No legend or ego: see :func:`bev_picture`.
     """
-    C, H, W = layers.shape
-    img = np.full((H, W, 3), 40, dtype=np.uint8)
-    if known is None:
-        known = np.ones((H, W), dtype=bool)
-    img[known] = 200
-    for ci, c in enumerate(classes[:C]):
-        on = (layers[ci] >= threshold) & known
-        img[on] = c.color
-    return img
+    from .display import class_codes, color_table, hatch_mask  # noqa: PLC0415 - display imports us
+
+    classes = tuple(classes)[: layers.shape[0]]
+    codes = class_codes(layers, threshold)
+    if known is not None:
+        unknown = ~np.asarray(known, bool)
+        stripes = hatch_mask(*codes.shape)
+        codes[unknown] = len(classes) + 1 + stripes[unknown]
+    return color_table(classes)[codes]
 
 
 def bev_picture(grid, layers: np.ndarray, classes=BEV_CLASSES, known=None) -> np.ndarray:
-    """Display picture of class layers ``(C, H, W)`` on ``grid``: ``(W, H, 3)`` uint8 RGB,
-    forward up and left on the left (see :meth:`BevGrid.to_display`), C-contiguous."""
-    return np.ascontiguousarray(grid.to_display(colorize_layers(layers, tuple(classes), known)))
+    """Display picture of class layers ``(C, H, W)`` on ``grid`` (the node's ``bev/image``).
+
+    The map is in display orientation (:meth:`BevGrid.to_display`: forward up, left on the left),
+    one pixel per cell, unknown cells hatched, the ego footprint at the origin; a legend strip on
+    its right names the class colours and shows the axes and a metres scale bar (see
+    :class:`~bev_mapper_core.display.BevPainter`). Returns C-contiguous RGB uint8 of shape
+    ``(max(W, legend height), H + legend width, 3)``; the map is ``[:W, :H]``. The static parts
+    are cached per grid and classes, so a frame costs about what the bare map does.
+    """
+    from .display import painter  # noqa: PLC0415 - display imports this module
+
+    return painter(grid, tuple(classes)).picture(layers, known)

@@ -3,6 +3,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup_venv.sh
+# headless Chromium for the report.html rendering test (apt-get as root; else that test skips)
+bash scripts/install_test_browser.sh
 # Keep DDS discovery on this machine, and tests out of other ROS graphs' way.
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-$(( (RANDOM % 100) + 101 ))}

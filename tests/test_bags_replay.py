@@ -14,7 +14,7 @@ from bags.cli import main
 from bags.reader import BagReader
 from bags.replay import BAG_DIR, FRAMES_DIR, IMAGE_TOPIC, METRICS_FILE
 from bags.writer import BagWriter
-from bev_mapper_core.classes import BEV_CLASS_NAMES, colorize_layers
+from bev_mapper_core.classes import BEV_CLASS_NAMES, bev_picture
 from bev_mapper_core.errors import BevMapperError
 from bev_mapper_core.grid import BevGrid
 from bev_mapper_core.mapper import MapperConfig, create_mapper
@@ -152,7 +152,7 @@ def test_output_bag_equals_core_mapper(drive):
             pred = expected[stamp]
             assert m.msg.header.frame_id == "base_link"
             if m.topic == IMAGE_TOPIC:
-                want_img = grid.to_display(colorize_layers(pred.probs, known=pred.known))
+                want_img = bev_picture(grid, pred.probs, known=pred.known)
                 np.testing.assert_array_equal(image_to_rgb(m.msg), want_img)
                 continue
             probs, known = occupancy_grid_to_layer(m.msg, grid)

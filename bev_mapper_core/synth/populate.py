@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 
 from ..classes import Label
+from ..display import EGO_CENTER_X_M, EGO_LENGTH_M, EGO_WIDTH_M
 from .objects import FACADE, Boxes, car_parts, obb_overlap, obstacle_parts, pedestrian_parts
 from .raster import GroundRaster
 from .roads import RoadNetwork, Road
@@ -18,8 +19,9 @@ from .trajectory import PathMotion
 
 CAR_COLORS = np.array([(235, 235, 235), (25, 25, 28), (170, 172, 176), (100, 102, 108),
                        (150, 20, 25), (30, 55, 120), (35, 70, 45), (200, 185, 150), (210, 120, 30)])
-#: ego footprint in base_link: centre 1.3 m ahead of the rear axle, 4.6 m x 1.9 m
-EGO_OFFSET, EGO_HALF = 1.3, (2.3, 0.95)
+#: ego footprint in base_link (the one drawn in pictures): centre 1.3 m ahead of the rear axle,
+#: 4.6 m x 1.9 m
+EGO_OFFSET, EGO_HALF = EGO_CENTER_X_M, (EGO_LENGTH_M / 2, EGO_WIDTH_M / 2)
 #: movers only have to avoid each other where they could be seen (farther ones are culled)
 SEEN_RADIUS = 150.0
 
