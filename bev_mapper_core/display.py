@@ -23,8 +23,8 @@ cost is one class-code pass, a table lookup and a masked copy.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from functools import lru_cache
-from typing import Mapping, Sequence
 
 import cv2
 import numpy as np
@@ -50,7 +50,8 @@ _SCALE_BARS_M = (1, 2, 5, 10, 20, 50, 100)
 
 def hatch_mask(height: int, width: int) -> np.ndarray:
     """``(height, width)`` bool: the stripes of the unknown hatch (diagonal, top-right to
-    bottom-left), :data:`~.classes.HATCH_WIDTH` pixels every :data:`~.classes.HATCH_PERIOD`."""
+    bottom-left), :data:`~.classes.HATCH_WIDTH` pixels every :data:`~.classes.HATCH_PERIOD`.
+    """
     r = np.arange(height)[:, None]
     c = np.arange(width)[None, :]
     return (r + c) % HATCH_PERIOD < HATCH_WIDTH

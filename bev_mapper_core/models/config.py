@@ -127,7 +127,8 @@ class BiMapperConfig:
     def paper(cls, **overrides) -> "BiMapperConfig":
         """The paper-size network: full EfficientNet-B0, HDMapNet neck (512) and BEV width (64),
         40x80 BEV features on the 200x400 grid, 352 px wide inputs (HDMapNet's 352x128 on
-        nuScenes), the 1 m camera plane at the paper's 400x800 IPM resolution."""
+        nuScenes), the 1 m camera plane at the paper's 400x800 IPM resolution.
+        """
         base = dict(
             width_mult=None, depth_mult=None, encoder_stages=7, neck_channels=512, bev_channels=64,
             bev_downsample=5, input_width=352, plane_shape=(800, 400), plane_height=1.0,

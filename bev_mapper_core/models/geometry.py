@@ -113,7 +113,8 @@ def pixel_normalized(map_x: np.ndarray, map_y: np.ndarray, size: tuple[int, int]
 
 def _bilinear_weight(mask: np.ndarray, coords: np.ndarray) -> np.ndarray:
     """Bilinear sample (align_corners=False, zero outside) of a bool ``(Hp, Wp)`` mask at
-    normalised ``coords`` (h, w, 2); same convention as ``grid_sample``."""
+    normalised ``coords`` (h, w, 2); same convention as ``grid_sample``.
+    """
     Hp, Wp = mask.shape
     m = np.pad(mask.astype(np.float64), 1)  # zero border: index +1
     px = (coords[..., 0] + 1.0) * Wp / 2.0 - 0.5  # pixel coordinates (h, w)

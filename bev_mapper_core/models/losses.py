@@ -136,7 +136,8 @@ def across_space_loss(plane_logits: torch.Tensor, target: torch.Tensor, gt_grid:
 def mutual_loss(gv_fg: torch.Tensor, lv_fg: torch.Tensor, coverage: torch.Tensor,
                 lv_teaches: bool, gv_teaches: bool) -> torch.Tensor:
     """AML (Eq. 4): cross-entropy of each student's foreground logit against the teacher's
-    detached hard foreground mask, over covered feature cells. Inputs (B, 1, hb, wb)."""
+    detached hard foreground mask, over covered feature cells. Inputs (B, 1, hb, wb).
+    """
     loss = gv_fg.new_zeros(())
     if lv_teaches:
         loss = loss + masked_bce(gv_fg, (lv_fg.detach() > 0).to(gv_fg.dtype), coverage > 0)

@@ -336,7 +336,8 @@ class WeightsFile:
 
     def _read_tensors(self, expected: dict) -> dict:
         """Every tensor of the file, after its header matched ``expected`` (names, shapes, dtypes:
-        nothing is read for a file that does not fit), each checked for non-finite values."""
+        nothing is read for a file that does not fit), each checked for non-finite values.
+        """
         path = self.path
         try:
             with safe_open(str(path), framework="pt") as f:

@@ -19,8 +19,8 @@ car is, which is what vehicle / pedestrian layers need.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Iterator
 
 import numpy as np
 
@@ -153,7 +153,8 @@ class DriveRenderer:
 
     def _seen(self, renders, boxes: Boxes, pts: np.ndarray, own: np.ndarray) -> np.ndarray:
         """``(N,)`` bool: ego-frame points ``pts`` seen by a camera, not hidden by a box of an
-        object other than ``own``."""
+        object other than ``own``.
+        """
         vis = np.zeros(len(pts), bool)
         for cam, out in zip(self.cams, renders):
             cam_from_ego = invert_transform(cam.ego_from_cam)

@@ -120,7 +120,8 @@ def pedestrian_parts(rng: np.random.Generator) -> list[Part]:
 
 def obstacle_parts(rng: np.random.Generator, what: str) -> list[Part]:
     """Street furniture on the sidewalk: ``"light"`` (pole + lamp arm, arm along +x), ``"cone"``,
-    ``"bin"``, ``"bollard"``."""
+    ``"bin"``, ``"bollard"``.
+    """
     O = Label.OBSTACLE
     if what == "light":
         h = rng.uniform(4.5, 7.0)

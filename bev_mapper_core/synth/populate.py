@@ -14,7 +14,7 @@ from ..classes import Label
 from ..display import EGO_CENTER_X_M, EGO_LENGTH_M, EGO_WIDTH_M
 from .objects import FACADE, Boxes, car_parts, obb_overlap, obstacle_parts, pedestrian_parts
 from .raster import GroundRaster
-from .roads import RoadNetwork, Road
+from .roads import Road, RoadNetwork
 from .trajectory import PathMotion
 
 CAR_COLORS = np.array([(235, 235, 235), (25, 25, 28), (170, 172, 176), (100, 102, 108),
@@ -191,7 +191,8 @@ def _activate(poses: np.ndarray, ego: np.ndarray, times: np.ndarray, t0: float, 
               far: float):
     """Poses with NaN outside the frames of times ``[t0, t1]``, the window shrunk so that the
     object appears and vanishes only farther than ``far`` from the ego (except at the first
-    and last frame of the drive). None if nothing is left."""
+    and last frame of the drive). None if nothing is left.
+    """
     T = len(poses)
     first = int(np.searchsorted(times, t0))
     last = int(np.searchsorted(times, t1, side="right")) - 1
@@ -247,7 +248,8 @@ def add_moving_cars(net: RoadNetwork, cat: Catalog, rng, density: float, times: 
 def add_pedestrians(net: RoadNetwork, cat: Catalog, rng, density: float, times: np.ndarray,
                     ego: np.ndarray, vehicles: list, tracks: dict, far: float) -> None:
     """Pedestrians walking to and fro on sidewalks, and some crossing at zebra crossings: they
-    show up at the curb, wait, cross when no vehicle is in the way, wait and go."""
+    show up at the curb, wait, cross when no vehicle is in the way, wait and go.
+    """
     duration = float(times[-1])
     for r in net.roads:
         lo, hi = 1.5, r.length - 1.5

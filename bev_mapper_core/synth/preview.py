@@ -1,6 +1,6 @@
 """Write a PNG mosaic of a synthetic frame: camera RGB + label images and the GT BEV.
 
-    python -m bev_mapper_core.synth.preview --rig surround6 --seed 0 --frame 10 --out /tmp/x.png
+python -m bev_mapper_core.synth.preview --rig surround6 --seed 0 --frame 10 --out /tmp/x.png
 """
 
 from __future__ import annotations
@@ -21,7 +21,8 @@ from .world import build_world
 
 def mosaic(frame: SynthFrame, grid: BevGrid, per_row: int = 3) -> np.ndarray:
     """RGB mosaic ``(H, W, 3)`` uint8: per camera its RGB above its labels; the GT BEV (forward
-    up, unseen cells darkened) on the right."""
+    up, unseen cells darkened) on the right.
+    """
     tiles = []
     for name, cam in frame.cameras.items():
         tile = np.concatenate([cam.rgb, colorize_labels(cam.labels)], axis=0).copy()

@@ -321,7 +321,8 @@ class RoadNetwork:
 
     def intersection_caps(self, pts: np.ndarray, rng, lo: float, hi: float) -> np.ndarray:
         """Per point of a route ``(N, 2)``: a speed cap drawn in ``[lo, hi]`` per intersection
-        (degree >= 3) within 6 m of its area, ``inf`` elsewhere."""
+        (degree >= 3) within 6 m of its area, ``inf`` elsewhere.
+        """
         cap = np.full(len(pts), np.inf)
         for node in self.nodes:
             if node.degree < 3:

@@ -79,7 +79,8 @@ class World:
 
     def boxes_at(self, k: int, radius: float | None = None) -> Boxes:
         """World-frame boxes of frame ``k``; with ``radius``, only those reaching within
-        ``radius`` m of the ego."""
+        ``radius`` m of the ego.
+        """
         pose = self.object_poses(k)
         p = self.parts.subset(np.isfinite(pose[self.parts.obj, 0]))  # present objects only
         op = pose[p.obj]  # (N_parts, 3)

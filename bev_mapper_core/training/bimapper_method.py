@@ -9,8 +9,8 @@ the asynchronous mutual-learning schedule (see :mod:`bev_mapper_core.models.loss
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 import torch
@@ -94,7 +94,8 @@ def class_pos_weight(frames: FrameSet, max_weight: float = 10.0) -> tuple[float,
 
 class BiMapperMethod(TrainMethod):
     """Bi-Mapper (Li et al., RA-L 2023) trained as in the paper, plus the documented deviations
-    (``pos_weight``, ``ipm_skip``)."""
+    (``pos_weight``, ``ipm_skip``).
+    """
 
     name = "bimapper"
     model_config_type = BiMapperConfig

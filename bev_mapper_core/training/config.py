@@ -36,7 +36,8 @@ MODEL_ALIASES = {"input": "input_kind"}
 
 def class_set(name_or_list, rig: str) -> tuple[str, ...]:
     """``auto`` (Cam2BEV's road / vehicle / static for ``cam2bev4``, else the standard set),
-    ``standard``, ``cam2bev``, or a comma-separated list / sequence of class names."""
+    ``standard``, ``cam2bev``, or a comma-separated list / sequence of class names.
+    """
     if isinstance(name_or_list, str):
         if name_or_list == AUTO_CLASSES:
             return CAM2BEV_CLASS_NAMES if rig == "cam2bev4" else BEV_CLASS_NAMES
@@ -281,7 +282,8 @@ class TrainConfig:
 
     def resume_compatible(self, other: "TrainConfig") -> list[str]:
         """Fields (``model.streams`` for nested ones) that differ from ``other`` and would make
-        resuming meaningless."""
+        resuming meaningless.
+        """
         a, b = self.to_dict(), other.to_dict()
         diff = []
         for k, v in a.items():

@@ -32,9 +32,9 @@ import hashlib
 import json
 import os
 import zipfile
+from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Iterator, Sequence
 
 import numpy as np
 
@@ -160,7 +160,8 @@ def load_or_render(rig: Rig, grid: BevGrid, spec: DriveSpec, seed: int,
 
 def resize_labels(labels: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """``(..., H, W)`` uint8 ids -> ``(..., h, w)`` with exactly :meth:`BiMapper.preprocess`'s
-    resize (``F.interpolate(mode="nearest-exact")``); unknown ids become 0 as there."""
+    resize (``F.interpolate(mode="nearest-exact")``); unknown ids become 0 as there.
+    """
     import torch
     from torch.nn import functional as F
 

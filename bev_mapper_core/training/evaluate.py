@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Callable, Sequence
 
 import numpy as np
 
@@ -68,7 +68,8 @@ def score_frameset(predict: Callable[[dict], tuple[np.ndarray, np.ndarray]], fra
 def evaluate_mapper(mapper, frames: FrameSet, grid: BevGrid, scope: str = "visible",
                     progress: bool = False) -> dict:
     """:func:`score_frameset` of a :class:`~bev_mapper_core.mapper.Mapper` over full-resolution
-    ``frames``, one frame at a time through ``mapper.map`` (as the node and replay call it)."""
+    ``frames``, one frame at a time through ``mapper.map`` (as the node and replay call it).
+    """
     names = frames.camera_names
 
     def predict(batch: dict):  # images (1, N, H, W) -> (1, C, H, W), (1, H, W)

@@ -81,8 +81,9 @@ from __future__ import annotations
 
 import importlib
 from abc import ABC, abstractmethod
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Callable, ClassVar, Iterable
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
@@ -201,7 +202,8 @@ class TrainMethod(ABC):
     @abstractmethod
     def predict(self, batch: dict) -> tuple[np.ndarray, np.ndarray]:
         """``(probs (B, K, H, W) float, known (B, H, W) bool)`` numpy for a batch of held-out
-        frames (called in eval mode, without gradients)."""
+        frames (called in eval mode, without gradients).
+        """
 
     # ------------------------------------------------------------------ saving
     @abstractmethod
@@ -230,7 +232,8 @@ _REGISTRY: dict[str, str | type[TrainMethod]] = {
 
 def register_train_method(name: str, target: str | type[TrainMethod]) -> None:
     """Register a training plug-in under ``name``: a ``"module:Class"`` string (imported on first
-    use) or the class itself."""
+    use) or the class itself.
+    """
     _REGISTRY[name] = target
 
 

@@ -24,9 +24,9 @@ from __future__ import annotations
 import json
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import torch
 from safetensors import safe_open
@@ -34,9 +34,9 @@ from safetensors.torch import save_file
 
 from ..errors import BevMapperError, ConfigError
 from ..grid import BevGrid
-from .evaluate import score_frameset
 from .config import TrainConfig
 from .data import FrameSet
+from .evaluate import score_frameset
 from .method import TrainMethod, method_class
 from .sources import DataSource, InMemorySource, SynthSource
 
@@ -88,7 +88,8 @@ def load_optimizer(opt: torch.optim.Optimizer, path: str | os.PathLike) -> None:
 def validate(method: TrainMethod, frames: FrameSet, grid: BevGrid, batch: int = 4,
              limit: int | None = None) -> dict:
     """Metrics of ``method.predict`` over ``frames`` (in order, first ``limit``), scored by the
-    one loop of ``bev-train eval`` (:func:`~.evaluate.score_frameset`, visible cells)."""
+    one loop of ``bev-train eval`` (:func:`~.evaluate.score_frameset`, visible cells).
+    """
     model = method.model
     was = model.training
     model.eval()
