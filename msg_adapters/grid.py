@@ -23,8 +23,10 @@ from .factory import MessageFactory, make_header, make_point, make_quaternion
 
 
 def _f32(value: float) -> float:
-    """The float64 that prints like float32 ``value`` (undoes float32 storage of 0.15 etc.)."""
-    return float(str(np.float32(value)))
+    """The float64 that prints like float32 ``value`` (undoes float32 storage of 0.15 etc.);
+    beyond float32's range, inf (refused by the grid checks)."""
+    with np.errstate(over="ignore"):
+        return float(str(np.float32(value)))
 
 
 def occupancy_data(grid: BevGrid, probs: np.ndarray, known: np.ndarray | None = None) -> np.ndarray:

@@ -67,7 +67,8 @@ def quaternion_to_rotation(q: Any, what: str = "quaternion") -> np.ndarray:
             (within :data:`QUATERNION_TOLERANCE`).
     """
     xyzw = _floats(q, "xyzw", what, finite=False)
-    norm = float(np.linalg.norm(xyzw)) if np.all(np.isfinite(xyzw)) else float("nan")
+    with np.errstate(over="ignore"):  # 1e300 components: inf, refused below
+        norm = float(np.linalg.norm(xyzw)) if np.all(np.isfinite(xyzw)) else float("nan")
     if not np.isfinite(norm) or abs(norm - 1.0) > QUATERNION_TOLERANCE:
         raise TransformError(f"{what} (x, y, z, w) = {tuple(xyzw.tolist())} is not a unit quaternion")
     try:
