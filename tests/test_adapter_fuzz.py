@@ -554,8 +554,10 @@ def run_fuzz(name: str, make_case, call, allowed: type[BevMapperError], check_va
                 counts["valid"] += 1
                 try:
                     check_valid(result, msg, kwargs)
-                except AssertionError as exc:
-                    failures.append(f"case {i}: invalid result: {exc}")
+                except Exception as exc:  # noqa: BLE001 - an unusable result, e.g. image_size raising
+                    counts["valid"] -= 1
+                    counts[f"UNUSABLE result ({type(exc).__name__})"] += 1
+                    failures.append(f"case {i}: unusable result: {type(exc).__name__}: {exc}")
             dt = time.perf_counter() - t0
             slowest = max(slowest, dt)
             used = tracemalloc.get_traced_memory()[1] - base
