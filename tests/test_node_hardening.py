@@ -50,7 +50,6 @@ BAD_CAM = "back"
 #: The node's peak memory may grow this much while it is fed the bad inputs; decoding the
 #: 16000 x 16000 bomb alone would take 768 MB (and as much again for its colour conversion).
 MAX_PEAK_GROWTH_MB = 200
-MIB = 2**20
 
 
 def _domain():
