@@ -25,6 +25,8 @@ from .errors import GridError
 
 #: OccupancyGrid value for "unknown".
 OCC_UNKNOWN = -1
+#: Largest OccupancyGrid value: known cells hold 0..OCC_MAX, the probability in percent.
+OCC_MAX = 100
 
 #: Two grids are the same grid when each bound and the resolution agree within this many metres
 #: (see :meth:`BevGrid.isclose`). 1 um is far below any cell size, and far above the float64
@@ -202,12 +204,36 @@ class BevGrid:
         return occ.ravel()
 
     def from_occupancy(self, data, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-        """Inverse of :meth:`to_occupancy`: ``(probs float32 (H, W), known bool (H, W))``."""
+        """Inverse of :meth:`to_occupancy`: ``(probs float32 (H, W), known bool (H, W))``.
+
+        Args:
+            data: ``height * width`` integers (any integer dtype), row-major.
+            width, height: the cell counts the data claims.
+
+        Raises:
+            GridError: the size differs from the grid's, the data is not integers, or cells hold
+                values outside ``OCC_UNKNOWN..OCC_MAX`` (-1..100); the error gives their count.
+                Such values are refused rather than clipped: 127 is no probability, and a layer
+                that holds it was not written as an OccupancyGrid.
+        """
         if (int(width), int(height)) != (self.width, self.height):
             raise GridError(
                 f"OccupancyGrid is {width}x{height} cells, grid expects {self.width}x{self.height}"
             )
-        arr = np.asarray(data, dtype=np.int8).reshape(self.shape)  # (H*W,) -> (H, W)
+        arr = np.asarray(data)
+        if arr.dtype.kind not in "iu":
+            raise GridError(f"OccupancyGrid data must be integers, got dtype {arr.dtype}")
+        if arr.size != self.width * self.height:
+            raise GridError(f"OccupancyGrid data has {arr.size} cells, grid expects {self.width}x{self.height}")
+        arr = arr.reshape(self.shape)  # (H*W,) -> (H, W)
+        bad = (arr < OCC_UNKNOWN) | (arr > OCC_MAX)
+        n_bad = int(np.count_nonzero(bad))
+        if n_bad:
+            first = int(np.flatnonzero(bad)[0])
+            raise GridError(
+                f"{n_bad} OccupancyGrid cells hold values outside {OCC_UNKNOWN}..{OCC_MAX} "
+                f"(first: {int(arr.flat[first])} at cell {first})"
+            )
         known = arr >= 0
         probs = np.where(known, arr.astype(np.float32) / 100.0, 0.0).astype(np.float32)
         return probs, known

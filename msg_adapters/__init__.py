@@ -13,6 +13,7 @@ from .errors import (
     EncodingError,
     GridMessageError,
     MessageFactoryError,
+    StampError,
     SyncConfigError,
     TransformError,
 )
@@ -30,6 +31,7 @@ from .grid import check_grid_info, grid_from_info, make_occupancy_grid, occupanc
 from .image import (
     ENCODINGS,
     array_to_image_fields,
+    check_image_size,
     compressed_to_array,
     image_to_array,
     image_to_labels,
@@ -37,6 +39,8 @@ from .image import (
     make_compressed_image,
     make_image,
 )
+from .image_header import CompressedHeader, compressed_image_header
+from .limits import DEFAULT_LIMITS, AdapterLimits
 from .sync import FrameSynchronizer, SyncConfig, SyncedSet, SyncStats
 from .tf import (
     OdometryState,
@@ -52,9 +56,12 @@ from .tf import (
 )
 
 __all__ = [
+    "DEFAULT_LIMITS",
     "ENCODINGS",
     "AdapterError",
+    "AdapterLimits",
     "CalibrationMessageError",
+    "CompressedHeader",
     "EncodingError",
     "FrameSynchronizer",
     "GridMessageError",
@@ -63,6 +70,7 @@ __all__ = [
     "OdometryState",
     "RclpyFactory",
     "RosbagsFactory",
+    "StampError",
     "StampedTransform",
     "SyncConfig",
     "SyncConfigError",
@@ -74,6 +82,8 @@ __all__ = [
     "camera_info_fields",
     "camera_info_to_model",
     "check_grid_info",
+    "check_image_size",
+    "compressed_image_header",
     "compressed_to_array",
     "ego_from_camera",
     "grid_from_info",

@@ -1,9 +1,10 @@
 """``sensor_msgs/CameraInfo`` <-> :class:`bev_mapper_core.camera.CameraModel`.
 
 Reading takes ``K`` (``msg.k``, 9 values), ``D`` (``msg.d``), ``distortion_model``, the
-full-resolution ``width``/``height``, ``binning_x/y`` and ``roi``. ``R`` and ``P`` are ignored
-when reading (the mapper works on raw, distorted images); when writing, ``R`` is the identity
-and ``P = [K | 0]``.
+full-resolution ``width``/``height``, ``binning_x/y`` and ``roi``, and checks them against the
+plausibility bounds of :mod:`msg_adapters.limits`. ``R`` and ``P`` are neither read nor
+validated (the mapper works on raw, distorted images, so they are never used); when writing,
+``R`` is the identity and ``P = [K | 0]``.
 """
 
 from __future__ import annotations
@@ -15,66 +16,127 @@ import numpy as np
 from bev_mapper_core.camera import DISTORTION_MODELS, CameraModel, Roi
 from bev_mapper_core.errors import CalibrationError
 
+from ._fields import short_repr, as_floats, as_int, as_str, field
 from .errors import CalibrationMessageError
 from .factory import MessageFactory, make_header
+from .limits import DEFAULT_LIMITS, AdapterLimits
 
 
-def _floats(values: Any, what: str) -> np.ndarray:
-    try:
-        return np.asarray(values, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError) as exc:
-        raise CalibrationMessageError(f"CameraInfo {what} is not numeric: {exc}") from None
-
-
-def camera_info_to_model(msg: Any) -> CameraModel:
+def camera_info_to_model(msg: Any, *, limits: AdapterLimits = DEFAULT_LIMITS) -> CameraModel:
     """Convert a ``sensor_msgs/CameraInfo`` (rclpy or rosbags) into a :class:`CameraModel`.
 
     An empty ``distortion_model`` with no (or all-zero) coefficients is read as an undistorted
-    ``plumb_bob`` camera; an empty ``d`` means zero distortion for any model.
+    ``plumb_bob`` camera; an empty ``d`` means zero distortion for any model. A ROI of all
+    zeros means the full image (as ROS ``image_geometry``); any other ROI must be a non-empty
+    region inside the sensor. Binning 0 means 1.
+
+    Every model returned is usable: its delivered image (:attr:`CameraModel.image_size`, after
+    ROI and binning) is at least 1x1 px and at most ``limits.max_image_pixels``, and its
+    intrinsics are within the plausibility bounds of ``limits`` (:class:`AdapterLimits`:
+    focal lengths, principal point, skew, distortion magnitudes, sizes).
+
+    Args:
+        msg: the CameraInfo.
+        limits: plausibility bounds (default :data:`DEFAULT_LIMITS`).
 
     Raises:
-        CalibrationMessageError: uncalibrated (``K`` all zero), non-finite values, ``K`` not of
-            9 values, unsupported distortion model, ``D`` of the wrong length for the model, or
-            any inconsistency :class:`CameraModel` rejects (size, ROI, ...).
+        CalibrationMessageError: a field is missing or of the wrong type; uncalibrated (``K``
+            all zero); non-finite values; ``K`` not of 9 values; unsupported distortion model;
+            ``D`` of the wrong length for the model; a value outside ``limits``; binning or ROI
+            giving an empty image or a ROI outside the sensor; or any inconsistency
+            :class:`CameraModel` rejects.
     """
+    err = CalibrationMessageError
     frame = getattr(getattr(msg, "header", None), "frame_id", "?")
-    where = f"CameraInfo of frame {frame!r}"
-    K = _floats(msg.k, "K")
+    where = f"CameraInfo of frame {short_repr(frame)}"
+    max_side = limits.max_image_side
+
+    K = as_floats(field(msg, "k", err, where), "K", err, where)
     if K.size != 9:
-        raise CalibrationMessageError(f"{where}: K must have 9 values, got {K.size}")
+        raise err(f"{where}: K must have 9 values, got {K.size}")
     if not np.all(np.isfinite(K)):
-        raise CalibrationMessageError(f"{where}: K has non-finite values {K.tolist()}")
+        raise err(f"{where}: K has non-finite values {K.tolist()}")
     if not np.any(K):
-        raise CalibrationMessageError(f"{where}: K is all zero, the camera is uncalibrated")
-    D = _floats(msg.d, "D")
+        raise err(f"{where}: K is all zero, the camera is uncalibrated")
+    W = as_int(field(msg, "width", err, where), "width", err, where)
+    H = as_int(field(msg, "height", err, where), "height", err, where)
+    if not (1 <= W <= max_side and 1 <= H <= max_side):
+        raise err(f"{where}: image size {W}x{H} is outside 1..{max_side} px per side")
+    fx, skew, cx, _, fy, cy = K[:6].tolist()
+    if fx <= 0 or fy <= 0:
+        raise err(f"{where}: focal lengths must be > 0 (fx={fx}, fy={fy}): camera is uncalibrated")
+    lo, hi = limits.min_focal_per_size, limits.max_focal_per_size
+    for name, f, size, side in (("fx", fx, W, "width"), ("fy", fy, H, "height")):
+        if not lo * size <= f <= hi * size:
+            raise err(
+                f"{where}: {name} = {f:g} px is implausible for a {side} of {size} px "
+                f"(allowed {lo:g}..{hi:g} x {side} = {lo * size:g}..{hi * size:g} px)"
+            )
+    m = limits.principal_point_margin
+    for name, c, size, side in (("cx", cx, W, "width"), ("cy", cy, H, "height")):
+        if not -m * size <= c <= (1 + m) * size:
+            raise err(
+                f"{where}: principal point {name} = {c:g} px lies too far off the {size} px "
+                f"sensor {side} (allowed {-m * size:g}..{(1 + m) * size:g} px)"
+            )
+    if abs(skew) > limits.max_skew_per_focal * fx:
+        raise err(f"{where}: skew K[0][1] = {skew:g} exceeds {limits.max_skew_per_focal:g} x fx")
+
+    D = as_floats(field(msg, "d", err, where), "D", err, where)
     if not np.all(np.isfinite(D)):
-        raise CalibrationMessageError(f"{where}: D has non-finite values {D.tolist()}")
-    model = str(msg.distortion_model)
+        raise err(f"{where}: D has non-finite values {D.tolist()}")
+    if D.size and np.max(np.abs(D)) > limits.max_abs_distortion:
+        raise err(
+            f"{where}: distortion coefficient {np.max(np.abs(D)):g} exceeds the plausible "
+            f"magnitude {limits.max_abs_distortion:g}"
+        )
+    model = as_str(field(msg, "distortion_model", err, where), "distortion_model", err, where)
     if model == "" and not np.any(D):
         model = "plumb_bob"
     if model not in DISTORTION_MODELS:
-        raise CalibrationMessageError(
-            f"{where}: unsupported distortion model {model!r}; supported: {sorted(DISTORTION_MODELS)}"
+        raise err(
+            f"{where}: unsupported distortion model {short_repr(model)}; supported: {sorted(DISTORTION_MODELS)}"
         )
     n = DISTORTION_MODELS[model]
     if D.size not in (0, n):
-        raise CalibrationMessageError(
-            f"{where}: distortion model {model!r} takes {n} coefficients, got {D.size}"
+        raise err(f"{where}: distortion model {model!r} takes {n} coefficients, got {D.size}")
+
+    bx = as_int(field(msg, "binning_x", err, where), "binning_x", err, where) or 1
+    by = as_int(field(msg, "binning_y", err, where), "binning_y", err, where) or 1
+    roi = Roi(*(as_int(field(msg, f"roi.{k}", err, where), f"roi.{k}", err, where)
+                for k in ("x_offset", "y_offset", "width", "height")))
+    if roi != Roi():
+        if roi.width == 0 or roi.height == 0:
+            raise err(f"{where}: ROI {roi} is empty (only an all-zero ROI means the full image)")
+        if roi.x_offset + roi.width > W or roi.y_offset + roi.height > H:
+            raise err(f"{where}: ROI {roi} lies outside the {W}x{H} sensor")
+        rw, rh = roi.width, roi.height
+    else:
+        rw, rh = W, H
+    ew, eh = rw // bx, rh // by  # the delivered image, as CameraModel.effective computes it
+    if ew < 1 or eh < 1:
+        raise err(
+            f"{where}: binning {bx}x{by} of the {rw}x{rh} px {'ROI' if roi != Roi() else 'image'} "
+            f"leaves an empty {ew}x{eh} image"
         )
-    roi = msg.roi
+    if ew * eh > limits.max_image_pixels:
+        raise err(f"{where}: delivered image {ew}x{eh} exceeds {limits.max_image_pixels} pixels")
     try:
-        return CameraModel(
+        cam = CameraModel(
             K=K.reshape(3, 3),  # row-major 9 -> 3x3
             D=tuple(D.tolist()),
             distortion_model=model,
-            width=int(msg.width),
-            height=int(msg.height),
-            binning_x=int(msg.binning_x),
-            binning_y=int(msg.binning_y),
-            roi=Roi(int(roi.x_offset), int(roi.y_offset), int(roi.width), int(roi.height)),
+            width=W,
+            height=H,
+            binning_x=bx,
+            binning_y=by,
+            roi=roi,
         )
+        if cam.image_size != (ew, eh):  # the core's own reading of binning and ROI
+            raise CalibrationError(f"delivered image is {cam.image_size}, expected {(ew, eh)}")
     except CalibrationError as exc:
-        raise CalibrationMessageError(f"{where}: {exc}") from None
+        raise err(f"{where}: {exc}") from None
+    return cam
 
 
 def camera_info_fields(model: CameraModel) -> dict[str, Any]:

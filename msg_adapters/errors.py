@@ -30,6 +30,10 @@ class GridMessageError(AdapterError):
     """A ``nav_msgs/OccupancyGrid`` does not match the expected BEV grid."""
 
 
+class StampError(AdapterError):
+    """A ``builtin_interfaces/Time`` stamp is missing, not integers, or outside its field ranges."""
+
+
 class MessageFactoryError(AdapterError):
     """A message type is unknown to the factory (package not installed, typo in the name)."""
 

@@ -22,9 +22,13 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from .errors import MessageFactoryError
+from ._fields import as_int, field
+from .errors import MessageFactoryError, StampError
 
 _NS_PER_S = 1_000_000_000
+#: ``builtin_interfaces/Time`` field ranges: ``sec`` is an int32, ``nanosec`` a uint32.
+_SEC_RANGE = (-(2**31), 2**31 - 1)
+_NANOSEC_RANGE = (0, 2**32 - 1)
 
 
 # ------------------------------------------------------------------------ time
@@ -36,13 +40,25 @@ def ns_to_sec_nanosec(stamp_ns: int) -> tuple[int, int]:
 
 
 def stamp_to_ns(stamp: Any) -> int:
-    """Integer nanoseconds of a ``builtin_interfaces/Time`` (anything with ``sec``/``nanosec``)."""
-    return int(stamp.sec) * _NS_PER_S + int(stamp.nanosec)
+    """Integer nanoseconds of a ``builtin_interfaces/Time`` (anything with ``sec``/``nanosec``).
+
+    Raises:
+        StampError: a field is missing, not an integer, or outside its range (``sec`` int32,
+            ``nanosec`` uint32).
+    """
+    sec = as_int(field(stamp, "sec", StampError, "stamp"), "sec", StampError, "stamp", *_SEC_RANGE)
+    nanosec = as_int(field(stamp, "nanosec", StampError, "stamp"), "nanosec", StampError, "stamp",
+                     *_NANOSEC_RANGE)
+    return sec * _NS_PER_S + nanosec
 
 
 def header_stamp_ns(msg: Any) -> int:
-    """Integer nanoseconds of ``msg.header.stamp``."""
-    return stamp_to_ns(msg.header.stamp)
+    """Integer nanoseconds of ``msg.header.stamp``.
+
+    Raises:
+        StampError: no ``header.stamp``, or a stamp :func:`stamp_to_ns` refuses.
+    """
+    return stamp_to_ns(field(msg, "header.stamp", StampError, "message"))
 
 
 def normalize_typename(typename: str) -> tuple[str, str]:

@@ -17,13 +17,16 @@ import numpy as np
 from bev_mapper_core.errors import GridError
 from bev_mapper_core.grid import GRID_TOL_M, BevGrid
 
+from ._fields import as_float, as_int, byte_buffer, field
 from .errors import GridMessageError
 from .factory import MessageFactory, make_header, make_point, make_quaternion
 
 
 def _f32(value: float) -> float:
-    """The float64 that prints like float32 ``value`` (undoes float32 storage of 0.15 etc.)."""
-    return float(str(np.float32(value)))
+    """The float64 that prints like float32 ``value`` (undoes float32 storage of 0.15 etc.);
+    beyond float32's range, inf (refused by the grid checks)."""
+    with np.errstate(over="ignore"):
+        return float(str(np.float32(value)))
 
 
 def occupancy_data(grid: BevGrid, probs: np.ndarray, known: np.ndarray | None = None) -> np.ndarray:
@@ -64,8 +67,18 @@ def make_occupancy_grid(
     )
 
 
+def _info_float(info: Any, path: str) -> float:
+    return as_float(field(info, path, GridMessageError, "OccupancyGrid info"), f"info.{path}",
+                    GridMessageError, "OccupancyGrid")
+
+
+def _info_size(info: Any) -> tuple[int, int]:
+    return tuple(as_int(field(info, k, GridMessageError, "OccupancyGrid info"), f"info.{k}",
+                        GridMessageError, "OccupancyGrid") for k in ("width", "height"))
+
+
 def _check_orientation(q: Any) -> None:
-    xyzw = np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
+    xyzw = np.array([_info_float(q, k) for k in "xyzw"], dtype=np.float64)
     if not (np.allclose(xyzw[:3], 0.0, atol=1e-6) and abs(abs(xyzw[3]) - 1.0) < 1e-6):
         raise GridMessageError(
             f"OccupancyGrid origin is rotated (quaternion {xyzw.tolist()}); only axis-aligned "
@@ -75,10 +88,10 @@ def _check_orientation(q: Any) -> None:
 
 def grid_from_info(info: Any) -> BevGrid:
     """Reconstruct the :class:`BevGrid` of an OccupancyGrid's ``info`` (``MapMetaData``)."""
-    _check_orientation(info.origin.orientation)
-    res = _f32(info.resolution)
-    w, h = int(info.width), int(info.height)
-    ox, oy = float(info.origin.position.x), float(info.origin.position.y)
+    _check_orientation(field(info, "origin.orientation", GridMessageError, "OccupancyGrid info"))
+    res = _f32(_info_float(info, "resolution"))
+    w, h = _info_size(info)
+    ox, oy = _info_float(info, "origin.position.x"), _info_float(info, "origin.position.y")
     if w <= 0 or h <= 0:
         raise GridMessageError(f"OccupancyGrid has empty size {w}x{h}")
     try:
@@ -94,21 +107,21 @@ def check_grid_info(info: Any, grid: BevGrid) -> None:
     """Raise :class:`GridMessageError` unless ``info`` describes ``grid``: same cell counts,
     resolution and origin within the grid tolerance :data:`~bev_mapper_core.grid.GRID_TOL_M`
     (as :meth:`BevGrid.isclose`)."""
-    if abs(_f32(info.resolution) - grid.resolution) > GRID_TOL_M:
+    res = _f32(_info_float(info, "resolution"))
+    if abs(res - grid.resolution) > GRID_TOL_M:
         raise GridMessageError(
-            f"OccupancyGrid resolution {_f32(info.resolution)} m differs from the grid's "
-            f"{grid.resolution} m"
+            f"OccupancyGrid resolution {res} m differs from the grid's {grid.resolution} m"
         )
-    if (int(info.width), int(info.height)) != (grid.width, grid.height):
+    w, h = _info_size(info)
+    if (w, h) != (grid.width, grid.height):
         raise GridMessageError(
-            f"OccupancyGrid is {info.width}x{info.height} cells, grid expects "
-            f"{grid.width}x{grid.height}"
+            f"OccupancyGrid is {w}x{h} cells, grid expects {grid.width}x{grid.height}"
         )
-    ox, oy = float(info.origin.position.x), float(info.origin.position.y)
+    ox, oy = _info_float(info, "origin.position.x"), _info_float(info, "origin.position.y")
     gx, gy = grid.origin_xy
     if abs(ox - gx) > GRID_TOL_M or abs(oy - gy) > GRID_TOL_M:
         raise GridMessageError(f"OccupancyGrid origin ({ox}, {oy}) differs from the grid's ({gx}, {gy})")
-    _check_orientation(info.origin.orientation)
+    _check_orientation(field(info, "origin.orientation", GridMessageError, "OccupancyGrid info"))
 
 
 def occupancy_grid_to_layer(msg: Any, grid: BevGrid | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -118,22 +131,48 @@ def occupancy_grid_to_layer(msg: Any, grid: BevGrid | None = None) -> tuple[np.n
         msg: the OccupancyGrid (rclpy or rosbags).
         grid: expected grid; ``None`` reconstructs it from ``msg.info``.
 
+    Values must be -1 (unknown) or 0..100: cells outside that range are refused, not clipped
+    (see :meth:`BevGrid.from_occupancy`); the error says how many there are.
+
     Raises:
-        GridMessageError: info does not match ``grid`` or the data length is wrong.
+        GridMessageError: a field is missing or of the wrong type, info does not match ``grid``,
+            the data length is wrong, or cells hold values outside -1..100 (with their count).
     """
+    info = field(msg, "info", GridMessageError, "OccupancyGrid")
     if grid is None:
-        grid = grid_from_info(msg.info)
+        grid = grid_from_info(info)
     else:
-        check_grid_info(msg.info, grid)
-    data = msg.data
-    if isinstance(data, np.ndarray):
-        arr = data.reshape(-1).view(np.int8) if data.dtype.itemsize == 1 else data.astype(np.int8)
-    elif hasattr(data, "buffer_info"):  # array.array('b')
-        arr = np.frombuffer(data, dtype=np.int8)
-    else:
-        arr = np.asarray(data, dtype=np.int8).reshape(-1)
+        check_grid_info(info, grid)
+    arr = _cells(field(msg, "data", GridMessageError, "OccupancyGrid"))
     if arr.size != grid.width * grid.height:
         raise GridMessageError(
             f"OccupancyGrid data has {arr.size} cells, expected {grid.width}x{grid.height}"
         )
-    return grid.from_occupancy(arr, grid.width, grid.height)
+    try:
+        return grid.from_occupancy(arr, grid.width, grid.height)
+    except GridError as exc:
+        raise GridMessageError(str(exc)) from None
+
+
+def _cells(data: Any) -> np.ndarray:
+    """The ``int8[]`` data of an OccupancyGrid as a flat integer array (no wrap-around casts).
+
+    One-byte buffers (int8 or uint8 arrays, ``array.array('b')``, bytes) are read as int8, as
+    on the wire; wider integer arrays and lists keep their values, so 200 stays 200 (and is
+    refused) instead of wrapping to -56.
+    """
+    if isinstance(data, np.ndarray) and data.dtype.kind in "iu" and data.dtype.itemsize > 1:
+        return data.reshape(-1)
+    if isinstance(data, (list, tuple)):
+        try:
+            arr = np.asarray(data)
+        except (TypeError, ValueError) as exc:
+            raise GridMessageError(f"OccupancyGrid data is not a sequence of integers: {exc}") from None
+        if arr.size and arr.dtype.kind not in "iu":
+            raise GridMessageError(f"OccupancyGrid data must hold integers, got dtype {arr.dtype}")
+        return arr.astype(np.int64, copy=False).reshape(-1)
+    if isinstance(data, np.ndarray) and data.dtype.kind not in "iu":
+        raise GridMessageError(f"OccupancyGrid data must hold integers, got dtype {data.dtype}")
+    if hasattr(data, "typecode") and data.itemsize != 1:
+        raise GridMessageError(f"OccupancyGrid data must be int8, got array of {data.typecode!r}")
+    return byte_buffer(data, "data", GridMessageError, "OccupancyGrid").view(np.int8)

@@ -18,10 +18,18 @@ mono16,     ``(H, W)``       uint16 (native order)
 
 ``8UC3``/``8UC4`` (no channel order) and anything else are rejected. ``height``, ``width``,
 ``step`` and the data length are validated *before* any view of the buffer is made.
+
+Sizes are bounded before anything is decoded or copied: by the caller's ``expected_size``
+(``(width, height)``, e.g. the calibrated camera's :attr:`~bev_mapper_core.camera.CameraModel.image_size`)
+when given, and always by :class:`~msg_adapters.limits.AdapterLimits` (``max_image_side``,
+``max_image_pixels``). A ``CompressedImage``'s size is read from its PNG/JPEG header
+(:mod:`msg_adapters.image_header`), so a small message claiming a huge image is refused
+without allocating it. Every defect, including a decoder failure, is an :class:`EncodingError`.
 """
 
 from __future__ import annotations
 
+import operator
 import sys
 from dataclasses import dataclass
 from typing import Any
@@ -29,8 +37,13 @@ from typing import Any
 import cv2
 import numpy as np
 
+from bev_mapper_core.errors import ConfigError
+
+from ._fields import UINT32_MAX, as_int, as_str, byte_buffer, field, short_repr
 from .errors import EncodingError
 from .factory import MessageFactory, make_header
+from .image_header import compressed_image_header
+from .limits import DEFAULT_LIMITS, AdapterLimits
 
 
 @dataclass(frozen=True)
@@ -66,45 +79,84 @@ def _lookup(encoding: str) -> _Enc:
     raise EncodingError(f"unsupported image encoding {encoding!r}; supported: {sorted(ENCODINGS)}")
 
 
-def _byte_buffer(data: Any) -> np.ndarray:
-    """Flat uint8 view of a message's ``data`` (numpy array, array.array, bytes, list)."""
-    if isinstance(data, np.ndarray):
-        if data.dtype == np.uint8:
-            return data.reshape(-1)
-        return np.ascontiguousarray(data).reshape(-1).view(np.uint8)
-    if isinstance(data, (bytes, bytearray, memoryview)) or hasattr(data, "buffer_info"):
-        return np.frombuffer(data, dtype=np.uint8)
-    return np.asarray(data, dtype=np.uint8).reshape(-1)
+def _expected(expected_size: Any) -> tuple[int, int] | None:
+    """``expected_size`` as ``(width, height)`` ints, or None; a malformed one is the caller's bug."""
+    if expected_size is None:
+        return None
+    try:
+        w, h = (operator.index(v) for v in expected_size)
+    except (TypeError, ValueError):
+        raise ConfigError(f"expected_size must be (width, height) integers, got {expected_size!r}") from None
+    if w <= 0 or h <= 0:
+        raise ConfigError(f"expected_size must be positive, got {expected_size!r}")
+    return int(w), int(h)
 
 
-def image_to_array(msg: Any, *, copy: bool = False) -> np.ndarray:
+def check_image_size(width: int, height: int, what: str, expected_size: Any = None,
+                     limits: AdapterLimits = DEFAULT_LIMITS) -> None:
+    """Refuse an image size before decoding: empty, beyond ``limits`` or not ``expected_size``.
+
+    Args:
+        width, height: the size the message claims.
+        what: the message, for error messages (``"image"``, ``"PNG image"``).
+        expected_size: ``(width, height)`` the image must have, or None for any size.
+        limits: ``max_image_side`` and ``max_image_pixels`` bound every image.
+
+    Raises:
+        EncodingError: the size is refused.
+        ConfigError: ``expected_size`` is not a pair of positive integers.
+    """
+    expected = _expected(expected_size)
+    if width <= 0 or height <= 0:
+        raise EncodingError(f"{what} has empty size {width}x{height}")
+    if width > limits.max_image_side or height > limits.max_image_side:
+        raise EncodingError(
+            f"{what} size {width}x{height} exceeds the maximum of {limits.max_image_side} px per side"
+        )
+    if width * height > limits.max_image_pixels:
+        raise EncodingError(
+            f"{what} size {width}x{height} exceeds the maximum of {limits.max_image_pixels} pixels"
+        )
+    if expected is not None and (width, height) != expected:
+        raise EncodingError(f"{what} is {width}x{height}, expected {expected[0]}x{expected[1]}")
+
+
+def image_to_array(msg: Any, *, copy: bool = False, expected_size: Any = None,
+                   limits: AdapterLimits = DEFAULT_LIMITS) -> np.ndarray:
     """Decode a ``sensor_msgs/Image`` (rclpy or rosbags) into an array (see module table).
 
     Args:
         msg: the image message.
         copy: return an array that owns its memory. Without it the result may be a (possibly
             read-only) view of the message buffer.
+        expected_size: ``(width, height)`` the image must have (e.g. the camera model's
+            ``image_size``); None accepts any size within ``limits``.
+        limits: size bounds (default :data:`~msg_adapters.limits.DEFAULT_LIMITS`).
 
     Raises:
-        EncodingError: unsupported/ambiguous encoding, or size fields inconsistent with the data.
+        EncodingError: a field is missing or of the wrong type, unsupported/ambiguous encoding,
+            a size refused by :func:`check_image_size`, or size fields inconsistent with the data.
     """
-    enc = _lookup(str(msg.encoding))
-    h, w, step = int(msg.height), int(msg.width), int(msg.step)
-    if h <= 0 or w <= 0:
-        raise EncodingError(f"image has empty size {w}x{h}")
+    where = "image"
+    enc_name = as_str(field(msg, "encoding", EncodingError, where), "encoding", EncodingError, where)
+    enc = _lookup(enc_name)
+    h, w, step = (as_int(field(msg, k, EncodingError, where), k, EncodingError, where, 0, UINT32_MAX)
+                  for k in ("height", "width", "step"))
+    check_image_size(w, h, where, expected_size, limits)
     row_bytes = w * enc.channels * enc.itemsize
     if step < row_bytes:
         raise EncodingError(
-            f"image step {step} is smaller than one row of {w} px {msg.encoding} ({row_bytes} bytes)"
+            f"image step {step} is smaller than one row of {w} px {enc_name} ({row_bytes} bytes)"
         )
-    buf = _byte_buffer(msg.data)
+    buf = byte_buffer(field(msg, "data", EncodingError, where), "data", EncodingError, where)
     if buf.size != step * h:
         raise EncodingError(
             f"image data has {buf.size} bytes, expected step*height = {step}*{h} = {step * h}"
         )
     rows = buf.reshape(h, step)[:, :row_bytes]  # (H*step,) -> (H, step) -> (H, row_bytes)
     if enc.itemsize == 2:
-        big = bool(msg.is_bigendian)
+        big = bool(as_int(field(msg, "is_bigendian", EncodingError, where), "is_bigendian",
+                          EncodingError, where, 0, 255))
         rows = rows.view(">u2" if big else "<u2")  # (H, row_bytes) -> (H, W)
         if big != _NATIVE_BIG:
             rows = rows.astype(np.uint16)
@@ -124,9 +176,16 @@ def image_to_array(msg: Any, *, copy: bool = False) -> np.ndarray:
     return out
 
 
-def image_to_rgb(msg: Any) -> np.ndarray:
-    """Decode any supported colour or 8-bit mono image to ``(H, W, 3)`` uint8 RGB."""
-    arr = image_to_array(msg)
+def image_to_rgb(msg: Any, expected_size: Any = None, *,
+                 limits: AdapterLimits = DEFAULT_LIMITS) -> np.ndarray:
+    """Decode any supported colour or 8-bit mono image to ``(H, W, 3)`` uint8 RGB.
+
+    ``expected_size`` and ``limits`` as in :func:`image_to_array`.
+
+    Raises:
+        EncodingError: as :func:`image_to_array`, or a 16-bit encoding.
+    """
+    arr = image_to_array(msg, expected_size=expected_size, limits=limits)
     if arr.dtype != np.uint8:
         raise EncodingError(f"cannot show {msg.encoding!r} image as RGB; expected an 8-bit encoding")
     if arr.ndim == 2:
@@ -134,11 +193,20 @@ def image_to_rgb(msg: Any) -> np.ndarray:
     return np.ascontiguousarray(arr[..., :3])
 
 
-def image_to_labels(msg: Any) -> np.ndarray:
-    """Decode a label image (``mono8`` / ``8UC1``) to ``(H, W)`` uint8 label ids."""
-    if str(msg.encoding) not in ("mono8", "8UC1"):
-        raise EncodingError(f"label images must be mono8 or 8UC1, got {msg.encoding!r}")
-    return image_to_array(msg)
+def image_to_labels(msg: Any, expected_size: Any = None, *,
+                    limits: AdapterLimits = DEFAULT_LIMITS) -> np.ndarray:
+    """Decode a label image (``mono8`` / ``8UC1``) to ``(H, W)`` uint8 label ids.
+
+    ``expected_size`` and ``limits`` as in :func:`image_to_array`.
+
+    Raises:
+        EncodingError: as :func:`image_to_array`, or another encoding.
+    """
+    encoding = as_str(field(msg, "encoding", EncodingError, "label image"), "encoding", EncodingError,
+                      "label image")
+    if encoding not in ("mono8", "8UC1"):
+        raise EncodingError(f"label images must be mono8 or 8UC1, got {encoding!r}")
+    return image_to_array(msg, expected_size=expected_size, limits=limits)
 
 
 def array_to_image_fields(
@@ -209,21 +277,52 @@ def make_image(
 
 
 # ------------------------------------------------------------- CompressedImage
-def compressed_to_array(msg: Any) -> np.ndarray:
-    """Decode a ``sensor_msgs/CompressedImage`` (jpeg/png) to RGB ``(H, W, 3)`` or mono ``(H, W)``.
+def compressed_to_array(msg: Any, expected_size: Any = None, *,
+                        limits: AdapterLimits = DEFAULT_LIMITS) -> np.ndarray:
+    """Decode a ``sensor_msgs/CompressedImage`` (jpeg/png) to RGB ``(H, W, 3)``, RGBA
+    ``(H, W, 4)`` (PNG with alpha) or mono ``(H, W)``.
 
-    16-bit PNGs decode to uint16. The format string is only used in error messages: OpenCV
-    identifies the codec from the data itself.
+    16-bit PNGs decode to uint16. The format string is only used in error messages: the codec
+    is identified from the data's signature. The size claimed by the PNG/JPEG header is checked
+    (:func:`check_image_size`) *before* decoding, so nothing larger than ``expected_size`` (when
+    given) or ``limits.max_image_pixels`` is ever allocated.
+
+    Args:
+        msg: the CompressedImage.
+        expected_size: ``(width, height)`` the image must have (e.g. the camera model's
+            ``image_size``); None accepts any size within ``limits``.
+        limits: size bounds (default :data:`~msg_adapters.limits.DEFAULT_LIMITS`).
+
+    Raises:
+        EncodingError: no data, neither PNG nor JPEG, a truncated or invalid header, a size
+            refused before decoding, or any decoder failure (corrupt or truncated data).
     """
-    buf = _byte_buffer(msg.data)
+    fmt = short_repr(getattr(msg, "format", None))
+    buf = byte_buffer(field(msg, "data", EncodingError, "compressed image"), "data", EncodingError,
+                      f"compressed image ({fmt})")
     if buf.size == 0:
-        raise EncodingError(f"compressed image ({msg.format!r}) has no data")
-    img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+        raise EncodingError(f"compressed image ({fmt}) has no data")
+    try:
+        header = compressed_image_header(buf)
+    except EncodingError as exc:
+        raise EncodingError(f"cannot decode compressed image ({fmt}): {exc}") from None
+    what = f"compressed {header.format.upper()} image ({fmt})"
+    check_image_size(header.width, header.height, what, expected_size, limits)
+    try:
+        img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+    except cv2.error as exc:
+        raise EncodingError(f"cannot decode {what}: {str(exc).strip().splitlines()[-1]}") from None
     if img is None:
-        raise EncodingError(f"cannot decode compressed image with format {msg.format!r}")
+        raise EncodingError(f"cannot decode {what}: corrupt or truncated data")
+    if img.shape[:2] != (header.height, header.width):
+        raise EncodingError(
+            f"{what} decoded to {img.shape[1]}x{img.shape[0]}, its header says {header.width}x{header.height}"
+        )
     if img.ndim == 3:
+        if img.shape[2] not in (3, 4):
+            raise EncodingError(f"{what} decoded to {img.shape[2]} channels; expected 3 or 4")
         code = cv2.COLOR_BGR2RGB if img.shape[2] == 3 else cv2.COLOR_BGRA2RGBA
-        img = cv2.cvtColor(img, code)
+        img = cv2.cvtColor(img, code, dst=img)  # in place: no second full-size buffer
     return img
 
 

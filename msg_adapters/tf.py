@@ -17,7 +17,8 @@ import numpy as np
 from bev_mapper_core.errors import CalibrationError
 from bev_mapper_core.transforms import invert_transform, make_transform, quat_to_rot, rot_to_quat
 
-from .errors import TransformError
+from ._fields import as_float, as_str, field
+from .errors import StampError, TransformError
 from .factory import (
     MessageFactory,
     header_stamp_ns,
@@ -31,8 +32,21 @@ from .factory import (
 QUATERNION_TOLERANCE = 1e-2
 
 
-def _frame(name: Any) -> str:
-    return str(name).lstrip("/")
+def _frame(name: Any, what: str = "frame_id") -> str:
+    return as_str(name, what, TransformError, "transform").lstrip("/")
+
+
+def _floats(obj: Any, keys: str, what: str, finite: bool = True) -> np.ndarray:
+    """``[obj.<k> for k in keys]`` as float64, each a number (finite unless ``finite=False``)."""
+    return np.array([as_float(field(obj, k, TransformError, what), k, TransformError, what, finite)
+                     for k in keys], dtype=np.float64)
+
+
+def _stamp_ns(msg: Any, what: str) -> int:
+    try:
+        return header_stamp_ns(msg)
+    except StampError as exc:
+        raise TransformError(f"{what}: {exc}") from None
 
 
 @dataclass(frozen=True)
@@ -46,9 +60,15 @@ class StampedTransform:
 
 
 def quaternion_to_rotation(q: Any, what: str = "quaternion") -> np.ndarray:
-    """3x3 rotation of a ``geometry_msgs/Quaternion``; rejects non-finite / non-unit ones."""
-    xyzw = np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
-    norm = float(np.linalg.norm(xyzw)) if np.all(np.isfinite(xyzw)) else float("nan")
+    """3x3 rotation of a ``geometry_msgs/Quaternion``; rejects non-finite / non-unit ones.
+
+    Raises:
+        TransformError: a field is missing or not a number, or the quaternion is not unit
+            (within :data:`QUATERNION_TOLERANCE`).
+    """
+    xyzw = _floats(q, "xyzw", what, finite=False)
+    with np.errstate(over="ignore"):  # 1e300 components: inf, refused below
+        norm = float(np.linalg.norm(xyzw)) if np.all(np.isfinite(xyzw)) else float("nan")
     if not np.isfinite(norm) or abs(norm - 1.0) > QUATERNION_TOLERANCE:
         raise TransformError(f"{what} (x, y, z, w) = {tuple(xyzw.tolist())} is not a unit quaternion")
     try:
@@ -58,8 +78,13 @@ def quaternion_to_rotation(q: Any, what: str = "quaternion") -> np.ndarray:
 
 
 def pose_to_matrix(position: Any, orientation: Any, what: str = "pose") -> np.ndarray:
-    """4x4 transform of a position (``x, y, z``) and orientation quaternion."""
-    t = np.array([position.x, position.y, position.z], dtype=np.float64)
+    """4x4 transform of a position (``x, y, z``) and orientation quaternion.
+
+    Raises:
+        TransformError: a field is missing or not a number, a non-finite translation, or a
+            quaternion :func:`quaternion_to_rotation` refuses.
+    """
+    t = _floats(position, "xyz", f"{what} translation", finite=False)
     if not np.all(np.isfinite(t)):
         raise TransformError(f"{what} translation {t.tolist()} is not finite")
     return make_transform(quaternion_to_rotation(orientation, f"{what} rotation"), t)
@@ -67,23 +92,39 @@ def pose_to_matrix(position: Any, orientation: Any, what: str = "pose") -> np.nd
 
 def transform_to_matrix(transform: Any, what: str = "transform") -> np.ndarray:
     """4x4 matrix of a ``geometry_msgs/Transform`` (``translation`` + ``rotation``)."""
-    return pose_to_matrix(transform.translation, transform.rotation, what)
+    return pose_to_matrix(field(transform, "translation", TransformError, what),
+                          field(transform, "rotation", TransformError, what), what)
 
 
 def transform_stamped_to_matrix(msg: Any) -> StampedTransform:
-    """Parse a ``geometry_msgs/TransformStamped`` into a :class:`StampedTransform`."""
-    parent, child = _frame(msg.header.frame_id), _frame(msg.child_frame_id)
+    """Parse a ``geometry_msgs/TransformStamped`` into a :class:`StampedTransform`.
+
+    Raises:
+        TransformError: a field is missing or of the wrong type, an empty or identical frame
+            pair, a non-finite translation, a non-unit quaternion or an invalid stamp.
+    """
+    parent = _frame(field(msg, "header.frame_id", TransformError, "transform"), "header.frame_id")
+    child = _frame(field(msg, "child_frame_id", TransformError, "transform"), "child_frame_id")
     if not parent or not child:
         raise TransformError(f"transform with empty frame name: {parent!r} -> {child!r}")
     if parent == child:
         raise TransformError(f"transform from frame {parent!r} to itself")
-    T = transform_to_matrix(msg.transform, f"transform {parent} -> {child}")
-    return StampedTransform(parent, child, T, header_stamp_ns(msg))
+    what = f"transform {parent} -> {child}"
+    T = transform_to_matrix(field(msg, "transform", TransformError, what), what)
+    return StampedTransform(parent, child, T, _stamp_ns(msg, what))
 
 
 def tf_message_transforms(msg: Any) -> list[StampedTransform]:
-    """All transforms of a ``tf2_msgs/TFMessage``."""
-    return [transform_stamped_to_matrix(t) for t in msg.transforms]
+    """All transforms of a ``tf2_msgs/TFMessage``.
+
+    Raises:
+        TransformError: ``transforms`` is missing or not a sequence, or one transform is refused
+            (the whole message is: TF messages are published as one consistent set).
+    """
+    transforms = field(msg, "transforms", TransformError, "TFMessage")
+    if isinstance(transforms, (str, bytes)) or not hasattr(transforms, "__iter__"):
+        raise TransformError(f"TFMessage transforms must be a sequence, got {type(transforms).__name__}")
+    return [transform_stamped_to_matrix(t) for t in transforms]
 
 
 class TfTree:
@@ -190,22 +231,32 @@ class OdometryState:
 
 
 def _vec(v: Any, what: str) -> np.ndarray:
-    out = np.array([v.x, v.y, v.z], dtype=np.float64)
+    out = _floats(v, "xyz", what, finite=False)
     if not np.all(np.isfinite(out)):
         raise TransformError(f"{what} {out.tolist()} is not finite")
     return out
 
 
 def odometry_to_state(msg: Any) -> OdometryState:
-    """Parse a ``nav_msgs/Odometry`` (pose and twist; covariances are ignored)."""
-    pose = msg.pose.pose
+    """Parse a ``nav_msgs/Odometry`` (pose and twist; covariances are ignored).
+
+    Raises:
+        TransformError: a field is missing or of the wrong type, a non-finite pose or twist, a
+            non-unit orientation or an invalid stamp.
+    """
+    what = "odometry"
+
+    def get(path: str) -> Any:
+        return field(msg, path, TransformError, what)
+
     return OdometryState(
-        stamp_ns=header_stamp_ns(msg),
-        frame_id=_frame(msg.header.frame_id),
-        child_frame_id=_frame(msg.child_frame_id),
-        world_from_ego=pose_to_matrix(pose.position, pose.orientation, "odometry pose"),
-        linear_velocity=_vec(msg.twist.twist.linear, "odometry linear velocity"),
-        angular_velocity=_vec(msg.twist.twist.angular, "odometry angular velocity"),
+        stamp_ns=_stamp_ns(msg, what),
+        frame_id=_frame(get("header.frame_id"), "header.frame_id"),
+        child_frame_id=_frame(get("child_frame_id"), "child_frame_id"),
+        world_from_ego=pose_to_matrix(get("pose.pose.position"), get("pose.pose.orientation"),
+                                      "odometry pose"),
+        linear_velocity=_vec(get("twist.twist.linear"), "odometry linear velocity"),
+        angular_velocity=_vec(get("twist.twist.angular"), "odometry angular velocity"),
     )
 
 
