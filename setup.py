@@ -27,6 +27,7 @@ setup(
         "mcap>=1.1",
         "safetensors>=0.4",
         "tqdm>=4.60",
+        "typing_extensions>=4.4",  # typing.override on Python < 3.12
         # torch: install the CPU build first (`pip install torch==2.13.0`); any recent torch works.
         "torch>=2.2",
     ],

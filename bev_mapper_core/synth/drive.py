@@ -175,7 +175,7 @@ class DriveRenderer:
 
 
 def generate_drive(rig: Rig, grid: BevGrid,
-                   config: SynthConfig = SynthConfig(), classes=BEV_CLASSES) -> Iterator[SynthFrame]:
+                   config: SynthConfig | None = None, classes=BEV_CLASSES) -> Iterator[SynthFrame]:
     """Generate a synthetic drive: ``config.frames`` :class:`SynthFrame` s, lazily.
 
     ``classes`` are the GT layers of each frame's ``gt`` (default: the standard classes; the
@@ -191,6 +191,8 @@ def generate_drive(rig: Rig, grid: BevGrid,
         raise ConfigError(f"rig must be a bev_mapper_core.rig.Rig, got {type(rig).__name__}")
     if not isinstance(grid, BevGrid):
         raise ConfigError(f"grid must be a BevGrid, got {type(grid).__name__}")
+    if config is None:
+        config = SynthConfig()
     if not isinstance(config, SynthConfig):
         raise ConfigError(f"config must be a SynthConfig, got {type(config).__name__}")
     renderer = DriveRenderer(build_world(config), rig, grid)

@@ -122,7 +122,7 @@ def obstacle_parts(rng: np.random.Generator, what: str) -> list[Part]:
     """Street furniture on the sidewalk: ``"light"`` (pole + lamp arm, arm along +x), ``"cone"``,
     ``"bin"``, ``"bollard"``.
     """
-    O = Label.OBSTACLE
+    O = Label.OBSTACLE  # noqa: E741 - the label as a one-letter colour code, as in the part tables below
     if what == "light":
         h = rng.uniform(4.5, 7.0)
         grey = np.full(3, rng.uniform(70, 140))

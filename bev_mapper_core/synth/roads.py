@@ -96,6 +96,7 @@ class Road:
 
     @property
     def length(self) -> float:
+        """Arc length of the centre line, metres."""
         return float(self.s[-1])
 
     def half_width(self, side: int) -> float:
@@ -153,6 +154,7 @@ class Node:
 
     @property
     def degree(self) -> int:
+        """Number of road arms meeting here."""
         return len(self.arms)
 
 

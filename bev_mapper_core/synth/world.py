@@ -63,6 +63,7 @@ class World:
 
     @property
     def frames(self) -> int:
+        """Number of ego poses (frames) of the drive."""
         return len(self.ego)
 
     def ego_pose(self, k: int) -> np.ndarray:

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from typing_extensions import override
 
 from ..errors import ConfigError
 from ..models import BiMapper, BiMapperConfig, BiMapperLossConfig, bimapper_loss, load_state, save_weights
@@ -117,48 +118,59 @@ class BiMapperMethod(TrainMethod):
     )
 
     @classmethod
+    @override
     def default_model_config(cls, classes: tuple[str, ...]) -> BiMapperConfig:
         return BiMapperConfig(classes=tuple(classes), gv_hidden=TRAIN_GV_HIDDEN)
 
+    @override
     def build_model(self) -> BiMapper:
         return BiMapper(self.cfg.model, self.rig, self.grid)
 
+    @override
     def describe(self) -> str:
         return f"input {self.model.input_size}, classes {list(self.cfg.class_names)}"
 
+    @override
     def schedule(self) -> str:
         return f"mutual both ways from epoch {self.cfg.loss.mutual_start(self.cfg.epochs) + 1}"
 
+    @override
     def data_needs(self) -> DataNeeds:
         # Full-resolution LV input and the IPM prior need the camera-size images in memory (else:
         # stored resized, exactly as preprocess would).
         full = self.cfg.model.lv_full_res or self.cfg.model.ipm_skip
         return DataNeeds(image_size=None if full else self.model.input_size)
 
+    @override
     def prepare(self, data: TrainData, log: Callable[[str], None]) -> None:
         pw = class_pos_weight(data.train) if self.cfg.loss.pos_weight == "auto" else None
         self.loss_cfg = self.cfg.loss.loss_config(self.cfg.epochs, pw)
         if pw is not None:
             log(f"BCE positive weights {dict(zip(self.cfg.class_names, pw))}")
 
+    @override
     def loss(self, batch: dict, epoch: int, step: int) -> tuple[torch.Tensor, dict[str, float]]:
         dev = self.device
         outputs = self.model(batch["images"].to(dev))
         return bimapper_loss(outputs, {"target": batch["target"].to(dev), "mask": batch["mask"].to(dev)}, epoch,
                              self.loss_cfg)
 
+    @override
     def predict(self, batch: dict) -> tuple[np.ndarray, np.ndarray]:
         out = self.model(batch["images"].to(self.device))
         probs = torch.sigmoid(out["logits"]).float().cpu().numpy()
         known = self.model.known().cpu().numpy()[0]  # (1, H, W) -> (H, W), the same for every frame
         return probs, np.broadcast_to(known, (len(probs), *known.shape))
 
+    @override
     def save(self, path) -> None:
         save_weights(self.model, path)
 
+    @override
     def load(self, path) -> None:
         load_state(self.model, path)
 
+    @override
     def checkpoint_info(self) -> dict:
         return {"model_config": self.model.config.to_dict(), "rig": self.model.rig.name}
 

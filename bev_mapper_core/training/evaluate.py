@@ -100,6 +100,7 @@ def evaluate(rig: Rig, grid: BevGrid, classes: Sequence[str], method: str, weigh
 
 
 def save_result(res: dict, path: str | Path) -> None:
+    """Write a result document as strict JSON (creating the directory)."""
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     Path(path).write_text(json.dumps(res, indent=1, allow_nan=False))
 
@@ -117,5 +118,6 @@ def summary_row(name: str, res: dict, classes: Sequence[str]) -> str:
 
 
 def summary_header(classes: Sequence[str], bands: Sequence[str]) -> str:
+    """The markdown header (and rule) of :func:`summary_row`'s table."""
     cols = ["method"] + list(classes) + ["mIoU", "CD m"] + [f"mIoU {b} m" for b in bands]
     return "| " + " | ".join(cols) + " |\n|" + "---|" * len(cols)

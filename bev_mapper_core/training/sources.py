@@ -19,6 +19,8 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, ClassVar
 
+from typing_extensions import override
+
 from ..errors import ConfigError
 from ..grid import BevGrid
 from ..rig import Rig, preset_rig
@@ -105,11 +107,13 @@ class SynthSource(DataSource):
 
     name = "synthetic"
 
+    @override
     def rig_grid(self, cfg: "TrainConfig") -> tuple[Rig, BevGrid]:
         if cfg.bag:
             raise ConfigError("training on bags needs the bag data source (the bev-train command passes it)")
         return preset_rig(cfg.rig), cfg.grid
 
+    @override
     def load(self, cfg: "TrainConfig", rig: Rig, grid: BevGrid, needs: DataNeeds,
              log: Callable[[str], None]) -> TrainData:
         self.check(needs)
@@ -130,9 +134,11 @@ class InMemorySource(DataSource):
     def __init__(self, train: FrameSet, val: FrameSet) -> None:
         self.data = TrainData(train, val)
 
+    @override
     def rig_grid(self, cfg: "TrainConfig") -> tuple[Rig, BevGrid]:
         return preset_rig(cfg.rig), cfg.grid
 
+    @override
     def load(self, cfg: "TrainConfig", rig: Rig, grid: BevGrid, needs: DataNeeds,
              log: Callable[[str], None]) -> TrainData:
         self.check(needs)

@@ -112,6 +112,7 @@ class TrainState:
     history: list = field(default_factory=list)
 
     def to_json(self, cfg: TrainConfig, method: TrainMethod) -> dict:
+        """The ``last.json`` / ``best.json`` document of this state."""
         return {"epoch": self.epoch, "step": self.step, "best_val_miou": self.best_miou, "best_epoch": self.best_epoch,
                 "train_seconds": self.train_seconds, "history": self.history, "config": cfg.to_dict(),
                 **method.checkpoint_info(), "torch": torch.__version__, "threads": torch.get_num_threads()}
