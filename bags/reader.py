@@ -279,22 +279,26 @@ class BagReader:
         return True
 
     def grid(self) -> BevGrid | None:
-        """The BEV grid of the GT layers (from the first GT OccupancyGrid), ``None`` without GT.
+        """The BEV grid of the GT layers (from the first GT OccupancyGrid), ``None`` without GT
+        (or when damage comes before the first GT message: the frames report it).
 
         Raises:
-            BagContentError: the GT topic has the wrong type, or its first message no usable
+            BagContentError: a GT topic has the wrong type, or the first GT message no usable
                 grid (e.g. more than :data:`~bags.input_checks.MAX_GRID_CELLS` cells).
         """
         if self._grid is None and self.gt_classes:
-            topic = T.gt_topic(self.gt_classes[0])
-            self._check_types([topic])
-            for m in self.messages({topic}):
-                try:
-                    check_grid_size(m.msg.info)
-                    self._grid = grid_from_info(m.msg.info)
-                except DECODE_ERRORS as exc:
-                    raise BagContentError(f"{self.path}: {m.topic}: {exc}") from None
-                break
+            topics = {T.gt_topic(c) for c in self.gt_classes}
+            self._check_types(topics)
+            try:
+                for m in self.messages(topics):
+                    try:
+                        check_grid_size(m.msg.info)
+                        self._grid = grid_from_info(m.msg.info)
+                    except DECODE_ERRORS as exc:
+                        raise BagContentError(f"{self.path}: {m.topic}: {exc}") from None
+                    break
+            except BagCorruptError:
+                pass
         return self._grid
 
     def _camera_sizes(self) -> dict[str, tuple[int, int]]:

@@ -128,9 +128,11 @@ class BagWriter:
             self._tmp_root.mkdir(parents=True)
             self._writer = rosbag2_writer(self._tmp, self.storage, self.chunk_size)
             self._writer.open()
-        except (WriterError, OSError) as exc:
+        except BaseException as exc:  # Ctrl-C / SIGTERM here too: __exit__ will not run
             _remove(self._tmp_root)
-            raise BagError(f"cannot create bag {self.path}: {exc}") from None
+            if isinstance(exc, (WriterError, OSError)):
+                raise BagError(f"cannot create bag {self.path}: {exc}") from None
+            raise
         return self
 
     def add_topic(self, topic: str, msgtype: str, *, latched: bool = False) -> None:

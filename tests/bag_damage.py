@@ -128,6 +128,23 @@ def chunk_data_ranges(data: bytes) -> list[tuple[int, int]]:
     return out
 
 
+def mcap_crcs(data: bytes) -> tuple[list[int], int, int]:
+    """``(chunk CRCs, data section CRC, summary CRC)`` of an MCAP file (0 = not written)."""
+    crcs, pos = [], 8
+    data_crc = None
+    while pos + 9 <= len(data):
+        op = data[pos]
+        (length,) = struct.unpack_from("<Q", data, pos + 1)
+        if op == 0x06:
+            crcs.append(struct.unpack_from("<I", data, pos + 9 + 24)[0])
+        elif op == 0x0F:
+            (data_crc,) = struct.unpack_from("<I", data, pos + 9)
+            break
+        pos += 9 + length
+    (summary_crc,) = struct.unpack_from("<I", data, len(data) - 8 - 4)
+    return crcs, data_crc, summary_crc
+
+
 def _flip(data: bytearray, offset: int, rng: random.Random) -> None:
     data[offset] ^= 1 << rng.randrange(8)
 
@@ -189,23 +206,22 @@ def _binary_meta(base: Base, dst: Path, rng: random.Random) -> Path:
     return _meta(b"\xff\xfe\x00" + bytes(rng.randrange(256) for _ in range(200)))(base, dst, rng)
 
 
-def alias_bomb() -> str:
-    """~1 KB of YAML that expands to 9**9 strings."""
+def alias_bomb(levels: int = 9) -> str:
+    """A metadata.yaml of ~1 KB (9 levels) whose ``custom_data`` expands to ``9 ** levels``
+    strings through nested aliases (a "billion laughs")."""
     lines = ['a0: &a0 ["lol","lol","lol","lol","lol","lol","lol","lol","lol"]']
-    for i in range(1, 9):
-        refs = ",".join([f"*a{i - 1}"] * 9)
-        lines.append(f"a{i}: &a{i} [{refs}]")
-    body = "\n".join("  " + ln for ln in lines)
-    return ("rosbag2_bagfile_information:\n  version: 9\n  custom_data:\n    bomb: *a8\n"
-            "  storage_identifier: mcap\n" + body + "\n")
+    for i in range(1, levels):
+        lines.append(f"a{i}: &a{i} [" + ",".join([f"*a{i - 1}"] * 9) + "]")
+    body = "".join(f"  {ln}\n" for ln in lines)
+    return (f"rosbag2_bagfile_information:\n{body}  version: 9\n  storage_identifier: mcap\n"
+            f"  custom_data:\n    bomb: *a{levels - 1}\n")
 
 
 def _bomb_in_custom(text: str) -> str:
-    anchors = ['x0: &a0 ["lol","lol","lol","lol","lol","lol","lol","lol","lol"]']
-    for i in range(1, 9):
-        anchors.append(f"x{i}: &a{i} [" + ",".join([f"*a{i - 1}"] * 9) + "]")
-    extra = "".join(f"  {ln}\n" for ln in anchors)
-    return text.replace("  custom_data:\n", extra + "  custom_data:\n    bomb: *a8\n", 1)
+    """The intact metadata with the alias bomb's anchors and a ``custom_data`` value using it."""
+    bomb = alias_bomb().split("\n", 1)[1]
+    anchors = "".join(ln + "\n" for ln in bomb.splitlines() if ln.startswith("  a"))
+    return text.replace("  custom_data:\n", anchors + "  custom_data:\n    bomb: *a8\n", 1)
 
 
 # ------------------------------------------------------------------ message level
