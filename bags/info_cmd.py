@@ -57,6 +57,8 @@ def _times(reader: BagReader) -> tuple[dict[str, list[int]], str | None]:
             with AnyReader([reader.path]) as raw:
                 try:
                     for conn, t, _ in raw.messages():
+                        if t < 0:
+                            raise ValueError(f"{conn.topic} has the negative log time {t}")
                         see(conn.topic, int(t))
                 except Exception as exc:  # storage errors mid-file are damage
                     raise BagCorruptError(f"{reader.path}: damaged: {type(exc).__name__}: {exc}")

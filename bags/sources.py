@@ -95,6 +95,9 @@ class AnyReaderSource:
                     f"{self.path}: bag is damaged after {count} readable messages: "
                     f"{type(exc).__name__}: {exc}"
                 ) from exc
+            if t < 0:  # sqlite3 stores any integer; a log time before 1970 is damage
+                raise BagCorruptError(f"{self.path}: bag is damaged after {count} readable "
+                                      f"messages: {conn.topic} has the negative log time {t}")
             count += 1
             yield conn.topic, conn.msgtype, t, msg
 

@@ -369,6 +369,22 @@ def _dangling(topic: str, delete_row: bool):
     return build
 
 
+def _sqlite_negative_log_time(base: Base, dst: Path, rng: random.Random) -> Path:
+    """CameraInfo logged at negative times from frame FROM on."""
+    bag, db = _sqlite_copy(base, dst)
+    con = sqlite3.connect(db)
+    try:
+        (tid,) = con.execute("SELECT id FROM topics WHERE name = ?", (INFO,)).fetchone()
+        ids = [r[0] for r in con.execute(
+            "SELECT id FROM messages WHERE topic_id = ? ORDER BY timestamp", (tid,))]
+        con.executemany("UPDATE messages SET timestamp = -timestamp WHERE id = ?",
+                        [(i,) for i in ids[FROM:]])
+        con.commit()
+    finally:
+        con.close()
+    return bag
+
+
 def _sqlite_truncate(base: Base, dst: Path, rng: random.Random) -> Path:
     bag, db = _sqlite_copy(base, dst)
     data = db.read_bytes()
@@ -377,7 +393,7 @@ def _sqlite_truncate(base: Base, dst: Path, rng: random.Random) -> Path:
 
 
 # ------------------------------------------------------------------ the list
-def variants(n_random: int = 5) -> list[Variant]:
+def variants(n_random: int = 4) -> list[Variant]:
     """Every damaged-bag variant; ``n_random`` seeded draws per random storage-level kind."""
     v: list[Variant] = []
     for k in range(n_random):
@@ -437,6 +453,7 @@ def variants(n_random: int = 5) -> list[Variant]:
         Variant("camera_info_no_messages", "message", _no_camera_info),
         Variant("sqlite_dangling_gt_ids", "sqlite", _dangling(GT0, False)),
         Variant("sqlite_dangling_labels_row", "sqlite", _dangling(LABELS, True)),
+        Variant("sqlite_negative_log_time", "sqlite", _sqlite_negative_log_time),
         Variant("sqlite_truncated", "sqlite", _sqlite_truncate),
     ]
     return v
