@@ -45,7 +45,8 @@ def _mcap_files(path: Path, meta: dict) -> list[Path]:
     if path.is_file():
         return [path] if path.suffix == ".mcap" else []
     names = meta.get("relative_file_paths") or sorted(p.name for p in path.glob("*.mcap"))
-    return [path / n for n in names if str(n).endswith(".mcap") and (path / n).exists()]
+    names = [Path(str(n)).name for n in names]  # as rosbags: files lie in the bag directory
+    return [path / n for n in names if n.endswith(".mcap") and (path / n).exists()]
 
 
 class AnyReaderSource:
@@ -215,7 +216,8 @@ def _sqlite_files(path: Path, meta: dict) -> list[Path]:
     if path.is_file():
         return [path] if path.suffix == ".db3" else []
     names = meta.get("relative_file_paths") or ()
-    return [path / n for n in names if str(n).endswith(".db3") and (path / n).exists()]
+    names = [Path(str(n)).name for n in names]
+    return [path / n for n in names if n.endswith(".db3") and (path / n).exists()]
 
 
 def open_source(path: str | Path):
