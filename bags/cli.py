@@ -9,14 +9,22 @@ defines::
 
 Expected failures (any :class:`~bev_mapper_core.errors.BevMapperError`, I/O errors) are printed
 as ``error: ...`` on stderr with a non-zero status, without a traceback.
+
+SIGTERM (``kill``, a job scheduler, ``timeout``) unwinds like Ctrl-C: while a subcommand runs,
+it raises :class:`Terminated` (a ``KeyboardInterrupt``) in the main thread, so every ``finally``
+and ``with`` block cleans up (temporary ``.partial-<pid>`` outputs are removed) and the status is
+:data:`EXIT_TERMINATED`. Further SIGTERMs are ignored while that cleanup runs.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import logging
+import signal
 import sys
+import threading
 
 from bev_mapper_core.errors import BevMapperError
 
@@ -31,6 +39,30 @@ SUBCOMMANDS: dict[str, str] = {
 EXIT_ERROR = 1
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
+EXIT_TERMINATED = 128 + signal.SIGTERM
+
+
+class Terminated(KeyboardInterrupt):
+    """Raised in the main thread on SIGTERM, so that it unwinds like Ctrl-C."""
+
+
+def _on_sigterm(signum, frame) -> None:
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)  # one unwinding; let the cleanup finish
+    raise Terminated()
+
+
+@contextlib.contextmanager
+def sigterm_unwinds():
+    """While inside, SIGTERM raises :class:`Terminated` (main thread only; the previous
+    handler is restored on exit)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -59,13 +91,17 @@ def main(argv: list[str] | None = None) -> int:
         format="%(levelname)s: %(message)s",
     )
     try:
-        return int(args._run(args) or 0)
+        with sigterm_unwinds():
+            return int(args._run(args) or 0)
     except BevMapperError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_ERROR
     except OSError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_ERROR
+    except Terminated:
+        print("error: terminated (SIGTERM)", file=sys.stderr)
+        return EXIT_TERMINATED
     except KeyboardInterrupt:
         print("error: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED

@@ -4,7 +4,9 @@ Topics with type, message count and rate; the cameras found, each with its calib
 (image size, distortion model, focal lengths) and whether ``/tf_static`` connects its optical
 frame to the ego frame; the GT layers and their grid; the duration. Works on rosbag2
 directories (mcap, sqlite3) and plain ``.mcap`` / ``.db3`` files; a damaged bag is described
-up to the damage, with a note.
+up to the damage, with a note. Topics whose type differs from the one their name calls for
+(``/odom`` carrying images, ...) are listed and not decoded. Exit status 1 for a damaged bag
+or topics of the wrong type (after printing the description).
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from msg_adapters import TfTree, camera_info_to_model
 
 from . import topics as T
 from .errors import BagCorruptError
+from .input_checks import DECODE_ERRORS, expected_type
 from .reader import BagReader
 
 HELP = "describe a bag: topics, cameras and calibration, GT layers, duration"
@@ -54,6 +57,8 @@ def _times(reader: BagReader) -> tuple[dict[str, list[int]], str | None]:
             with AnyReader([reader.path]) as raw:
                 try:
                     for conn, t, _ in raw.messages():
+                        if t < 0:
+                            raise ValueError(f"{conn.topic} has the negative log time {t}")
                         see(conn.topic, int(t))
                 except Exception as exc:  # storage errors mid-file are damage
                     raise BagCorruptError(f"{reader.path}: damaged: {type(exc).__name__}: {exc}")
@@ -71,19 +76,24 @@ def _calibration(reader: BagReader) -> tuple[list[dict], list[str]]:
     infos: dict[str, Any] = {}
     tree = TfTree()
     problems = []
-    wanted = {T.camera_info_topic(n) for n in names} | {T.TF_STATIC}
+    wanted = {t for t in {T.camera_info_topic(n) for n in names} | {T.TF_STATIC}
+              if t in reader.topics and reader.topics[t].msgtype == expected_type(t)}
     try:
-        for m in reader.messages(wanted & set(reader.topics)):
+        for m in reader.messages(wanted):
             if m.topic == T.TF_STATIC:
                 try:
                     tree.add_message(m.msg)
-                except BevMapperError as exc:
+                except (BevMapperError, *DECODE_ERRORS) as exc:
                     problems.append(f"/tf_static: {exc}")
             else:
                 infos.setdefault(T.parse_camera_topic(m.topic)[0], m.msg)
     except BagCorruptError:
         pass  # reported by the time scan
     cams = []
+    for n in reader.uncalibrated_cameras:
+        cams.append({"name": n, "calibration": None, "extrinsics": None,
+                     "images": [k for k in T.IMAGE_KINDS if T.image_topic(n, k) in reader.topics],
+                     "problem": "images but no camera_info topic"})
     for n in names:
         cam: dict[str, Any] = {"name": n, "calibration": None, "extrinsics": None}
         kinds = [k for k in T.IMAGE_KINDS if T.image_topic(n, k) in reader.topics]
@@ -93,21 +103,21 @@ def _calibration(reader: BagReader) -> tuple[list[dict], list[str]]:
             cam["problem"] = "no CameraInfo message"
             cams.append(cam)
             continue
-        frame = str(msg.header.frame_id).lstrip("/")
-        cam["frame_id"] = frame
         try:
+            frame = str(msg.header.frame_id).lstrip("/")
+            cam["frame_id"] = frame
             model = camera_info_to_model(msg)
             w, h = model.image_size
             K = model.effective().K_array
             cam["calibration"] = {"width": w, "height": h, "model": model.distortion_model,
                                   "fx": round(float(K[0, 0]), 3), "fy": round(float(K[1, 1]), 3),
                                   "cx": round(float(K[0, 2]), 3), "cy": round(float(K[1, 2]), 3)}
-        except BevMapperError as exc:
+        except (BevMapperError, *DECODE_ERRORS) as exc:
             cam["problem"] = str(exc)
         try:
-            M = tree.lookup(reader.ego_frame, frame)
+            M = tree.lookup(reader.ego_frame, cam["frame_id"])
             cam["extrinsics"] = {"xyz": [round(float(v), 4) for v in M[:3, 3]]}
-        except BevMapperError:
+        except (KeyError, BevMapperError, *DECODE_ERRORS):
             cam["extrinsics"] = None
         cams.append(cam)
     return cams, problems
@@ -124,13 +134,15 @@ def describe(path: Path) -> dict:
             topics.append({"topic": name, "type": s.msgtype, "count": n if damage else s.count,
                            "rate_hz": None if rate is None else round(rate, 3)})
         cams, problems = _calibration(reader)
+        wrong_types = reader.type_problems
         gt = list(reader.gt_classes)
         grid = None
         if gt:
             try:
                 grid = reader.grid()
             except BevMapperError as exc:
-                problems.append(str(exc))
+                if not wrong_types:
+                    problems.append(str(exc))
         starts = [v[0] for v in times.values()]
         ends = [v[1] for v in times.values()]
         return {
@@ -148,6 +160,7 @@ def describe(path: Path) -> dict:
             "odometry": T.ODOM in reader.topics,
             "custom_data": reader.custom_data,
             "damage": damage,
+            "wrong_types": wrong_types,
             "problems": problems,
         }
 
@@ -189,6 +202,8 @@ def format_info(d: dict) -> str:
     else:
         lines.append("GT layers:  none")
     lines.append(f"odometry:   {'yes' if d['odometry'] else 'no'}")
+    for p in d["wrong_types"]:
+        lines.append(f"WRONG TYPE: {p}")
     for p in d["problems"]:
         lines.append(f"problem:    {p}")
     if d["damage"]:
@@ -203,10 +218,12 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run ``bev-bag info``; exit 1 (after printing) when the bag is damaged."""
+    """Run ``bev-bag info``; exit 1 (after printing) when the bag is damaged or has topics of
+    the wrong type."""
     d = describe(args.bag)
     print(json.dumps(d, indent=2) if args.json else format_info(d))
+    if d["wrong_types"]:
+        print(f"error: {args.bag}: " + "; ".join(d["wrong_types"]), file=sys.stderr)
     if d["damage"]:
         print(f"error: {d['damage']}", file=sys.stderr)
-        return 1
-    return 0
+    return 1 if d["damage"] or d["wrong_types"] else 0

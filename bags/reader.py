@@ -6,6 +6,10 @@ file, builds the :class:`~bev_mapper_core.rig.Rig` from the bag's own CameraInfo
 iterates frames synchronized by :class:`msg_adapters.FrameSynchronizer` on the header stamps.
 
 A damaged bag yields every frame before the damage, then raises :class:`BagCorruptError`.
+Topics of the wrong type are a :class:`BagContentError`; single damaged messages (an image
+that does not decode or does not fit its calibration, a GT grid that does not fit the grid,
+an odometry pose that is no rotation, an invalid header stamp) are skipped and counted in
+:attr:`BagReader.issues` (see :mod:`bags.input_checks`).
 """
 
 from __future__ import annotations
@@ -31,7 +35,6 @@ from msg_adapters import (
     TfTree,
     camera_info_to_model,
     grid_from_info,
-    header_stamp_ns,
     image_to_labels,
     image_to_rgb,
     occupancy_grid_to_layer,
@@ -40,6 +43,16 @@ from msg_adapters import (
 
 from . import topics as T
 from .errors import BagContentError, BagCorruptError
+from .input_checks import (
+    DECODE_ERRORS,
+    InputIssues,
+    StampDrift,
+    check_grid_size,
+    check_types,
+    stamp_ns,
+    stamp_problem,
+    type_problems,
+)
 from .sources import TopicSummary, open_source
 
 log = logging.getLogger(__name__)
@@ -126,7 +139,9 @@ class BagReader:
         self._src = open_source(self.path)
         self._rig: Rig | None = None
         self._grid: BevGrid | None = None
-        self.decode_errors = 0
+        #: messages skipped as damaged, cameras without calibration (see module docstring)
+        self.issues = InputIssues()
+        self.issues.cameras_without_calibration = list(self.uncalibrated_cameras)
 
     def __enter__(self) -> "BagReader":
         return self
@@ -170,6 +185,31 @@ class BagReader:
         return tuple(names)
 
     @property
+    def uncalibrated_cameras(self) -> tuple[str, ...]:
+        """Cameras with image topics but no ``camera_info`` topic (they cannot be mapped)."""
+        names = []
+        for topic in self._src.topic_order:
+            parsed = T.parse_camera_topic(topic)
+            if (parsed and parsed[1] != "camera_info" and parsed[0] not in names
+                    and T.camera_info_topic(parsed[0]) not in self._src.topics):
+                names.append(parsed[0])
+        return tuple(names)
+
+    @property
+    def type_problems(self) -> list[str]:
+        """Topics whose type differs from the one their name calls for (see
+        :func:`bags.input_checks.expected_type`)."""
+        return type_problems({t: s.msgtype for t, s in self._src.topics.items()})
+
+    @property
+    def decode_errors(self) -> int:
+        """Messages that could not be decoded so far (see :attr:`issues`)."""
+        return self.issues.decode_errors
+
+    def _check_types(self, topics: Iterable[str]) -> None:
+        check_types(self.path, {t: s.msgtype for t, s in self._src.topics.items()}, set(topics))
+
+    @property
     def gt_classes(self) -> tuple[str, ...]:
         """Classes with a ``/bev/gt/<class>`` topic: standard order first, then the rest sorted."""
         found = {c for c in map(T.parse_gt_topic, self._src.topics) if c}
@@ -203,9 +243,13 @@ class BagReader:
         infos: dict[str, Any] = {}
         tree = TfTree()
         wanted = {T.camera_info_topic(n) for n in names} | {T.TF_STATIC}
+        self._check_types(wanted)
         for m in self.messages(wanted):
             if m.topic == T.TF_STATIC:
-                tree.add_message(m.msg)
+                try:
+                    tree.add_message(m.msg)
+                except DECODE_ERRORS as exc:
+                    raise BagContentError(f"{self.path}: {T.TF_STATIC}: {exc}") from None
             else:
                 cam = T.parse_camera_topic(m.topic)[0]
                 infos.setdefault(cam, m.msg)
@@ -216,12 +260,12 @@ class BagReader:
             raise BagContentError(f"{self.path}: no CameraInfo message for cameras {missing}")
         cams = []
         for n in names:
-            frame = infos[n].header.frame_id.lstrip("/")
             try:
+                frame = str(infos[n].header.frame_id).lstrip("/")
                 model = camera_info_to_model(infos[n])
                 ego_from_cam = tree.lookup(self.ego_frame, frame)
                 cams.append(RigCamera(n, model, ego_from_cam, frame))
-            except BevMapperError as exc:
+            except (BevMapperError, *DECODE_ERRORS) as exc:
                 raise BagContentError(f"{self.path}: camera {n!r}: {exc}") from None
         self._rig = Rig(self.custom_data.get("bev_mapper.rig", self.path.stem), tuple(cams))
         return self._rig
@@ -229,21 +273,53 @@ class BagReader:
     def _all_connected(self, tree: TfTree, infos: dict[str, Any]) -> bool:
         try:
             for msg in infos.values():
-                tree.lookup(self.ego_frame, msg.header.frame_id)
-        except AdapterError:
+                tree.lookup(self.ego_frame, str(msg.header.frame_id))
+        except DECODE_ERRORS:
             return False
         return True
 
     def grid(self) -> BevGrid | None:
-        """The BEV grid of the GT layers (from the first GT OccupancyGrid), ``None`` without GT."""
+        """The BEV grid of the GT layers (from the first GT OccupancyGrid), ``None`` without GT
+        (or when damage comes before the first GT message: the frames report it).
+
+        Raises:
+            BagContentError: a GT topic has the wrong type, or the first GT message no usable
+                grid (e.g. more than :data:`~bags.input_checks.MAX_GRID_CELLS` cells).
+        """
         if self._grid is None and self.gt_classes:
-            for m in self.messages({T.gt_topic(self.gt_classes[0])}):
-                try:
-                    self._grid = grid_from_info(m.msg.info)
-                except AdapterError as exc:
-                    raise BagContentError(f"{self.path}: {m.topic}: {exc}") from None
-                break
+            topics = {T.gt_topic(c) for c in self.gt_classes}
+            self._check_types(topics)
+            try:
+                for m in self.messages(topics):
+                    try:
+                        check_grid_size(m.msg.info)
+                        self._grid = grid_from_info(m.msg.info)
+                    except DECODE_ERRORS as exc:
+                        raise BagContentError(f"{self.path}: {m.topic}: {exc}") from None
+                    break
+            except BagCorruptError:
+                pass
         return self._grid
+
+    def _camera_sizes(self) -> dict[str, tuple[int, int]]:
+        """Delivered image ``(width, height)`` per camera: the rig's, else from the first
+        CameraInfo (cameras whose CameraInfo does not decode are not checked)."""
+        if self._rig is not None:
+            return {c.name: tuple(c.model.image_size) for c in self._rig.cameras}
+        names = self.camera_names
+        sizes: dict[str, tuple[int, int]] = {}
+        try:
+            for m in self.messages({T.camera_info_topic(n) for n in names}):
+                cam = T.parse_camera_topic(m.topic)[0]
+                try:  # the delivered size: after binning and ROI
+                    sizes.setdefault(cam, tuple(camera_info_to_model(m.msg).image_size))
+                except (BevMapperError, *DECODE_ERRORS):
+                    pass
+                if len(sizes) == len(names):
+                    break
+        except BagCorruptError:
+            pass  # the frame pass reports the damage
+        return sizes
 
     # ----------------------------------------------------------------- frames
     def frames(
@@ -267,8 +343,13 @@ class BagReader:
             lookahead_ns: a frame is yielded once the bag's log time passes its newest camera
                 stamp by this much, so that its GT and odometry have been read.
 
+        Messages with an invalid header stamp, images that do not decode or whose size differs
+        from their camera's CameraInfo, GT layers that do not fit the grid and odometry that
+        does not decode are skipped and counted in :attr:`issues`.
+
         Raises:
-            BagContentError: no image topics for the requested kinds.
+            BagContentError: no image topics for the requested kinds, or a topic used of the
+                wrong type.
             BagCorruptError: after the frames before the damage were yielded.
         """
         cams = self.camera_names
@@ -286,6 +367,7 @@ class BagReader:
             gt_topics[T.GROUND_VISIBILITY] = T.GROUND_VISIBILITY
         want_odom = odom and T.ODOM in self._src.topics
         topics = set(stream_of) | set(gt_topics) | ({T.ODOM} if want_odom else set())
+        self._check_types(topics)
 
         streams = [f"{c}/{k}" for c in cams for k in kinds]
         sync_ = FrameSynchronizer(streams, sync)
@@ -293,11 +375,17 @@ class BagReader:
         odom_buf: deque = deque()
         ready: deque[SyncedSet] = deque()
         ctx = dict(cams=cams, kinds=kinds, classes=classes, grid=grid, gt_buf=gt_buf,
-                   odom_buf=odom_buf, tol=sync.slop_ns)
+                   odom_buf=odom_buf, tol=sync.slop_ns, sizes=self._camera_sizes())
+        drift = StampDrift()
         index = 0
         try:
             for m in self.messages(topics):
-                stamp = header_stamp_ns(m.msg)
+                bad = stamp_problem(m.msg)
+                stamp = stamp_ns(m.msg) if bad is None else 0
+                bad = bad or drift.problem(m.topic, stamp, m.log_ns)
+                if bad is not None:
+                    self.issues.bad_stamp(m.topic, bad)
+                    continue
                 if m.topic in stream_of:
                     ready.extend(sync_.add(stream_of[m.topic], stamp, m.msg))
                 elif m.topic in gt_topics:
@@ -318,60 +406,27 @@ class BagReader:
             index += 1
 
     def _build(self, s: SyncedSet, index: int, ctx: dict) -> BagFrame:
-        cams, kinds, tol = ctx["cams"], ctx["kinds"], ctx["tol"]
-        images: dict[str, dict[str, np.ndarray]] = {"rgb": {}, "labels": {}}
-        valid: dict[str, bool] = {}
-        cam_stamps: dict[str, int | None] = {}
-        for c in cams:
-            ok = all(s.messages[f"{c}/{k}"] is not None for k in kinds)
-            stamps = [s.stamps[f"{c}/{k}"] for k in kinds if s.stamps[f"{c}/{k}"] is not None]
-            cam_stamps[c] = min(stamps) if stamps else None
-            if ok:
-                try:
-                    for k in kinds:
-                        msg = s.messages[f"{c}/{k}"]
-                        arr = image_to_rgb(msg) if k == "rgb" else image_to_labels(msg)
-                        images[k][c] = np.array(arr, copy=True)
-                except AdapterError as exc:
-                    log.warning("frame %d camera %s: %s", index, c, exc)
-                    self.decode_errors += 1
-                    ok = False
-                    for k in kinds:
-                        images[k].pop(c, None)
-            valid[c] = ok
+        images, valid, cam_stamps = self._images(s, index, ctx)
         mean = s.mean_stamp_ns
-        stamp = None
-        gt = known = None
-        if ctx["classes"]:
-            layers = []
-            for c in ctx["classes"]:
-                hit = _nearest(ctx["gt_buf"][c], mean, tol)
-                if hit is None:
-                    layers = None
-                    break
-                stamp = hit[0]
-                try:
-                    layers.append(occupancy_grid_to_layer(hit[1], ctx["grid"]))
-                except AdapterError as exc:
-                    raise BagContentError(f"{self.path}: GT layer {c!r}: {exc}") from None
-            if layers:
-                gt = np.stack([p for p, _ in layers])  # C x (H, W) -> (C, H, W)
-                known = np.stack([k for _, k in layers])
+        stamp, gt, known = self._gt(mean, ctx)
         ground = None
         if T.GROUND_VISIBILITY in ctx["gt_buf"]:
-            hit = _nearest(ctx["gt_buf"][T.GROUND_VISIBILITY], mean, tol)
+            hit = _nearest(ctx["gt_buf"][T.GROUND_VISIBILITY], mean, ctx["tol"])
             if hit is not None:
                 try:
                     ground = occupancy_grid_to_layer(hit[1], ctx["grid"])[0] >= 0.5
-                except AdapterError as exc:
-                    raise BagContentError(f"{self.path}: ground visibility: {exc}") from None
+                except DECODE_ERRORS as exc:
+                    self.issues.decode_error(T.GROUND_VISIBILITY, f"frame {index}: {exc}")
         odom_state = None
-        hit = _nearest(ctx["odom_buf"], mean, tol)
+        hit = _nearest(ctx["odom_buf"], mean, ctx["tol"])
         if hit is not None:
-            odom_state = odometry_to_state(hit[1])
-            stamp = hit[0] if stamp is None else stamp
+            try:
+                odom_state = odometry_to_state(hit[1])
+                stamp = hit[0] if stamp is None else stamp
+            except DECODE_ERRORS as exc:
+                self.issues.decode_error(T.ODOM, f"frame {index}: {exc}")
         for buf in list(ctx["gt_buf"].values()) + [ctx["odom_buf"]]:
-            while buf and buf[0][0] < mean - tol:  # older than any later frame can match
+            while buf and buf[0][0] < mean - ctx["tol"]:  # older than any later frame can match
                 buf.popleft()
         return BagFrame(
             index=index,
@@ -386,3 +441,58 @@ class BagReader:
             odom=odom_state,
             ground_visibility=ground,
         )
+
+    def _images(self, s: SyncedSet, index: int, ctx: dict):
+        """Decoded images per kind and camera, validity and stamp per camera, of one set.
+
+        A camera is valid when all requested kinds are present, decode, and have the size of
+        its CameraInfo; a failure is counted in :attr:`issues` and invalidates the camera."""
+        cams, kinds, sizes = ctx["cams"], ctx["kinds"], ctx["sizes"]
+        images: dict[str, dict[str, np.ndarray]] = {"rgb": {}, "labels": {}}
+        valid: dict[str, bool] = {}
+        cam_stamps: dict[str, int | None] = {}
+        for c in cams:
+            ok = all(s.messages[f"{c}/{k}"] is not None for k in kinds)
+            stamps = [s.stamps[f"{c}/{k}"] for k in kinds if s.stamps[f"{c}/{k}"] is not None]
+            cam_stamps[c] = min(stamps) if stamps else None
+            if ok:
+                for k in kinds:
+                    msg = s.messages[f"{c}/{k}"]
+                    try:
+                        arr = image_to_rgb(msg) if k == "rgb" else image_to_labels(msg)
+                        h, w = arr.shape[:2]
+                        if c in sizes and (w, h) != sizes[c]:
+                            raise AdapterError(f"image is {w}x{h}, camera {c!r} is calibrated "
+                                               f"for {sizes[c][0]}x{sizes[c][1]}")
+                        images[k][c] = np.array(arr, copy=True)
+                    except DECODE_ERRORS as exc:
+                        log.warning("frame %d camera %s: %s", index, c, exc)
+                        self.issues.decode_error(T.image_topic(c, k), f"frame {index}: {exc}")
+                        ok = False
+                        break
+                if not ok:
+                    for k in kinds:
+                        images[k].pop(c, None)
+            valid[c] = ok
+        return images, valid, cam_stamps
+
+    def _gt(self, mean: int, ctx: dict):
+        """``(stamp, gt, known)`` of the GT layers nearest ``mean``; ``gt`` and ``known`` are
+        ``None`` when a layer is missing or, counted in :attr:`issues`, does not fit the grid;
+        ``stamp`` is that of the last layer found."""
+        if not ctx["classes"]:
+            return None, None, None
+        layers, stamp = [], None
+        for c in ctx["classes"]:
+            hit = _nearest(ctx["gt_buf"][c], mean, ctx["tol"])
+            if hit is None:
+                return stamp, None, None
+            stamp = hit[0]
+            try:
+                layers.append(occupancy_grid_to_layer(hit[1], ctx["grid"]))
+            except DECODE_ERRORS as exc:
+                self.issues.decode_error(T.gt_topic(c), f"stamp {hit[0]}: {exc}")
+                return stamp, None, None
+        gt = np.stack([p for p, _ in layers])  # C x (H, W) -> (C, H, W)
+        known = np.stack([k for _, k in layers])
+        return stamp, gt, known

@@ -21,7 +21,12 @@ own CameraInfo and ``/tf_static`` and the grid from its GT layers (``options.gri
 
 Every file appears under its final name only when complete. A damaged bag is replayed up to
 the damage: the outputs of the frames before it are completed and :attr:`ReplayResult.damage`
-says what happened (the CLI then exits non-zero).
+says what happened (the CLI then exits non-zero). The same holds for damage that does not stop
+the reading: messages the reader skipped (undecodable, of the wrong size, invalid stamps),
+cameras without calibration, storage the integrity checks found damaged, and a frame the
+mapper fails on (the replay stops there). ``metrics.json`` counts the skipped messages
+(``decode_errors``, ``bad_stamps``, ``input_problems`` per topic,
+``cameras_without_calibration``) and says ``complete: false`` with the ``damage``.
 """
 
 from __future__ import annotations
@@ -37,6 +42,7 @@ from typing import Iterator
 import numpy as np
 
 from bev_mapper_core.classes import bev_picture, class_cover, resolve_classes
+from bev_mapper_core.errors import BevMapperError
 from bev_mapper_core.grid import BevGrid
 from bev_mapper_core.mapper import BevPrediction, MapperConfig, create_mapper
 from bev_mapper_core.metrics import SCOPES, MetricAccumulator, scope_masks
@@ -276,7 +282,11 @@ def _run(options, reader, rig, grid, mapper, out, tmp_frames, notes) -> ReplayRe
                     continue
                 pose = frame.odom.world_from_ego if frame.odom is not None else None
                 t0 = time.perf_counter()
-                pred = mapper.map(images, ego_pose=pose, stamp_ns=frame.stamp_ns)
+                try:
+                    pred = mapper.map(images, ego_pose=pose, stamp_ns=frame.stamp_ns)
+                except BevMapperError as exc:  # this frame's input: keep the outputs so far
+                    damage = f"frame {frame.index} could not be mapped: {exc}"
+                    break
                 latencies.append((time.perf_counter() - t0) * 1000.0)
                 copier.upto(_frame_time(frame))
                 _write_frame(bw, grid, mapper, pred, frame.stamp_ns, ego)
@@ -306,6 +316,7 @@ def _run(options, reader, rig, grid, mapper, out, tmp_frames, notes) -> ReplayRe
             bar.close()
             copier.close()
         bag_counts = dict(bw.counts)
+    damage = _damage_note(damage, reader)
     # the output bag is in place; now the pictures, the GIF and last the metrics
     if frames_dir.exists():  # stale pictures of an earlier replay (only with --force)
         shutil.rmtree(frames_dir)
@@ -320,6 +331,7 @@ def _run(options, reader, rig, grid, mapper, out, tmp_frames, notes) -> ReplayRe
     if gif_path is None and (out / GIF_FILE).exists():
         (out / GIF_FILE).unlink()
     metrics = _metrics(options, scorer, grid, mapped, skipped, latencies, damage, bag_counts)
+    metrics.update(reader.issues.to_metrics())
     result = ReplayResult(metrics, out, out / BAG_DIR, pictures, gif_path, gif_note, damage, notes,
                           latencies, scores)
     if options.report:
@@ -338,6 +350,16 @@ def _caption(frame, score) -> str:
     defined = [v for v in score.ious.values() if v is not None]
     miou = "-" if score.miou is None else f"{100 * score.miou:.1f}%"
     return text + f"  mIoU {miou} over {len(defined)} class(es)"
+
+
+def _damage_note(damage: str | None, reader: BagReader) -> str | None:
+    """Everything that makes a replay incomplete, in one sentence (``None``: nothing did):
+    the damage the reading met, messages the reader skipped."""
+    parts = [damage] if damage else []
+    issues = reader.issues.summary()
+    if issues:
+        parts.append(f"{reader.path}: {issues}")
+    return "; ".join(parts) or None
 
 
 def _write_frame(bw: BagWriter, grid: BevGrid, mapper, pred: BevPrediction, stamp: int,

@@ -125,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
     for note in result.notes:
         print(f"note: {note}", file=sys.stderr)
     if result.damage:
-        print(f"error: {result.damage}; outputs cover the {m['frames']} frame(s) before the damage",
+        print(f"error: {result.damage}; the outputs are incomplete: they cover {m['frames']} frame(s)",
               file=sys.stderr)
         return 1
     return 0

@@ -9,6 +9,13 @@
 
 Both yield ``(topic, msgtype, log_ns, message)`` with messages deserialized by rosbags, and
 turn any storage failure during iteration into :class:`BagCorruptError`.
+
+:func:`open_source` reads ``metadata.yaml`` safely (:mod:`bags.metadata`) and checks the
+storage files (:mod:`bags.integrity`): an MCAP file whose summary or data section checksum
+does not match is read as a stream (chunk checksums verified), stopping at the first damaged
+chunk; a sqlite3 file with messages of unknown topic ids is read with :attr:`damage` set. An
+unusable ``metadata.yaml`` next to MCAP files is reported the same way (the files are read as
+streams); without MCAP files it is a :class:`BagFormatError`.
 """
 
 from __future__ import annotations
@@ -19,6 +26,8 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from .errors import BagCorruptError, BagFormatError
+from .integrity import check_mcap, check_sqlite
+from .metadata import MetadataError, read_metadata
 
 log = logging.getLogger(__name__)
 
@@ -32,35 +41,27 @@ class TopicSummary:
     count: int
 
 
-def _read_metadata(path: Path) -> dict:
-    meta = path / "metadata.yaml"
-    if not meta.exists():
-        return {}
-    import yaml
-
-    try:
-        doc = yaml.safe_load(meta.read_text()) or {}
-    except (yaml.YAMLError, OSError) as exc:
-        raise BagFormatError(f"{meta}: unreadable metadata: {exc}") from None
-    return doc.get("rosbag2_bagfile_information", {}) or {}
-
-
 def _mcap_files(path: Path, meta: dict) -> list[Path]:
     if path.is_file():
         return [path] if path.suffix == ".mcap" else []
     names = meta.get("relative_file_paths") or sorted(p.name for p in path.glob("*.mcap"))
-    return [path / n for n in names if str(n).endswith(".mcap") and (path / n).exists()]
+    names = [Path(str(n)).name for n in names]  # as rosbags: files lie in the bag directory
+    return [path / n for n in names if n.endswith(".mcap") and (path / n).exists()]
 
 
 class AnyReaderSource:
-    """Messages through ``rosbags.highlevel.AnyReader``."""
+    """Messages through ``rosbags.highlevel.AnyReader``.
 
-    damage: str | None = None
+    ``damage`` is set when the storage has messages rosbags cannot attribute (sqlite3 rows
+    with unknown topic ids): :meth:`messages` then yields every readable message and raises
+    :class:`BagCorruptError` at the end, like a stream that reached its damage.
+    """
 
-    def __init__(self, path: Path, meta: dict) -> None:
+    def __init__(self, path: Path, meta: dict, damage: str | None = None) -> None:
         from rosbags.highlevel import AnyReader
 
         self.path = path
+        self.damage = damage
         self.custom_data = dict(meta.get("custom_data") or {})
         self._reader = AnyReader([path])
         self._reader.open()  # errors handled by open_source
@@ -86,12 +87,18 @@ class AnyReaderSource:
                 conn, t, raw = next(it)
                 msg = self._reader.deserialize(raw, conn.msgtype)
             except StopIteration:
+                if self.damage:
+                    raise BagCorruptError(f"{self.path}: bag is damaged ({self.damage}); read "
+                                          f"{count} messages") from None
                 return
             except Exception as exc:  # anything the storage layer raises here is damage
                 raise BagCorruptError(
                     f"{self.path}: bag is damaged after {count} readable messages: "
                     f"{type(exc).__name__}: {exc}"
                 ) from exc
+            if t < 0:  # sqlite3 stores any integer; a log time before 1970 is damage
+                raise BagCorruptError(f"{self.path}: bag is damaged after {count} readable "
+                                      f"messages: {conn.topic} has the negative log time {t}")
             count += 1
             yield conn.topic, conn.msgtype, t, msg
 
@@ -116,7 +123,7 @@ class McapStreamSource:
         from mcap.stream_reader import StreamReader
 
         with path.open("rb") as f:
-            yield from StreamReader(f, skip_magic=False).records
+            yield from StreamReader(f, skip_magic=False, validate_crcs=True).records
 
     def _scan(self) -> None:
         """Collect schemas, channels and counts up to the damage."""
@@ -205,11 +212,20 @@ class McapStreamSource:
         pass
 
 
+def _sqlite_files(path: Path, meta: dict) -> list[Path]:
+    if path.is_file():
+        return [path] if path.suffix == ".db3" else []
+    names = meta.get("relative_file_paths") or ()
+    names = [Path(str(n)).name for n in names]
+    return [path / n for n in names if n.endswith(".db3") and (path / n).exists()]
+
+
 def open_source(path: str | Path):
     """Open a bag path with the best source (see module docstring).
 
     Raises:
-        BagFormatError: not a bag (missing path, unknown suffix, no readable content).
+        BagFormatError: not a bag (missing path, unknown suffix, no readable content, unusable
+            metadata.yaml without MCAP files to fall back on).
         BagCorruptError: a damaged bag that no source can read at all.
     """
     from rosbags.highlevel import AnyReaderError
@@ -219,17 +235,31 @@ def open_source(path: str | Path):
         raise BagFormatError(f"{path}: no such file or directory")
     if path.is_file() and path.suffix not in (".mcap", ".db3"):
         raise BagFormatError(f"{path}: not a bag (expected a rosbag2 directory, .mcap or .db3)")
-    meta = _read_metadata(path) if path.is_dir() else {}
-    if path.is_dir() and not meta:
-        files = _mcap_files(path, meta)
-        if files:
-            return McapStreamSource(path, files, meta, "metadata.yaml is missing")
-        raise BagFormatError(f"{path}: not a rosbag2 directory (no metadata.yaml)")
+    meta: dict = {}
+    if path.is_dir():
+        try:
+            meta = read_metadata(path) or {}
+        except MetadataError as exc:
+            files = _mcap_files(path, {})
+            if not files:
+                raise BagFormatError(f"{path}: {exc}") from None
+            log.warning("%s: %s; reading the MCAP files as streams", path, exc)
+            return McapStreamSource(path, files, {}, f"unusable metadata.yaml: {exc}")
+        if not meta:
+            files = _mcap_files(path, meta)
+            if files:
+                return McapStreamSource(path, files, meta, "metadata.yaml is missing")
+            raise BagFormatError(f"{path}: not a rosbag2 directory (no metadata.yaml)")
+    files = _mcap_files(path, meta)
+    bad = [p for p in map(check_mcap, files) if p]
+    if bad:
+        log.warning("%s: %s; reading it as a stream up to the damage", path, bad[0])
+        return McapStreamSource(path, files, meta, "; ".join(bad))
+    damage = "; ".join(p for p in map(check_sqlite, _sqlite_files(path, meta)) if p) or None
     try:
-        return AnyReaderSource(path, meta)
+        return AnyReaderSource(path, meta, damage)
     except Exception as exc:  # rosbags' ReaderError/AnyReaderError, sqlite3 errors, ...
         reason = f"{type(exc).__name__}: {exc}"
-        files = _mcap_files(path, meta)
         if files and not isinstance(exc, FileNotFoundError):
             log.warning("%s: rosbags cannot open it (%s); reading it as a stream", path, reason)
             return McapStreamSource(path, files, meta, reason)

@@ -2,7 +2,8 @@
 
 :class:`BagWriter` writes into a hidden temporary directory next to the target and renames it
 into place only when the bag is complete, so a crash never leaves a half-written bag under the
-requested name. :func:`write_drive` maps synthetic drive frames to the topic layout of
+requested name. MCAP bags carry chunk, data section and summary CRCs
+(:class:`bags.mcap_storage.CrcMcapStorage`), so that damage is detected when they are read. :func:`write_drive` maps synthetic drive frames to the topic layout of
 :mod:`bags.topics`.
 """
 
@@ -33,6 +34,7 @@ from msg_adapters import (
 
 from . import topics as T
 from .errors import BagError, BagExistsError
+from .mcap_storage import CHUNK_SIZE, rosbag2_writer
 
 log = logging.getLogger(__name__)
 
@@ -95,11 +97,11 @@ class BagWriter:
         storage: ``'mcap'`` or ``'sqlite3'``.
         force: replace an existing bag at ``path`` (only once the new one is complete).
         typestore: rosbags typestore (default ``Stores.ROS2_JAZZY``).
+        chunk_size: MCAP chunk size in bytes (uncompressed).
     """
 
     def __init__(self, path: str | Path, *, storage: str = "mcap", force: bool = False,
-                 typestore: Any = None) -> None:
-        from rosbags.rosbag2 import StoragePlugin
+                 typestore: Any = None, chunk_size: int = CHUNK_SIZE) -> None:
         from rosbags.typesys import Stores, get_typestore
 
         if storage not in STORAGES:
@@ -109,7 +111,7 @@ class BagWriter:
         self.force = force
         self.typestore = typestore or get_typestore(Stores.ROS2_JAZZY)
         self.factory = RosbagsFactory(self.typestore)
-        self._plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+        self.chunk_size = int(chunk_size)
         # <parent>/.<name>.partial-<pid>/<name>: the storage file is named after the bag
         self._tmp_root = self.path.parent / f".{self.path.name}.partial-{os.getpid()}"
         self._tmp = self._tmp_root / self.path.name
@@ -118,18 +120,19 @@ class BagWriter:
         self.counts: dict[str, int] = {}
 
     def __enter__(self) -> "BagWriter":
-        from rosbags.rosbag2 import Writer, WriterError
+        from rosbags.rosbag2 import WriterError
 
         check_output(self.path, self.force)
         _remove(self._tmp_root)  # leftover of a crashed run with this same process id
         try:
             self._tmp_root.mkdir(parents=True)
-            self._writer = Writer(self._tmp, version=Writer.VERSION_LATEST,
-                                  storage_plugin=self._plugin)
+            self._writer = rosbag2_writer(self._tmp, self.storage, self.chunk_size)
             self._writer.open()
-        except (WriterError, OSError) as exc:
+        except BaseException as exc:  # Ctrl-C / SIGTERM here too: __exit__ will not run
             _remove(self._tmp_root)
-            raise BagError(f"cannot create bag {self.path}: {exc}") from None
+            if isinstance(exc, (WriterError, OSError)):
+                raise BagError(f"cannot create bag {self.path}: {exc}") from None
+            raise
         return self
 
     def add_topic(self, topic: str, msgtype: str, *, latched: bool = False) -> None:
