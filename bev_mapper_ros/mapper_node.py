@@ -95,8 +95,7 @@ class MapperNode(Node):
     """Subscribes to N cameras, maps synchronized sets to BEV, publishes grids + diagnostics."""
 
     def __init__(self, **kwargs) -> None:
-        # Every given parameter is declared first, so typos can be told apart (params.py).
-        super().__init__("mapper_node", automatically_declare_parameters_from_overrides=True, **kwargs)
+        super().__init__("mapper_node", **kwargs)
         unknown = declare_parameters(self)
         self.cfg = node_config_from_params(read_parameters(self))  # raises on bad parameters
         cfg = self.cfg

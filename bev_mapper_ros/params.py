@@ -7,10 +7,15 @@ declares; :func:`declare_parameters` declares them on a node and
 :func:`bev_mapper_ros.config.node_config_from_params` takes. :func:`parameter_help` prints
 the same table for ``mapper_node --help``.
 
-The node is created with ``automatically_declare_parameters_from_overrides``: every name the
-command line and params files set is declared first, so :func:`declare_parameters` knows what
-was given, re-declares the node's own parameters with their descriptors (the given value
-wins) and returns the rest, which the node reports as unknown.
+Unknown parameters (typos) are found by comparing the names the command line and params files
+set for this node (rclpy keeps them as ``Node._parameter_overrides``; there is no public
+accessor, and ``automatically_declare_parameters_from_overrides`` fails on an empty list in a
+params file) with the declared ones.
+
+Empty arrays: ROS infers a parameter's type from its value and cannot from ``[]``, so an array
+parameter without a value (``classes``, or ``cameras`` without a preset rig) is declared typed
+and writable, set to ``[]`` of its type, then given its read-only descriptor: ``ros2 param get``
+shows ``[]`` and ``ros2 param dump`` works (an unset parameter empties a whole dump).
 """
 
 from __future__ import annotations
@@ -27,7 +32,7 @@ from bev_mapper_core.mapper import INPUT_KINDS, available_methods
 from bev_mapper_core.rig import PRESETS
 
 from .config import (
-    PARAM_FIELDS, ROS_PARAMETERS, RUNTIME_PARAMETERS, NodeConfigError, parameter_defaults, preset_parameters,
+    PARAM_FIELDS, RUNTIME_PARAMETERS, NodeConfigError, parameter_defaults, preset_parameters,
     unknown_parameter_messages,
 )
 
@@ -109,14 +114,22 @@ def descriptor(name: str) -> ParameterDescriptor:
 
 
 def _declare(node: Node, name: str, value, desc: ParameterDescriptor) -> None:
-    """Declare ``name`` (value None: typed, no value); a given value (an override) wins.
+    """Declare ``name`` with ``desc``; a given value (override) wins over ``value``.
 
-    A name the command line or a params file set is already declared, without descriptor
-    (``automatically_declare_parameters_from_overrides``): it is declared again, properly.
+    ``value`` None (an array): declared typed, ``[]`` unless given (see the module docstring).
     """
-    if node.has_parameter(name):
-        node.undeclare_parameter(name)
-    node.declare_parameter(name, Parameter.Type(desc.type) if value is None else value, desc)
+    if value is not None:
+        node.declare_parameter(name, value, desc)
+        return
+    ptype = Parameter.Type(desc.type)
+    node.declare_parameter(name, ptype, ParameterDescriptor(name=name, type=desc.type, description=desc.description))
+    try:
+        node.get_parameter(name)
+    except ParameterUninitializedException:
+        result = node.set_parameters([Parameter(name, ptype, [])])[0]
+        if not result.successful:
+            raise NodeConfigError(f"{name}: {result.reason}") from None
+    node.set_descriptor(name, desc)
 
 
 def _value(node: Node, name: str, empty):
@@ -134,9 +147,9 @@ def declare_parameters(node: Node) -> list[str]:
     ``rig`` comes first: a preset rig gives the defaults of ``cameras`` and
     ``extrinsics.<camera>`` (:func:`~bev_mapper_ros.config.preset_parameters`), so
     ``ros2 param get`` shows the values in use. Returns one warning per given parameter that
-    is not the node's (a typo); those are undeclared again.
+    is not the node's (a typo).
     """
-    given = set(node.list_parameters([], 0).names) - set(ROS_PARAMETERS)
+    given = set(getattr(node, "_parameter_overrides", {}))  # see the module docstring
     preset: dict = {}
     for name, (default, _ptype, _ro, _text) in PARAMETERS.items():
         _declare(node, name, preset.get(name, default), descriptor(name))
@@ -149,11 +162,7 @@ def declare_parameters(node: Node) -> list[str]:
         name = f"extrinsics.{cam}"
         _declare(node, name, preset.get(name), ParameterDescriptor(
             name=name, type=_T.PARAMETER_DOUBLE_ARRAY, read_only=True, description=_EXTRINSICS_TEXT))
-    warnings = unknown_parameter_messages(given, cams)
-    for name in given - set(PARAMETERS) - {f"extrinsics.{c}" for c in cams}:
-        if node.has_parameter(name) and not name.startswith("qos_overrides."):
-            node.undeclare_parameter(name)
-    return warnings
+    return unknown_parameter_messages(given, cams)
 
 
 def cameras_of(node: Node) -> list[str]:
