@@ -8,7 +8,8 @@ message class here (e.g. ``tf2_msgs/msg/TFMessage`` without tf2_msgs) are skippe
 
 Playback is paced by the log times divided by ``--rate``; ``--start-offset`` skips the start
 (latched topics are still published first); ``--loop`` starts over at the end; ``--clock``
-publishes ``/clock`` (rosgraph_msgs/Clock) with the bag time. Latched topics (``/tf_static``
+publishes ``/clock`` (rosgraph_msgs/Clock) with the bag time; subscribers that should follow it
+(the mapper node) run with ``use_sim_time:=true``. Latched topics (``/tf_static``
 and topics recorded with transient-local durability) get transient-local publishers, so late
 subscribers still receive them. Ctrl-C stops cleanly (exit 0).
 

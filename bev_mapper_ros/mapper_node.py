@@ -96,11 +96,10 @@ class MapperNode(Node):
 
     def __init__(self, **kwargs) -> None:
         super().__init__("mapper_node", **kwargs)
-        unknown = declare_parameters(self)
+        for text in declare_parameters(self):  # unknown parameters: before an error they may explain
+            self.get_logger().warning(text)
         self.cfg = node_config_from_params(read_parameters(self))  # raises on bad parameters
         cfg = self.cfg
-        for text in unknown:
-            self.get_logger().warning(text)
         preflight(cfg.mapper, cfg.rig, cfg.grid, cfg.cameras)  # e.g. missing weights: fail now
         self.class_names = output_classes(cfg.mapper, cfg.rig)
         self.factory = RclpyFactory()

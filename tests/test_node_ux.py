@@ -15,7 +15,7 @@ import time
 import numpy as np
 import pytest
 
-from ros_helpers import REPO, free_domain_id, rclpy, ros_env, spin_until, start_process, stop_process
+from ros_helpers import REPO, free_domain_id, rclpy, ros_env, start_process, stop_process
 
 from bev_mapper_core.grid import BevGrid
 from bev_mapper_core.rig import PRESETS, preset_rig
@@ -177,6 +177,13 @@ def test_bare_node_says_how_to_choose_a_rig():
     err = res.stderr.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: no rig and no cameras configured"), res.stderr
     assert "rig:=<surround6|cam2bev4|front1>" in err[0] and "--params-file" in err[0]
+
+
+def test_a_typo_is_named_even_when_the_node_cannot_start():
+    res = run_node(["--ros-args", "-p", "rigg:=front1"])
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    assert "unknown parameter 'rigg' ignored; did you mean 'rig'?" in res.stderr
+    assert res.stderr.strip().splitlines()[-1].startswith("error: no rig and no cameras configured")
 
 
 @pytest.mark.parametrize("kind", ["missing", "directory", "not yaml"])
