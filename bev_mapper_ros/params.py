@@ -43,7 +43,7 @@ _DECLARATIONS: dict[str, tuple] = {
     "rig": (_T.PARAMETER_STRING,
             f"rig name; a preset ({', '.join(PRESETS)}) gives the cameras and their extrinsics unless "
             "cameras / extrinsics.<camera> are set, and selects the shipped weights"),
-    "cameras": (_T.PARAMETER_STRING_ARRAY, "camera names, in rig order (not set = the preset rig's)"),
+    "cameras": (_T.PARAMETER_STRING_ARRAY, "camera names, in rig order ([] = the preset rig's)"),
     "input_kind": (_T.PARAMETER_STRING, f"one of {list(INPUT_KINDS)}"),
     "image_topic": (_T.PARAMETER_STRING,
                     "image topic pattern with {camera}; '' = /cameras/{camera}/labels or /image_raw"),
@@ -55,7 +55,7 @@ _DECLARATIONS: dict[str, tuple] = {
     "device": (_T.PARAMETER_STRING, "torch device of learned methods"),
     "threads": (_T.PARAMETER_INTEGER, "CPU threads of learned methods; 0 = all CPUs but one (left to the callbacks)"),
     "classes": (_T.PARAMETER_STRING_ARRAY,
-                f"classes to publish, of {list(BEV_CLASS_NAMES)} or the weights' (not set = all)"),
+                f"classes to publish, of {list(BEV_CLASS_NAMES)} or the weights' ([] = all)"),
     "grid.x_min": (_T.PARAMETER_DOUBLE, "grid extent along x (m)"),
     "grid.x_max": (_T.PARAMETER_DOUBLE, "grid extent along x (m)"),
     "grid.y_min": (_T.PARAMETER_DOUBLE, "grid extent along y (m)"),
@@ -76,8 +76,8 @@ _DECLARATIONS: dict[str, tuple] = {
                       "ERROR when images arrive but nothing is mapped for this long, or images stop (s)"),
 }
 _DEFAULTS = parameter_defaults()
-# name -> (default, type, read_only, description), in PARAM_FIELDS order; default None = declared
-# with its type and no value (an empty string array)
+# name -> (default, type, read_only, description), in PARAM_FIELDS order; default None = an empty
+# string array (declared typed, then set to [], see the module docstring)
 PARAMETERS: dict[str, tuple] = {
     name: (_DEFAULTS[name], _DECLARATIONS[name][0], name not in RUNTIME_PARAMETERS, _DECLARATIONS[name][1])
     for name in PARAM_FIELDS
@@ -181,7 +181,7 @@ def read_parameters(node: Node) -> dict:
 
 def _shown(name: str, default) -> str:
     if default is None:
-        return "not set"
+        return "[]"
     if isinstance(default, bool):
         return str(default).lower()
     return repr(default) if isinstance(default, str) else str(default)
@@ -208,6 +208,6 @@ def parameter_help(prog: str = "mapper_node") -> str:
         flag = "" if read_only else " [runtime]"
         lines.append(f"  {name}: {_TYPE_NAMES[ptype]} = {_shown(name, default)}{flag}")
         lines.extend(textwrap.wrap(text, 96, initial_indent=" " * 6, subsequent_indent=" " * 6))
-    lines.append("  extrinsics.<camera>: double array = not set")
+    lines.append("  extrinsics.<camera>: double array = []")
     lines.extend(textwrap.wrap(_EXTRINSICS_TEXT, 96, initial_indent=" " * 6, subsequent_indent=" " * 6))
     return "\n".join(lines) + "\n"

@@ -167,7 +167,7 @@ def test_help_prints_every_parameter_without_starting_ros(flag):
         assert line is not None, name
         assert ("[runtime]" in line) == (not read_only), line
         assert text.split()[0] in res.stdout
-    assert "string array = not set" in res.stdout and "double = 0.15" in res.stdout
+    assert "cameras: string array = []" in res.stdout and "double = 0.15" in res.stdout
     assert "rig:=<" + "|".join(PRESETS) + ">" in res.stdout and "use_sim_time:=true" in res.stdout
 
 
