@@ -417,7 +417,8 @@ def test_ros2_topic_echo_without_type_before_data_flows(session, front_frames):
     env = ros_env(s.domain)
     env["PATH"] = f"{ROS2.parent}{os.pathsep}{env.get('PATH', '')}"
     assert s.spin(lambda: s.node.get_publishers_info_by_topic("/bev/drivable"))
-    echo = subprocess.Popen([str(ROS2), "topic", "echo", "--once", "--no-daemon", "--spin-time", "10",
+    # no daemon (its discovery may lag a new domain); the echo's own discovery spins 5 s
+    echo = subprocess.Popen([str(ROS2), "topic", "echo", "--once", "--no-daemon", "--spin-time", "5",
                              "/bev/drivable", "--field", "info.width"], env=env, cwd=REPO,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     d = Front1(s, front_frames)
