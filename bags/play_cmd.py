@@ -8,7 +8,8 @@ message class here (e.g. ``tf2_msgs/msg/TFMessage`` without tf2_msgs) are skippe
 
 Playback is paced by the log times divided by ``--rate``; ``--start-offset`` skips the start
 (latched topics are still published first); ``--loop`` starts over at the end; ``--clock``
-publishes ``/clock`` (rosgraph_msgs/Clock) with the bag time. Latched topics (``/tf_static``
+publishes ``/clock`` (rosgraph_msgs/Clock) with the bag time; subscribers that should follow it
+(the mapper node) run with ``use_sim_time:=true``. Latched topics (``/tf_static``
 and topics recorded with transient-local durability) get transient-local publishers, so late
 subscribers still receive them. Ctrl-C stops cleanly (exit 0).
 
@@ -176,7 +177,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rate", type=float, default=1.0, help="playback speed factor (default 1)")
     p.add_argument("--loop", action="store_true", help="start over at the end, until Ctrl-C")
     p.add_argument("--clock", nargs="?", type=float, const=40.0, default=None, metavar="HZ",
-                   help="publish /clock with the bag time (at HZ while waiting, default 40)")
+                   help="publish /clock with the bag time (at HZ while waiting, default 40); subscribers "
+                        "must use it: run them with use_sim_time:=true (e.g. mapper_node --ros-args "
+                        "-p use_sim_time:=true), else they compare the bag's stamps with the wall clock")
     p.add_argument("--topics", nargs="+", default=None, metavar="TOPIC",
                    help="only these topics (default: all)")
     p.add_argument("--start-offset", type=float, default=0.0, metavar="S",

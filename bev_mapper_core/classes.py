@@ -129,7 +129,8 @@ def bev_class(name: str) -> BevClass:
     for c in BEV_CLASSES + CAM2BEV_CLASSES:
         if c.name == name:
             return c
-    raise ConfigError(f"unknown BEV class {name!r}; known: {list(BEV_CLASS_NAMES)}")
+    raise ConfigError(f"unknown BEV class {name!r}; known: {list(BEV_CLASS_NAMES)} "
+                      f"and Cam2BEV's {[c.name for c in CAM2BEV_CLASSES]}")
 
 
 def resolve_classes(names) -> tuple[BevClass, ...]:

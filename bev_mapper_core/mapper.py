@@ -110,6 +110,15 @@ class Mapper(ABC):
             ConfigError: the configuration cannot work for this method.
         """
 
+    @classmethod
+    def output_classes(cls, config: MapperConfig, rig_name: str) -> tuple[str, ...]:
+        """The names of the layers this method will produce, in order, known before any
+        calibration (a node creates its output topics from them at start-up).
+
+        Default: ``config.classes``, or every standard class when None.
+        """
+        return tuple(c.name for c in resolve_classes(config.classes))
+
     def set_rig(self, rig: Rig) -> None:
         """Adopt a new calibration; subclasses precompute lookup tables here."""
         self.rig = rig
@@ -212,6 +221,11 @@ def preflight(config: MapperConfig, rig_name: str, grid: BevGrid | None = None,
         check(config, rig_name, grid, cameras)
 
 
+def output_classes(config: MapperConfig, rig_name: str) -> tuple[str, ...]:
+    """The layer names ``config.method`` will produce for this rig (see :meth:`Mapper.output_classes`)."""
+    return mapper_class(config.method).output_classes(config, rig_name)
+
+
 def create_mapper(rig: Rig, grid: BevGrid, config: MapperConfig) -> Mapper:
     """Build the mapper ``config.method`` for a rig and grid.
 
@@ -229,6 +243,7 @@ __all__ = [
     "available_methods",
     "create_mapper",
     "mapper_class",
+    "output_classes",
     "preflight",
     "register_method",
 ]

@@ -9,17 +9,21 @@ imports no rclpy, so the mapping is unit-testable without a ROS graph.
 
 from __future__ import annotations
 
+import difflib
 import math
 import os
-from dataclasses import MISSING, dataclass, field, fields
+from dataclasses import MISSING, dataclass, field, fields, replace
 
 import numpy as np
 
 from bev_mapper_core.errors import BevMapperError, ConfigError
 from bev_mapper_core.grid import BevGrid
 from bev_mapper_core.mapper import MapperConfig
+from bev_mapper_core.rig import PRESETS, preset_rig
 from bev_mapper_core.transforms import make_transform, quat_to_rot
 from msg_adapters.sync import SyncConfig
+
+from .rig_params import rig_parameters
 
 DEFAULT_TOPICS = {"labels": "/cameras/{camera}/labels", "rgb": "/cameras/{camera}/image_raw"}
 
@@ -38,7 +42,10 @@ class NodeConfig:
 
     Attributes:
         cameras: camera names, in rig order; ``{camera}`` in topic patterns expands to them.
-        rig: rig name: selects the shipped default weights and names the live rig ('' = none).
+            Given none, a preset ``rig`` supplies them (see :func:`preset_parameters`).
+        rig: rig name: a preset (:data:`~bev_mapper_core.rig.PRESETS`) supplies the cameras and
+            their extrinsics unless those are given; selects the shipped default weights and
+            names the live rig ('' = none).
         image_topic: image topic pattern ('' = the default for ``mapper.input_kind``).
         camera_info_topic: CameraInfo topic pattern.
         compressed: subscribe to ``sensor_msgs/CompressedImage`` on ``<image_topic>/compressed``.
@@ -53,6 +60,15 @@ class NodeConfig:
         use_tf: look extrinsics up in TF (tf2_ros) when it is importable.
         output_prefix: output topics are ``<output_prefix>/<class>`` and ``<output_prefix>/image``.
         diagnostics_period_s: period of ``/diagnostics`` messages.
+        diagnostics_window_s: rate, latency and drop ratio in ``/diagnostics`` are over the
+            last this many seconds.
+        clock_mismatch_s: image stamps further than this from the node's clock (either way)
+            are a clock mismatch (typically a bag played with ``--clock`` into a node without
+            ``use_sim_time``): a warning, WARN in ``/diagnostics``, no latency figure.
+        drop_warn_ratio: ``/diagnostics`` WARNs when more than this fraction of the
+            synchronized sets in the window were dropped (mapping slower than the cameras).
+        stale_error_s: ``/diagnostics`` reports ERROR when images arrive but nothing was
+            mapped for this long, or when no image arrived for this long after some did.
     """
 
     cameras: tuple[str, ...]
@@ -69,16 +85,25 @@ class NodeConfig:
     use_tf: bool = True
     output_prefix: str = "bev"
     diagnostics_period_s: float = 1.0
+    diagnostics_window_s: float = 5.0
+    clock_mismatch_s: float = 10.0
+    drop_warn_ratio: float = 0.2
+    stale_error_s: float = 5.0
 
     def __post_init__(self) -> None:
         cams = tuple(self.cameras)
         object.__setattr__(self, "cameras", cams)
-        if not cams or any(not c or "/" in c for c in cams) or len(set(cams)) != len(cams):
+        if not cams:
+            raise NodeConfigError(no_cameras_message(self.rig))
+        if any(not c or "/" in c for c in cams) or len(set(cams)) != len(cams):
             raise NodeConfigError(f"cameras must be distinct non-empty names without '/', got {list(cams)}")
-        for name in ("sync_slop_s", "sync_timeout_s", "diagnostics_period_s"):
+        for name in ("sync_slop_s", "sync_timeout_s", "diagnostics_period_s", "diagnostics_window_s",
+                     "clock_mismatch_s", "stale_error_s"):
             v = getattr(self, name)
-            if not math.isfinite(v) or v <= 0:
+            if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
                 raise NodeConfigError(f"{name} must be > 0, got {v}")
+        if not (isinstance(self.drop_warn_ratio, (int, float)) and 0.0 <= self.drop_warn_ratio <= 1.0):
+            raise NodeConfigError(f"drop_warn_ratio must be in [0, 1], got {self.drop_warn_ratio}")
         if self.sync_timeout_s < self.sync_slop_s:
             raise NodeConfigError("sync_timeout_s must be >= sync_slop_s")
         for pat in (self.image_topic, self.camera_info_topic):
@@ -141,11 +166,6 @@ def node_default_threads() -> int:
     return max(1, cpus - 1)
 
 
-#: A ROS string array cannot be declared empty with a type; this placeholder stands for
-#: "none" (cameras: required, classes: all) and is dropped when the parameters are read.
-STRING_ARRAY_PLACEHOLDER = ("",)
-
-
 @dataclass(frozen=True)
 class ParamField:
     """Where a node parameter's value lives: ``owner.field`` (the owner holds its default).
@@ -167,11 +187,12 @@ class ParamField:
         return MISSING
 
     def declared_default(self):
-        """The default as the node declares it: ``None`` -> ``''``, tuples -> lists, an empty
-        or required string array -> :data:`STRING_ARRAY_PLACEHOLDER`."""
+        """The default as the node declares it: ``None`` -> ``''``, tuples -> lists; ``None``
+        for an empty, optional or required string array: ROS cannot infer the type of ``[]``,
+        so the node declares it typed and then sets it to ``[]`` (see ``params.py``)."""
         value = self.default()
         if self.string_array:
-            return list(value) if value is not MISSING and value else list(STRING_ARRAY_PLACEHOLDER)
+            return list(value) if value is not MISSING and value else None
         if value is MISSING:
             raise TypeError(f"{self.owner.__name__}.{self.field} has no default to declare")
         return "" if value is None else value
@@ -190,7 +211,8 @@ class ParamField:
         return value
 
 
-#: Node parameter name -> the dataclass field it sets, in declaration order. ``extrinsics.<cam>``
+#: Node parameter name -> the dataclass field it sets, in declaration order (``rig`` first: a
+#: preset rig gives the defaults of ``cameras`` and ``extrinsics.<cam>``). ``extrinsics.<cam>``
 #: parameters are declared per camera on top of these.
 PARAM_FIELDS: dict[str, ParamField] = {
     "rig": ParamField(NodeConfig, "rig"),
@@ -215,7 +237,21 @@ PARAM_FIELDS: dict[str, ParamField] = {
     "use_tf": ParamField(NodeConfig, "use_tf"),
     "output_prefix": ParamField(NodeConfig, "output_prefix"),
     "diagnostics_period_s": ParamField(NodeConfig, "diagnostics_period_s"),
+    "diagnostics_window_s": ParamField(NodeConfig, "diagnostics_window_s"),
+    "clock_mismatch_s": ParamField(NodeConfig, "clock_mismatch_s"),
+    "drop_warn_ratio": ParamField(NodeConfig, "drop_warn_ratio"),
+    "stale_error_s": ParamField(NodeConfig, "stale_error_s"),
 }
+
+#: Parameters that may change while the node runs (``ros2 param set``): the diagnostics'
+#: period, window and thresholds. The others are read-only (they shape subscriptions, the
+#: mapper or its lookup tables). All are :class:`NodeConfig` fields.
+RUNTIME_PARAMETERS: tuple[str, ...] = (
+    "diagnostics_period_s", "diagnostics_window_s", "clock_mismatch_s", "drop_warn_ratio", "stale_error_s",
+)
+
+#: Parameters every rclpy node has (``use_sim_time``, ...): known, never reported as unknown.
+ROS_PARAMETERS: tuple[str, ...] = ("use_sim_time", "start_type_description_service")
 
 
 def parameter_defaults() -> dict:
@@ -223,15 +259,65 @@ def parameter_defaults() -> dict:
     return {name: pf.declared_default() for name, pf in PARAM_FIELDS.items()}
 
 
+def preset_parameters(rig: str) -> dict:
+    """What a preset rig sets when the parameters do not: ``cameras`` and ``extrinsics.<cam>``.
+
+    The same values as the shipped ``config/<rig>.yaml`` (both come from
+    :func:`bev_mapper_ros.rig_params.rig_parameters`); ``{}`` for a name that is no preset.
+    """
+    if rig not in PRESETS:
+        return {}
+    params = rig_parameters(preset_rig(rig))
+    out = {"cameras": list(params["cameras"])}
+    out.update({f"extrinsics.{cam}": list(v) for cam, v in params["extrinsics"].items()})
+    return out
+
+
+def no_cameras_message(rig: str) -> str:
+    """The error for a node without cameras: how to choose a rig (and which ones exist)."""
+    presets = "|".join(PRESETS)
+    how = (f"choose a preset rig with -p rig:=<{presets}> (its cameras, topics and extrinsics), "
+           f"or --params-file <share>/config/<rig>.yaml, or set cameras:=[...] with "
+           f"extrinsics.<camera> (or TF); `mapper_node --help` lists the parameters")
+    if rig:
+        return f"rig {rig!r} is no preset ({', '.join(PRESETS)}) and no cameras are given: {how}"
+    return f"no rig and no cameras configured: {how}"
+
+
+def unknown_parameter_messages(given, cameras) -> list[str]:
+    """One warning per given parameter the node does not know, naming the closest valid one.
+
+    ``given``: names set by the command line / params files; ``cameras``: the configured
+    cameras (``extrinsics.<cam>`` is known for those). ROS's own (:data:`ROS_PARAMETERS`,
+    ``qos_overrides.*``) are known.
+    """
+    known = [*PARAM_FIELDS, *(f"extrinsics.{c}" for c in cameras), *ROS_PARAMETERS]
+    out = []
+    for name in sorted(set(given) - set(known)):
+        if name.startswith("qos_overrides."):
+            continue
+        if name.startswith("extrinsics."):
+            out.append(f"parameter {name!r} ignored: {name.split('.', 1)[1]!r} is not one of the "
+                       f"cameras {list(cameras)}")
+            continue
+        close = difflib.get_close_matches(name, known, n=1, cutoff=0.6)
+        hint = f"; did you mean {close[0]!r}?" if close else "; `mapper_node --help` lists the parameters"
+        out.append(f"unknown parameter {name!r} ignored{hint}")
+    return out
+
+
 def node_config_from_params(p: dict) -> NodeConfig:
     """Build a :class:`NodeConfig` from a flat parameter dict (names as the node declares them).
 
-    Missing parameters take the dataclass defaults; ``threads`` 0 becomes
+    Missing parameters take the dataclass defaults; a preset ``rig`` gives the cameras and
+    extrinsics that ``p`` leaves empty (:func:`preset_parameters`); ``threads`` 0 becomes
     :func:`node_default_threads`.
 
     Raises:
         NodeConfigError / ConfigError / GridError: with a message naming the bad parameter.
     """
+    p = {**preset_parameters(str(p.get("rig") or "")),
+         **{k: v for k, v in p.items() if not (k == "cameras" or k.startswith("extrinsics.")) or list(v or ())}}
     kwargs: dict[type, dict] = {NodeConfig: {}, MapperConfig: {}, BevGrid: {}}
     for name, pf in PARAM_FIELDS.items():
         if name in p:
@@ -248,3 +334,18 @@ def node_config_from_params(p: dict) -> NodeConfig:
         if T is not None:
             ext[cam] = T
     return NodeConfig(cameras=cameras, mapper=mapper, grid=grid, extrinsics=tuple(ext.items()), **node_kw)
+
+
+def with_runtime_parameters(cfg: NodeConfig, changes: dict) -> NodeConfig:
+    """``cfg`` with new values of :data:`RUNTIME_PARAMETERS` (name -> value), validated by
+    :class:`NodeConfig` itself.
+
+    Raises:
+        NodeConfigError: a value out of range, or a parameter that cannot change at run time.
+    """
+    kwargs = {}
+    for name, value in changes.items():
+        if name not in RUNTIME_PARAMETERS:
+            raise NodeConfigError(f"{name} cannot change while the node runs (restart it)")
+        kwargs[PARAM_FIELDS[name].field] = PARAM_FIELDS[name].from_param(value)
+    return replace(cfg, **kwargs)

@@ -1,29 +1,45 @@
 """The BEV mapper node: synchronized camera images in, per-class OccupancyGrids out.
 
+    ros2 run bev_mapper_ros mapper_node --ros-args -p rig:=surround6
     ros2 run bev_mapper_ros mapper_node --ros-args --params-file <share>/config/surround6.yaml
+    ros2 run bev_mapper_ros mapper_node --help     # usage and every parameter
 
 Callbacks only convert stamps and feed the synchronizer; complete (or timed-out partial) sets
 go to a one-slot mailbox; a worker thread decodes, maps and publishes. Bad input is logged
 (throttled), counted in ``/diagnostics`` and skipped: the node keeps running.
+
+Outputs ``<output_prefix>/<class>`` (``nav_msgs/OccupancyGrid``) and ``<output_prefix>/image``
+are published RELIABLE + TRANSIENT_LOCAL with depth 1 (:data:`OUTPUT_QOS`): volatile
+subscribers match, and a late transient-local one (RViz's Map display, Nav2) gets the last
+grid. Their publishers exist from start-up (the classes are known once the configuration
+passed its preflight), so ``ros2 topic echo /bev/drivable`` finds the type before data flows.
+
+SIGINT / SIGTERM stop the node cleanly: the worker finishes (or abandons) its frame, nothing
+is logged as an error, exit status 0.
 """
 
 from __future__ import annotations
 
+import signal
 import sys
+import threading
 import time
 
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from nav_msgs.msg import OccupancyGrid
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.exceptions import NameValidationException, ParameterException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, qos_profile_sensor_data
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from bev_mapper_core.classes import bev_picture
 from bev_mapper_core.errors import BevMapperError
-from bev_mapper_core.mapper import create_mapper, preflight
+from bev_mapper_core.mapper import create_mapper, output_classes, preflight
 from msg_adapters import (
     FrameSynchronizer,
     RclpyFactory,
@@ -37,12 +53,21 @@ from msg_adapters import (
 )
 
 from .calibration import LiveCalibration
-from .config import node_config_from_params
-from .params import declare_parameters, read_parameters
-from .stats import NodeStats, diagnostic_values
+from .command_line import CommandLineError, check_command_line, rcl_message, wants_help
+from .config import RUNTIME_PARAMETERS, NodeConfigError, node_config_from_params, with_runtime_parameters
+from .params import declare_parameters, parameter_help, read_parameters
+from .stats import NodeStats, clock_mismatch_text, diagnostic_values
 from .worker import LatestSlot, Worker
 
 THROTTLE_S = 5.0
+#: QoS of the grids and the picture: reliable, transient local, depth 1. Volatile subscribers
+#: match it too; a transient-local one that comes late (RViz Map display, Nav2) gets the last.
+OUTPUT_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+class _ShuttingDown(Exception):
+    """The node stops: the worker abandons its frame without a word."""
 
 
 def _tf_lookup_for(node: Node):
@@ -71,19 +96,21 @@ class MapperNode(Node):
 
     def __init__(self, **kwargs) -> None:
         super().__init__("mapper_node", **kwargs)
-        declare_parameters(self)
+        for text in declare_parameters(self):  # unknown parameters: before an error they may explain
+            self.get_logger().warning(text)
         self.cfg = node_config_from_params(read_parameters(self))  # raises on bad parameters
         cfg = self.cfg
         preflight(cfg.mapper, cfg.rig, cfg.grid, cfg.cameras)  # e.g. missing weights: fail now
+        self.class_names = output_classes(cfg.mapper, cfg.rig)
         self.factory = RclpyFactory()
         self.stats = NodeStats()
         self._last_logged: dict[str, float] = {}
+        self._stopping = threading.Event()
         self.mapper = None
         self._mapper_version = -1
-        use_tf = cfg.use_tf
         self.calibration = LiveCalibration(
             cfg.rig, cfg.cameras, cfg.base_frame,
-            dict(cfg.extrinsics), _tf_lookup_for(self) if use_tf else None,
+            dict(cfg.extrinsics), _tf_lookup_for(self) if cfg.use_tf else None,
         )
         self.sync = FrameSynchronizer(cfg.cameras, cfg.sync_config(), callback=self._on_set)
         self.slot: LatestSlot = LatestSlot()
@@ -96,26 +123,63 @@ class MapperNode(Node):
                 image_type, cfg.image_topic_for(cam), self._image_cb(cam), qos_profile_sensor_data))
             self._subs.append(self.create_subscription(
                 CameraInfo, cfg.camera_info_topic_for(cam), self._info_cb(cam), qos_profile_sensor_data))
-        self.classes = None  # set with the mapper
-        self._grid_pubs = {}
-        self._image_pub = self.create_publisher(Image, f"{cfg.output_prefix}/image", QoSProfile(depth=2))
+        self._grid_pubs = {c: self.create_publisher(OccupancyGrid, f"{cfg.output_prefix}/{c}", OUTPUT_QOS)
+                           for c in self.class_names}
+        self._image_pub = self.create_publisher(Image, f"{cfg.output_prefix}/image", OUTPUT_QOS)
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", QoSProfile(depth=10))
         self.create_timer(min(0.05, cfg.sync_timeout_s / 2), self._poll_sync)
-        self.create_timer(cfg.diagnostics_period_s, self._publish_diagnostics)
+        self._diag_timer = self.create_timer(cfg.diagnostics_period_s, self._publish_diagnostics)
+        self.add_on_set_parameters_callback(self._validate_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
         self.worker.start()
         self.get_logger().info(
             f"mapping {list(cfg.cameras)} with {cfg.mapper.method} ({cfg.mapper.input_kind}) onto "
-            f"{cfg.grid.describe()} in {cfg.base_frame}; waiting for camera_info and extrinsics"
+            f"{cfg.grid.describe()} in {cfg.base_frame}; publishing {list(self.class_names)} on "
+            f"{cfg.output_prefix}/<class>; waiting for camera_info and extrinsics"
         )
+
+    # ---------------------------------------------------------------- parameters
+    def _runtime_changes(self, params) -> dict:
+        return {p.name: p.value for p in params if p.name in RUNTIME_PARAMETERS}
+
+    def _validate_parameters(self, params) -> SetParametersResult:
+        """Accept a run-time change only if :class:`NodeConfig` accepts the new values."""
+        try:
+            with_runtime_parameters(self.cfg, self._runtime_changes(params))
+        except NodeConfigError as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        return SetParametersResult(successful=True)
+
+    def _apply_parameters(self, params) -> None:
+        changes = self._runtime_changes(params)
+        if not changes:
+            return
+        old, self.cfg = self.cfg, with_runtime_parameters(self.cfg, changes)
+        if self.cfg.diagnostics_period_s != old.diagnostics_period_s:
+            self._diag_timer.timer_period_ns = round(self.cfg.diagnostics_period_s * 1e9)
+        self.get_logger().info("parameters changed: " + ", ".join(f"{k}={v}" for k, v in changes.items()))
 
     # ---------------------------------------------------------------- callbacks
     def _now_ns(self) -> int:
         return self.get_clock().now().nanoseconds
 
+    def _use_sim_time(self) -> bool:
+        return bool(self.get_parameter("use_sim_time").value)
+
     def _image_cb(self, cam: str):
         def cb(msg) -> None:
+            now = self._now_ns()
             try:
-                self.sync.add(cam, header_stamp_ns(msg), msg, now_ns=self._now_ns())
+                stamp = header_stamp_ns(msg)
+            except BevMapperError as exc:
+                self._bad_input(f"{cam}: {exc}", f"{cam}:stamp")
+                return
+            skew_s = (now - stamp) / 1e9
+            self.stats.record_input(time.monotonic(), skew_s)
+            if abs(skew_s) > self.cfg.clock_mismatch_s:
+                self._throttled_warning("clock", clock_mismatch_text(skew_s, self._use_sim_time(), now))
+            try:
+                self.sync.add(cam, stamp, msg, now_ns=now)
             except BevMapperError as exc:
                 self._bad_input(f"{cam}: {exc}", f"{cam}:stamp")
         return cb
@@ -137,11 +201,9 @@ class MapperNode(Node):
     def _on_set(self, synced) -> None:
         self.slot.put(synced)
 
-    def _bad_input(self, message: str, key: str = "") -> None:
-        """Count a rejected input; log it at most every THROTTLE_S per ``key`` (camera + problem)."""
-        self.stats.record_bad_input(message)
+    def _throttled_warning(self, key: str, message: str) -> None:
+        """Log ``message`` at most every THROTTLE_S per ``key``."""
         now = time.monotonic()
-        key = key or message
         with self.stats.lock:
             last = self._last_logged.get(key)
             if last is not None and now - last < THROTTLE_S:
@@ -149,7 +211,14 @@ class MapperNode(Node):
             self._last_logged[key] = now
         self.get_logger().warning(message)
 
+    def _bad_input(self, message: str, key: str = "") -> None:
+        """Count a rejected input; log it at most every THROTTLE_S per ``key`` (camera + problem)."""
+        self.stats.record_bad_input(message)
+        self._throttled_warning(key or message, message)
+
     def _on_worker_error(self, exc: BaseException) -> None:
+        if isinstance(exc, _ShuttingDown) or self._stopping.is_set() or not self.context.ok():
+            return  # the node stops: the frame is abandoned, nothing to report
         self.stats.record_error(f"{type(exc).__name__}: {exc}")
         self.get_logger().error(f"mapping failed: {type(exc).__name__}: {exc}", throttle_duration_sec=THROTTLE_S)
 
@@ -167,13 +236,12 @@ class MapperNode(Node):
         rig = self.calibration.rig()
         if self.mapper is None:
             self.mapper = create_mapper(rig, self.cfg.grid, self.cfg.mapper)
-            self.classes = self.mapper.classes
-            for c in self.classes:
-                self._grid_pubs[c.name] = self.create_publisher(
-                    OccupancyGrid, f"{self.cfg.output_prefix}/{c.name}", QoSProfile(depth=2))
+            if tuple(self.mapper.class_names) != tuple(self.class_names):
+                raise BevMapperError(f"the mapper produces {list(self.mapper.class_names)}, "
+                                     f"not the announced {list(self.class_names)}")
             self.get_logger().info(
                 f"calibration complete (extrinsics from {self.calibration.sources()}); publishing "
-                f"{[c.name for c in self.classes]} on {self.cfg.output_prefix}/<class>")
+                f"{list(self.class_names)} on {self.cfg.output_prefix}/<class>")
         elif self._mapper_version != self.calibration.version:
             self.mapper.set_rig(rig)
             self.get_logger().info("calibration changed: lookup tables recomputed")
@@ -199,8 +267,19 @@ class MapperNode(Node):
             self._bad_input(f"{cam}: {exc}", f"{cam}:image")
             return None
 
+    def _publish(self, pub, msg) -> None:
+        """Publish unless the node stops (then :class:`_ShuttingDown`: the frame is abandoned)."""
+        if self._stopping.is_set() or not self.context.ok():
+            raise _ShuttingDown()
+        try:
+            pub.publish(msg)
+        except Exception:
+            if self._stopping.is_set() or not self.context.ok():
+                raise _ShuttingDown() from None
+            raise
+
     def _process(self, synced) -> None:
-        if not self._ensure_mapper():
+        if self._stopping.is_set() or not self._ensure_mapper():
             return
         t0 = time.perf_counter()
         images = {}
@@ -213,22 +292,23 @@ class MapperNode(Node):
             return
         pred = self.mapper.map(images, stamp_ns=synced.stamp_ns)
         stamp = synced.stamp_ns
-        for ci, c in enumerate(self.classes):
+        for ci, name in enumerate(self.class_names):
             msg = make_occupancy_grid(self.factory, self.cfg.grid, pred.probs[ci], pred.known,
                                       stamp, self.cfg.base_frame)
-            self._grid_pubs[c.name].publish(msg)
-        picture = bev_picture(self.cfg.grid, pred.probs, self.classes, pred.known)
-        self._image_pub.publish(make_image(self.factory, picture, "rgb8", stamp, self.cfg.base_frame))
+            self._publish(self._grid_pubs[name], msg)
+        picture = bev_picture(self.cfg.grid, pred.probs, self.mapper.classes, pred.known)
+        self._publish(self._image_pub, make_image(self.factory, picture, "rgb8", stamp, self.cfg.base_frame))
         processing_ms = (time.perf_counter() - t0) * 1000.0
-        latency_ms = (self._now_ns() - stamp) / 1e6
+        latency_s = (self._now_ns() - stamp) / 1e9
+        latency_ms = latency_s * 1000.0 if abs(latency_s) <= self.cfg.clock_mismatch_s else None
         self.stats.record_mapped(time.monotonic(), processing_ms, latency_ms, missing)
 
     # -------------------------------------------------------------- diagnostics
     def _publish_diagnostics(self) -> None:
         s = self.sync.stats
         dropped = self.slot.dropped + s.late + s.overflow + s.dropped_on_reset
-        level, text, values = diagnostic_values(
-            self.stats, time.monotonic(), max(self.cfg.diagnostics_period_s, 1.0), dropped)
+        level, text, values = diagnostic_values(self.stats, time.monotonic(), self.cfg, dropped)
+        values["use_sim_time"] = str(self._use_sim_time()).lower()
         status = DiagnosticStatus(level=bytes([level]), name=f"{self.get_name()}: bev mapper",
                                   message=text, hardware_id=self.calibration.rig_name)
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
@@ -236,16 +316,63 @@ class MapperNode(Node):
         msg.header.stamp = self.get_clock().now().to_msg()
         self._diag_pub.publish(msg)
 
+    def stop(self) -> None:
+        """Stop the worker: its current frame is finished or abandoned, quietly."""
+        self._stopping.set()
+        self.worker.stop()
+
     def destroy_node(self) -> None:
         """Stop the worker before the node goes away."""
-        self.worker.stop()
+        self.stop()
         super().destroy_node()
 
 
+class _StopSignals:
+    """SIGINT and SIGTERM set :attr:`event` (no KeyboardInterrupt, no rcl shutdown under the
+    worker's feet): the node then stops in order, worker first, and exits 0."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+        for sig in self.SIGNALS:
+            signal.signal(sig, self._handler)
+
+    def _handler(self, signum, frame) -> None:
+        self.event.set()
+
+
+def _spin(node: Node, stop: threading.Event) -> None:
+    """Spin ``node`` until ``stop`` is set or its context shuts down."""
+    executor = SingleThreadedExecutor(context=node.context)
+    executor.add_node(node)
+    try:
+        while not stop.is_set() and node.context.ok():
+            executor.spin_once(timeout_sec=0.1)
+    except ExternalShutdownException:
+        pass
+    finally:
+        executor.remove_node(node)
+        executor.shutdown(timeout_sec=1.0)
+
+
 def main(args=None) -> int:
-    """Entry point of ``mapper_node``: bad parameters exit 2 with ``error: ...``."""
-    rclpy.init(args=args)
-    node = None
+    """Entry point of ``mapper_node``: ``--help`` prints the parameters; bad parameters or
+    command line exit 2 with ``error: ...``; SIGINT / SIGTERM exit 0."""
+    argv = list(sys.argv if args is None else args)
+    if wants_help(argv):
+        sys.stdout.write(parameter_help())
+        return 0
+    try:
+        check_command_line(argv)
+        rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    except CommandLineError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except Exception as exc:  # noqa: BLE001 - rcl's argument errors (RCLError)
+        print(f"error: {rcl_message(exc)}", file=sys.stderr)
+        return 2
+    signals = _StopSignals()  # from here on, a signal means: stop cleanly
     try:
         node = MapperNode()
     except (BevMapperError, ParameterException, NameValidationException) as exc:
@@ -253,9 +380,7 @@ def main(args=None) -> int:
         rclpy.try_shutdown()
         return 2
     try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
-        pass
+        _spin(node, signals.event)
     finally:
         node.destroy_node()
         rclpy.try_shutdown()

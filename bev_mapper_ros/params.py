@@ -1,103 +1,213 @@
-"""ROS parameter declarations of the mapper node, with descriptors and validation.
+"""ROS parameter declarations of the mapper node, with descriptors, validation and ``--help``.
 
 Every parameter maps onto a field of :class:`bev_mapper_ros.config.NodeConfig` (or the core
 dataclasses inside it, see :data:`bev_mapper_ros.config.PARAM_FIELDS`), whose default it
 declares; :func:`declare_parameters` declares them on a node and
 :func:`read_parameters` reads them back as the flat dict that
-:func:`bev_mapper_ros.config.node_config_from_params` takes.
+:func:`bev_mapper_ros.config.node_config_from_params` takes. :func:`parameter_help` prints
+the same table for ``mapper_node --help``.
+
+Unknown parameters (typos) are found by comparing the names the command line and params files
+set for this node (rclpy keeps them as ``Node._parameter_overrides``; there is no public
+accessor, and ``automatically_declare_parameters_from_overrides`` fails on an empty list in a
+params file) with the declared ones.
+
+Empty arrays: ROS infers a parameter's type from its value and cannot from ``[]``, so an array
+parameter without a value (``classes``, or ``cameras`` without a preset rig) is declared typed
+and writable, set to ``[]`` of its type, then given its read-only descriptor: ``ros2 param get``
+shows ``[]`` and ``ros2 param dump`` works (an unset parameter empties a whole dump).
 """
 
 from __future__ import annotations
+
+import textwrap
 
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, ParameterType
 from rclpy.exceptions import ParameterUninitializedException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+from bev_mapper_core.classes import BEV_CLASS_NAMES
 from bev_mapper_core.mapper import INPUT_KINDS, available_methods
+from bev_mapper_core.rig import PRESETS
 
-from .config import PARAM_FIELDS, NodeConfigError, parameter_defaults
+from .config import (
+    PARAM_FIELDS, RUNTIME_PARAMETERS, NodeConfigError, parameter_defaults, preset_parameters,
+    unknown_parameter_messages,
+)
 
 _T = ParameterType
-# name -> (type, read_only, description); the default comes from the dataclass field the
-# parameter sets (config.PARAM_FIELDS), never from here.
+# name -> (type, description); the default comes from the dataclass field the parameter sets
+# (config.PARAM_FIELDS), read-only-ness from config.RUNTIME_PARAMETERS, never from here.
 _DECLARATIONS: dict[str, tuple] = {
-    "rig": (_T.PARAMETER_STRING, True, "rig name (selects shipped default weights)"),
-    "cameras": (_T.PARAMETER_STRING_ARRAY, True, "camera names, in rig order"),
-    "input_kind": (_T.PARAMETER_STRING, True, f"one of {list(INPUT_KINDS)}"),
-    "image_topic": (_T.PARAMETER_STRING, True,
+    "rig": (_T.PARAMETER_STRING,
+            f"rig name; a preset ({', '.join(PRESETS)}) gives the cameras and their extrinsics unless "
+            "cameras / extrinsics.<camera> are set, and selects the shipped weights"),
+    "cameras": (_T.PARAMETER_STRING_ARRAY, "camera names, in rig order ([] = the preset rig's)"),
+    "input_kind": (_T.PARAMETER_STRING, f"one of {list(INPUT_KINDS)}"),
+    "image_topic": (_T.PARAMETER_STRING,
                     "image topic pattern with {camera}; '' = /cameras/{camera}/labels or /image_raw"),
-    "camera_info_topic": (_T.PARAMETER_STRING, True, "CameraInfo topic pattern with {camera}"),
-    "compressed": (_T.PARAMETER_BOOL, True, "subscribe to <image_topic>/compressed"),
-    "method": (_T.PARAMETER_STRING, True,
+    "camera_info_topic": (_T.PARAMETER_STRING, "CameraInfo topic pattern with {camera}"),
+    "compressed": (_T.PARAMETER_BOOL, "subscribe to <image_topic>/compressed"),
+    "method": (_T.PARAMETER_STRING,
                f"mapping method, one of {list(available_methods())} (bimapper: shipped weights per rig)"),
-    "weights": (_T.PARAMETER_STRING, True, "safetensors weights ('' = shipped default)"),
-    "device": (_T.PARAMETER_STRING, True, "torch device of learned methods"),
-    "threads": (_T.PARAMETER_INTEGER, True,
-                "CPU threads of learned methods; 0 = all CPUs but one (left to the callbacks)"),
-    "classes": (_T.PARAMETER_STRING_ARRAY, True, "classes to publish ([] = all)"),
-    "grid.x_min": (_T.PARAMETER_DOUBLE, True, "grid extent along x (m)"),
-    "grid.x_max": (_T.PARAMETER_DOUBLE, True, "grid extent along x (m)"),
-    "grid.y_min": (_T.PARAMETER_DOUBLE, True, "grid extent along y (m)"),
-    "grid.y_max": (_T.PARAMETER_DOUBLE, True, "grid extent along y (m)"),
-    "grid.resolution": (_T.PARAMETER_DOUBLE, True, "cell size (m)"),
-    "base_frame": (_T.PARAMETER_STRING, True, "frame of the output grids"),
-    "sync_slop_s": (_T.PARAMETER_DOUBLE, True, "max stamp spread in a synchronized set (s)"),
-    "sync_timeout_s": (_T.PARAMETER_DOUBLE, True, "wait for missing cameras this long (s)"),
-    "use_tf": (_T.PARAMETER_BOOL, True, "look extrinsics up in TF when tf2_ros is importable"),
-    "output_prefix": (_T.PARAMETER_STRING, True, "output topics: <prefix>/<class>, <prefix>/image"),
-    "diagnostics_period_s": (_T.PARAMETER_DOUBLE, True, "period of /diagnostics (s)"),
+    "weights": (_T.PARAMETER_STRING, "safetensors weights ('' = shipped default)"),
+    "device": (_T.PARAMETER_STRING, "torch device of learned methods"),
+    "threads": (_T.PARAMETER_INTEGER, "CPU threads of learned methods; 0 = all CPUs but one (left to the callbacks)"),
+    "classes": (_T.PARAMETER_STRING_ARRAY,
+                f"classes to publish, of {list(BEV_CLASS_NAMES)} or the weights' ([] = all)"),
+    "grid.x_min": (_T.PARAMETER_DOUBLE, "grid extent along x (m)"),
+    "grid.x_max": (_T.PARAMETER_DOUBLE, "grid extent along x (m)"),
+    "grid.y_min": (_T.PARAMETER_DOUBLE, "grid extent along y (m)"),
+    "grid.y_max": (_T.PARAMETER_DOUBLE, "grid extent along y (m)"),
+    "grid.resolution": (_T.PARAMETER_DOUBLE, "cell size (m)"),
+    "base_frame": (_T.PARAMETER_STRING, "frame of the output grids"),
+    "sync_slop_s": (_T.PARAMETER_DOUBLE, "max stamp spread in a synchronized set (s)"),
+    "sync_timeout_s": (_T.PARAMETER_DOUBLE, "wait for missing cameras this long (s)"),
+    "use_tf": (_T.PARAMETER_BOOL, "look extrinsics up in TF when tf2_ros is importable"),
+    "output_prefix": (_T.PARAMETER_STRING, "output topics: <prefix>/<class>, <prefix>/image"),
+    "diagnostics_period_s": (_T.PARAMETER_DOUBLE, "period of /diagnostics (s)"),
+    "diagnostics_window_s": (_T.PARAMETER_DOUBLE, "rate, latency and drop ratio in /diagnostics: over this window (s)"),
+    "clock_mismatch_s": (_T.PARAMETER_DOUBLE,
+                         "image stamps further than this from the node's clock: warning and WARN "
+                         "(use_sim_time:=true missing?) (s)"),
+    "drop_warn_ratio": (_T.PARAMETER_DOUBLE, "WARN when more than this fraction of the sets in the window is dropped"),
+    "stale_error_s": (_T.PARAMETER_DOUBLE,
+                      "ERROR when images arrive but nothing is mapped for this long, or images stop (s)"),
 }
 _DEFAULTS = parameter_defaults()
-# name -> (default, type, read_only, description), in PARAM_FIELDS order
-PARAMETERS: dict[str, tuple] = {name: (_DEFAULTS[name], *_DECLARATIONS[name]) for name in PARAM_FIELDS}
+# name -> (default, type, read_only, description), in PARAM_FIELDS order; default None = an empty
+# string array (declared typed, then set to [], see the module docstring)
+PARAMETERS: dict[str, tuple] = {
+    name: (_DEFAULTS[name], _DECLARATIONS[name][0], name not in RUNTIME_PARAMETERS, _DECLARATIONS[name][1])
+    for name in PARAM_FIELDS
+}
+# ROS-side ranges (shown by ros2 param describe); NodeConfig validates every value again, and
+# alone the thresholds (its error message is the reason a rejected `ros2 param set` gives).
 _RANGES = {
     "sync_slop_s": (0.0, 10.0),
     "sync_timeout_s": (0.001, 60.0),
     "diagnostics_period_s": (0.05, 60.0),
     "grid.resolution": (0.01, 10.0),
 }
+_TYPE_NAMES = {
+    _T.PARAMETER_STRING: "string", _T.PARAMETER_BOOL: "bool", _T.PARAMETER_INTEGER: "integer",
+    _T.PARAMETER_DOUBLE: "double", _T.PARAMETER_STRING_ARRAY: "string array", _T.PARAMETER_DOUBLE_ARRAY: "double array",
+}
+_EXTRINSICS_TEXT = "ego_from_cam [x, y, z, qx, qy, qz, qw], used when TF has none (default: the preset rig's)"
 
 
-def declare_parameters(node: Node) -> None:
-    """Declare every node parameter, then ``extrinsics.<camera>`` for each configured camera."""
-    for name, (default, ptype, read_only, text) in PARAMETERS.items():
-        desc = ParameterDescriptor(name=name, type=ptype, read_only=read_only, description=text)
-        if name in _RANGES:
-            lo, hi = _RANGES[name]
-            desc.floating_point_range = [FloatingPointRange(from_value=lo, to_value=hi, step=0.0)]
-        if name == "method":
-            desc.additional_constraints = f"one of {list(available_methods())}"
-        node.declare_parameter(name, default, desc)
+def descriptor(name: str) -> ParameterDescriptor:
+    """The descriptor of one of the node's parameters (type, read-only, text, range)."""
+    _, ptype, read_only, text = PARAMETERS[name]
+    desc = ParameterDescriptor(name=name, type=ptype, read_only=read_only, description=text)
+    if name in _RANGES:
+        lo, hi = _RANGES[name]
+        desc.floating_point_range = [FloatingPointRange(from_value=lo, to_value=hi, step=0.0)]
+    if name == "method":
+        desc.additional_constraints = f"one of {list(available_methods())}"
+    elif name == "input_kind":
+        desc.additional_constraints = f"one of {list(INPUT_KINDS)}"
+    elif name == "rig":
+        desc.additional_constraints = f"a preset ({', '.join(PRESETS)}), or any name with cameras set"
+    return desc
+
+
+def _declare(node: Node, name: str, value, desc: ParameterDescriptor) -> None:
+    """Declare ``name`` with ``desc``; a given value (override) wins over ``value``.
+
+    ``value`` None (an array): declared typed, ``[]`` unless given (see the module docstring).
+    """
+    if value is not None:
+        node.declare_parameter(name, value, desc)
+        return
+    ptype = Parameter.Type(desc.type)
+    node.declare_parameter(name, ptype, ParameterDescriptor(name=name, type=desc.type, description=desc.description))
+    try:
+        node.get_parameter(name)
+    except ParameterUninitializedException:
+        result = node.set_parameters([Parameter(name, ptype, [])])[0]
+        if not result.successful:
+            raise NodeConfigError(f"{name}: {result.reason}") from None
+    node.set_descriptor(name, desc)
+
+
+def _value(node: Node, name: str, empty):
+    """The parameter's value; ``empty`` when it is declared without one."""
+    try:
+        value = node.get_parameter(name).value
+    except ParameterUninitializedException:
+        return empty
+    return empty if value is None else value
+
+
+def declare_parameters(node: Node) -> list[str]:
+    """Declare every node parameter, then ``extrinsics.<camera>`` for each configured camera.
+
+    ``rig`` comes first: a preset rig gives the defaults of ``cameras`` and
+    ``extrinsics.<camera>`` (:func:`~bev_mapper_ros.config.preset_parameters`), so
+    ``ros2 param get`` shows the values in use. Returns one warning per given parameter that
+    is not the node's (a typo).
+    """
+    given = set(getattr(node, "_parameter_overrides", {}))  # see the module docstring
+    preset: dict = {}
+    for name, (default, _ptype, _ro, _text) in PARAMETERS.items():
+        _declare(node, name, preset.get(name, default), descriptor(name))
+        if name == "rig":
+            preset = preset_parameters(node.get_parameter("rig").value)
     cams = cameras_of(node)
     if len(set(cams)) != len(cams):
         raise NodeConfigError(f"cameras must be distinct, got {cams}")
     for cam in cams:
-        node.declare_parameter(
-            f"extrinsics.{cam}",
-            Parameter.Type.DOUBLE_ARRAY,  # typed, no value unless the params file gives one
-            ParameterDescriptor(
-                name=f"extrinsics.{cam}",
-                type=_T.PARAMETER_DOUBLE_ARRAY,
-                read_only=True,
-                description="ego_from_cam [x, y, z, qx, qy, qz, qw], used when TF has none",
-            ),
-        )
+        name = f"extrinsics.{cam}"
+        _declare(node, name, preset.get(name), ParameterDescriptor(
+            name=name, type=_T.PARAMETER_DOUBLE_ARRAY, read_only=True, description=_EXTRINSICS_TEXT))
+    return unknown_parameter_messages(given, cams)
 
 
 def cameras_of(node: Node) -> list[str]:
-    """The ``cameras`` parameter without empty entries."""
-    return [c for c in node.get_parameter("cameras").value if c]
+    """The ``cameras`` parameter ([] when not set)."""
+    return [c for c in _value(node, "cameras", []) if c]
 
 
 def read_parameters(node: Node) -> dict:
-    """Flat dict ``name -> value`` of the declared parameters (placeholders become empty)."""
-    out = {name: node.get_parameter(name).value for name in PARAMETERS}
+    """Flat dict ``name -> value`` of the declared parameters (not set -> empty)."""
+    out = {name: _value(node, name, []) for name in PARAMETERS}
     out["cameras"] = cameras_of(node)
-    out["classes"] = [c for c in out["classes"] if c]
     for cam in out["cameras"]:
-        try:
-            out[f"extrinsics.{cam}"] = list(node.get_parameter(f"extrinsics.{cam}").value)
-        except ParameterUninitializedException:
-            out[f"extrinsics.{cam}"] = []
+        out[f"extrinsics.{cam}"] = list(_value(node, f"extrinsics.{cam}", []))
     return out
+
+
+def _shown(name: str, default) -> str:
+    if default is None:
+        return "[]"
+    if isinstance(default, bool):
+        return str(default).lower()
+    return repr(default) if isinstance(default, str) else str(default)
+
+
+def parameter_help(prog: str = "mapper_node") -> str:
+    """``--help`` text: usage, how to choose a rig, and every parameter (name, type, default,
+    whether it can change at run time, description), from the same table the node declares."""
+    presets = "|".join(PRESETS)
+    lines = [
+        f"usage: {prog} [-h] --ros-args [--params-file FILE] [-p NAME:=VALUE ...]",
+        "",
+        "BEV mapper node: synchronized camera images in, one nav_msgs/OccupancyGrid per class out",
+        "(<output_prefix>/<class>, <output_prefix>/image, /diagnostics).",
+        "",
+        "Choose a rig: -p rig:=<" + presets + "> (a preset's cameras, topics and extrinsics), or",
+        "--params-file <share>/config/<rig>.yaml (ros2 pkg prefix --share bev_mapper_ros), or",
+        "cameras:=[...] with extrinsics.<camera> (or TF). Explicit values override the preset.",
+        "A bag played with --clock needs -p use_sim_time:=true.",
+        "",
+        "parameters (name: type = default; [runtime] = may change with ros2 param set):",
+    ]
+    for name, (default, ptype, read_only, text) in PARAMETERS.items():
+        flag = "" if read_only else " [runtime]"
+        lines.append(f"  {name}: {_TYPE_NAMES[ptype]} = {_shown(name, default)}{flag}")
+        lines.extend(textwrap.wrap(text, 96, initial_indent=" " * 6, subsequent_indent=" " * 6))
+    lines.append("  extrinsics.<camera>: double array = []")
+    lines.extend(textwrap.wrap(_EXTRINSICS_TEXT, 96, initial_indent=" " * 6, subsequent_indent=" " * 6))
+    return "\n".join(lines) + "\n"

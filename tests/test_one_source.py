@@ -44,8 +44,8 @@ def _owner_field(name: str):
 
 def _expected_declared(f):
     default = f.default_factory() if f.default_factory is not MISSING else f.default
-    if f.name in ("cameras", "classes"):  # string arrays: typed placeholder when empty/required
-        return list(default) if default not in (MISSING, None) and default else [""]
+    if f.name in ("cameras", "classes"):  # string arrays: declared typed without a value when empty/required
+        return list(default) if default not in (MISSING, None) and default else None
     return "" if default is None else default
 
 
@@ -53,6 +53,7 @@ def test_parameter_table_defaults_are_the_dataclass_defaults():
     """Each declared default equals its dataclass field's default (value and Python type)."""
     from rcl_interfaces.msg import ParameterType as T
 
+    from bev_mapper_ros.config import RUNTIME_PARAMETERS
     from bev_mapper_ros.params import PARAMETERS
 
     py_type = {T.PARAMETER_STRING: str, T.PARAMETER_BOOL: bool, T.PARAMETER_INTEGER: int,
@@ -61,8 +62,10 @@ def test_parameter_table_defaults_are_the_dataclass_defaults():
     for name, (default, ptype, read_only, text) in PARAMETERS.items():
         want = _expected_declared(_owner_field(name))
         assert default == want and type(default) is type(want), name
-        assert type(default) is py_type[ptype], name
-        assert read_only and text, name
+        assert default is None or type(default) is py_type[ptype], name
+        assert read_only == (name not in RUNTIME_PARAMETERS) and text, name
+    # run-time parameters are NodeConfig fields (diagnostics), never what shapes the mapper
+    assert {PARAM_FIELDS[n].owner for n in RUNTIME_PARAMETERS} == {NodeConfig}
 
 
 def test_every_scalar_field_is_a_parameter():
@@ -80,12 +83,31 @@ def test_declared_defaults_give_the_dataclass_defaults():
     from bev_mapper_ros.params import PARAMETERS
 
     read_back = {n: v[0] for n, v in PARAMETERS.items()}
-    read_back.update(cameras=["a"], classes=[c for c in read_back["classes"] if c])
+    read_back.update(cameras=["a"], classes=[])  # declared without a value: read back empty
     want = NodeConfig(cameras=("a",), mapper=MapperConfig(threads=node_default_threads()))
     assert node_config_from_params(read_back) == want
     assert node_config_from_params({"cameras": ["a"]}) == want
     assert node_config_from_params({"cameras": ["a"], "rig": "front1"}).rig == "front1"
 
+
+@pytest.mark.parametrize("rig", sorted(PRESETS))
+def test_rig_alone_is_its_shipped_config(rig):
+    """``rig`` alone gives the same configuration as the shipped config/<rig>.yaml (both come
+    from the preset); explicit cameras / extrinsics override the preset's."""
+    from bev_mapper_ros.config import preset_parameters
+
+    params = yaml.safe_load((CONFIG_DIR / f"{rig}.yaml").read_text())["/**"]["ros__parameters"]
+    flat = {k: v for k, v in params.items() if not isinstance(v, dict)}
+    flat.update({f"extrinsics.{k}": v for k, v in params["extrinsics"].items()})
+    alone, shipped = node_config_from_params({"rig": rig}), node_config_from_params(flat)
+    assert replace(alone, extrinsics=()) == replace(shipped, extrinsics=())
+    for cam in shipped.cameras:
+        assert (alone.extrinsic(cam) == shipped.extrinsic(cam)).all(), cam
+    assert preset_parameters(rig) == {k: v for k, v in flat.items() if k == "cameras" or k.startswith("extrinsics.")}
+    first = params["cameras"][0]
+    mine = node_config_from_params({"rig": rig, "cameras": [first], f"extrinsics.{first}": [0, 0, 1, 0, 0, 0, 1]})
+    assert mine.cameras == (first,) and mine.extrinsic(first)[2, 3] == 1.0
+    assert preset_parameters("mine") == {}
 
 def test_sync_defaults_come_from_sync_config():
     cfg = NodeConfig(cameras=("a",))

@@ -95,6 +95,13 @@ class BiMapperMapper(Mapper):
                       classes=config.classes)
         weights.validate()
 
+    @classmethod
+    def output_classes(cls, config: MapperConfig, rig_name: str) -> tuple[str, ...]:
+        """``config.classes``, or the classes the weights were trained for (header only)."""
+        if config.classes is not None:
+            return tuple(config.classes)
+        return tuple(WeightsFile.open(cls.weights_path(config, rig_name)).classes)
+
     def __init__(self, rig: Rig, grid: BevGrid, config: MapperConfig) -> None:
         self.preflight(config, rig.name, grid, rig.names)  # the clear errors first (file, rig, grid, cameras)
         path = self.weights_path(config, rig.name)
