@@ -120,15 +120,18 @@ class MapperNode(Node):
         self._subs = []
         for cam in cfg.cameras:
             self._subs.append(self.create_subscription(
-                image_type, cfg.image_topic_for(cam), self._image_cb(cam), qos_profile_sensor_data))
+                image_type, cfg.image_topic_for(cam), self._contained(f"{cam} image", self._image_cb(cam)),
+                qos_profile_sensor_data))
             self._subs.append(self.create_subscription(
-                CameraInfo, cfg.camera_info_topic_for(cam), self._info_cb(cam), qos_profile_sensor_data))
+                CameraInfo, cfg.camera_info_topic_for(cam), self._contained(f"{cam} camera_info", self._info_cb(cam)),
+                qos_profile_sensor_data))
         self._grid_pubs = {c: self.create_publisher(OccupancyGrid, f"{cfg.output_prefix}/{c}", OUTPUT_QOS)
                            for c in self.class_names}
         self._image_pub = self.create_publisher(Image, f"{cfg.output_prefix}/image", OUTPUT_QOS)
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", QoSProfile(depth=10))
-        self.create_timer(min(0.05, cfg.sync_timeout_s / 2), self._poll_sync)
-        self._diag_timer = self.create_timer(cfg.diagnostics_period_s, self._publish_diagnostics)
+        self.create_timer(min(0.05, cfg.sync_timeout_s / 2), self._contained("synchronizer", self._poll_sync))
+        self._diag_timer = self.create_timer(cfg.diagnostics_period_s,
+                                             self._contained("diagnostics", self._publish_diagnostics))
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
         self.worker.start()
@@ -202,19 +205,44 @@ class MapperNode(Node):
         self.slot.put(synced)
 
     def _throttled_warning(self, key: str, message: str) -> None:
-        """Log ``message`` at most every THROTTLE_S per ``key``."""
+        """Log a warning ``message`` at most every THROTTLE_S per ``key``."""
+        if self._due(key):
+            self.get_logger().warning(message)
+
+    def _due(self, key: str) -> bool:
+        """True (and remembered) when ``key`` was not logged in the last THROTTLE_S."""
         now = time.monotonic()
         with self.stats.lock:
             last = self._last_logged.get(key)
             if last is not None and now - last < THROTTLE_S:
-                return
+                return False
             self._last_logged[key] = now
-        self.get_logger().warning(message)
+        return True
 
     def _bad_input(self, message: str, key: str = "") -> None:
         """Count a rejected input; log it at most every THROTTLE_S per ``key`` (camera + problem)."""
         self.stats.record_bad_input(message)
         self._throttled_warning(key or message, message)
+
+    def _contained(self, where: str, fn):
+        """``fn`` wrapped so that no exception escapes into the executor (which would end the
+        node): anything unexpected is counted under ``errors`` in /diagnostics and logged
+        (throttled per place), and the callback's input is skipped."""
+        def wrapper(*args):
+            try:
+                return fn(*args)
+            except Exception as exc:  # noqa: BLE001 - a callback must never end the node
+                if self._stopping.is_set() or not self.context.ok():
+                    return None
+                self.stats.record_error(f"{where}: {type(exc).__name__}: {exc}")
+                self._throttled_error(f"error:{where}", f"{where} failed, input skipped: {type(exc).__name__}: {exc}")
+                return None
+        return wrapper
+
+    def _throttled_error(self, key: str, message: str) -> None:
+        """Log an error ``message`` at most every THROTTLE_S per ``key``."""
+        if self._due(key):
+            self.get_logger().error(message)
 
     def _on_worker_error(self, exc: BaseException) -> None:
         if isinstance(exc, _ShuttingDown) or self._stopping.is_set() or not self.context.ok():
@@ -251,15 +279,16 @@ class MapperNode(Node):
     def _decode(self, cam: str, msg) -> np.ndarray | None:
         """Decode one camera's image; None (counted, logged) when it is unusable."""
         try:
+            w, h = self.mapper.rig[cam].model.image_size
+            # the calibrated size is checked before decoding (a compressed image's header first)
             if self.cfg.compressed:
-                img = compressed_to_array(msg)
+                img = compressed_to_array(msg, expected_size=(w, h))
                 if self.cfg.mapper.input_kind == "labels" and img.ndim == 3:
                     raise BevMapperError("compressed label image must be single-channel")
             elif self.cfg.mapper.input_kind == "labels":
-                img = image_to_labels(msg)
+                img = image_to_labels(msg, expected_size=(w, h))
             else:
-                img = image_to_rgb(msg)
-            w, h = self.mapper.rig[cam].model.image_size
+                img = image_to_rgb(msg, expected_size=(w, h))
             if img.shape[:2] != (h, w):
                 raise BevMapperError(f"image is {img.shape[1]}x{img.shape[0]}, camera_info says {w}x{h}")
             return img
