@@ -6,7 +6,7 @@ No rclpy import: the TF lookup is a callable injected by the node (None without 
 from __future__ import annotations
 
 import threading
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 

@@ -189,7 +189,8 @@ class ParamField:
     def declared_default(self):
         """The default as the node declares it: ``None`` -> ``''``, tuples -> lists; ``None``
         for an empty, optional or required string array: ROS cannot infer the type of ``[]``,
-        so the node declares it typed and then sets it to ``[]`` (see ``params.py``)."""
+        so the node declares it typed and then sets it to ``[]`` (see ``params.py``).
+        """
         value = self.default()
         if self.string_array:
             return list(value) if value is not MISSING and value else None

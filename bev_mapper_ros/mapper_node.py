@@ -227,7 +227,8 @@ class MapperNode(Node):
     def _contained(self, where: str, fn):
         """``fn`` wrapped so that no exception escapes into the executor (which would end the
         node): anything unexpected is counted under ``errors`` in /diagnostics and logged
-        (throttled per place), and the callback's input is skipped."""
+        (throttled per place), and the callback's input is skipped.
+        """
         def wrapper(*args):
             try:
                 return fn(*args)
@@ -358,7 +359,8 @@ class MapperNode(Node):
 
 class _StopSignals:
     """SIGINT and SIGTERM set :attr:`event` (no KeyboardInterrupt, no rcl shutdown under the
-    worker's feet): the node then stops in order, worker first, and exits 0."""
+    worker's feet): the node then stops in order, worker first, and exits 0.
+    """
 
     SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
@@ -387,7 +389,8 @@ def _spin(node: Node, stop: threading.Event) -> None:
 
 def main(args=None) -> int:
     """Entry point of ``mapper_node``: ``--help`` prints the parameters; bad parameters or
-    command line exit 2 with ``error: ...``; SIGINT / SIGTERM exit 0."""
+    command line exit 2 with ``error: ...``; SIGINT / SIGTERM exit 0.
+    """
     argv = list(sys.argv if args is None else args)
     if wants_help(argv):
         sys.stdout.write(parameter_help())

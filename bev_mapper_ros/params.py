@@ -32,7 +32,11 @@ from bev_mapper_core.mapper import INPUT_KINDS, available_methods
 from bev_mapper_core.rig import PRESETS
 
 from .config import (
-    PARAM_FIELDS, RUNTIME_PARAMETERS, NodeConfigError, parameter_defaults, preset_parameters,
+    PARAM_FIELDS,
+    RUNTIME_PARAMETERS,
+    NodeConfigError,
+    parameter_defaults,
+    preset_parameters,
     unknown_parameter_messages,
 )
 
@@ -189,7 +193,8 @@ def _shown(name: str, default) -> str:
 
 def parameter_help(prog: str = "mapper_node") -> str:
     """``--help`` text: usage, how to choose a rig, and every parameter (name, type, default,
-    whether it can change at run time, description), from the same table the node declares."""
+    whether it can change at run time, description), from the same table the node declares.
+    """
     presets = "|".join(PRESETS)
     lines = [
         f"usage: {prog} [-h] --ros-args [--params-file FILE] [-p NAME:=VALUE ...]",

@@ -1,6 +1,6 @@
 """Rig presets -> node parameter files (``config/<rig>.yaml``), so shipped configs never drift.
 
-    python -m bev_mapper_ros.rig_params            # rewrite config/*.yaml from the presets
+python -m bev_mapper_ros.rig_params            # rewrite config/*.yaml from the presets
 """
 
 from __future__ import annotations

@@ -102,7 +102,8 @@ class NodeStats:
 
     def dropped_in_window(self, now_s: float, window_s: float, dropped: int) -> int:
         """Record the ``dropped`` total now; return how many were dropped in the last ``window_s``
-        (since the oldest sample inside the window). Lock held by the caller."""
+        (since the oldest sample inside the window). Lock held by the caller.
+        """
         self.drop_samples.append((now_s, dropped))
         base = next((d for t, d in self.drop_samples if now_s - t <= window_s), dropped)
         return dropped - base

@@ -9,7 +9,8 @@ never queues up without bound when mapping is slower than the cameras.
 from __future__ import annotations
 
 import threading
-from typing import Callable, Generic, TypeVar
+from collections.abc import Callable
+from typing import Generic, TypeVar
 
 T = TypeVar("T")
 

@@ -52,7 +52,8 @@ def as_int(value: Any, name: str, err: type[AdapterError], where: str, lo: int =
 
 def as_float(value: Any, name: str, err: type[AdapterError], where: str, finite: bool = True) -> float:
     """A real number (int, float or numpy scalar; not bool, str, complex or None), finite unless
-    ``finite=False``."""
+    ``finite=False``.
+    """
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
         raise err(f"{where}: {name} must be a number, got {type(value).__name__} {short_repr(value)}")
     try:

@@ -16,7 +16,7 @@ import numpy as np
 from bev_mapper_core.camera import DISTORTION_MODELS, CameraModel, Roi
 from bev_mapper_core.errors import CalibrationError
 
-from ._fields import short_repr, as_floats, as_int, as_str, field
+from ._fields import as_floats, as_int, as_str, field, short_repr
 from .errors import CalibrationMessageError
 from .factory import MessageFactory, make_header
 from .limits import DEFAULT_LIMITS, AdapterLimits

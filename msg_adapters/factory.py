@@ -138,21 +138,25 @@ class RclpyFactory:
         return self.cls(typename)(**self._extra, **fields)
 
     def uint8_seq(self, data: np.ndarray) -> array.array:
+        """``uint8[]`` field value (rclpy: ``array.array("B")``)."""
         out = array.array("B")
         out.frombytes(_flat(data, np.uint8).tobytes())
         return out
 
     def int8_seq(self, data: np.ndarray) -> array.array:
+        """``int8[]`` field value (rclpy: ``array.array("b")``)."""
         out = array.array("b")
         out.frombytes(_flat(data, np.int8).tobytes())
         return out
 
     def float64_seq(self, data: Any) -> array.array:
+        """``float64[]`` field value (rclpy: ``array.array("d")``)."""
         out = array.array("d")
         out.frombytes(_flat(data, np.float64).tobytes())
         return out
 
     def float64_fixed(self, data: Any, size: int) -> np.ndarray:
+        """``float64[size]`` field value (checked length, a numpy array)."""
         return _fixed(data, size)
 
 
@@ -182,15 +186,19 @@ class RosbagsFactory:
             raise MessageFactoryError(f"cannot build {typename}: {exc}") from None
 
     def uint8_seq(self, data: np.ndarray) -> np.ndarray:
+        """``uint8[]`` field value (rosbags: a flat numpy array)."""
         return _flat(data, np.uint8)
 
     def int8_seq(self, data: np.ndarray) -> np.ndarray:
+        """``int8[]`` field value (rosbags: a flat numpy array)."""
         return _flat(data, np.int8)
 
     def float64_seq(self, data: Any) -> np.ndarray:
+        """``float64[]`` field value (rosbags: a flat numpy array)."""
         return _flat(data, np.float64)
 
     def float64_fixed(self, data: Any, size: int) -> np.ndarray:
+        """``float64[size]`` field value (checked length, a numpy array)."""
         return _fixed(data, size)
 
 

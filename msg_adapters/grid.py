@@ -24,7 +24,8 @@ from .factory import MessageFactory, make_header, make_point, make_quaternion
 
 def _f32(value: float) -> float:
     """The float64 that prints like float32 ``value`` (undoes float32 storage of 0.15 etc.);
-    beyond float32's range, inf (refused by the grid checks)."""
+    beyond float32's range, inf (refused by the grid checks).
+    """
     with np.errstate(over="ignore"):
         return float(str(np.float32(value)))
 
@@ -106,7 +107,8 @@ def grid_from_info(info: Any) -> BevGrid:
 def check_grid_info(info: Any, grid: BevGrid) -> None:
     """Raise :class:`GridMessageError` unless ``info`` describes ``grid``: same cell counts,
     resolution and origin within the grid tolerance :data:`~bev_mapper_core.grid.GRID_TOL_M`
-    (as :meth:`BevGrid.isclose`)."""
+    (as :meth:`BevGrid.isclose`).
+    """
     res = _f32(_info_float(info, "resolution"))
     if abs(res - grid.resolution) > GRID_TOL_M:
         raise GridMessageError(

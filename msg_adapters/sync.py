@@ -31,11 +31,11 @@ from __future__ import annotations
 
 import threading
 from collections import deque
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any, Callable, Sequence
+from typing import Any
 
 from .errors import AdapterError, SyncConfigError
-
 
 #: Offline bag replay widens the live slop and timeout by this factor (see :meth:`SyncConfig.replay`).
 REPLAY_WIDENING = 1.5

@@ -9,8 +9,9 @@ chained through intermediate frames (``base_link -> camera_link -> camera_optica
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Any, Iterable
+from typing import Any
 
 import numpy as np
 

@@ -89,7 +89,8 @@ class BiMapperMapper(Mapper):
         cannot run.
 
         Reads the file once (:meth:`WeightsFile.open` caches the header and the checked tensors
-        for the constructor)."""
+        for the constructor).
+        """
         weights = WeightsFile.open(cls.weights_path(config, rig_name))
         weights.check(rig_name=rig_name, cameras=cameras, grid=grid, input_kind=config.input_kind,
                       classes=config.classes)
@@ -126,7 +127,8 @@ class BiMapperMapper(Mapper):
 
     def set_rig(self, rig: Rig) -> None:
         """Load the model for this rig on first use (the tensors are read once, here);
-        afterwards rebuild its calibration tables."""
+        afterwards rebuild its calibration tables.
+        """
         super().set_rig(rig)
         if self.model is None:
             self.model = self._weights.build_model(rig, self.grid, input_kind=self.config.input_kind,
