@@ -168,6 +168,7 @@ def test_pictures_are_pngs(drive):
     assert no_partials(*roots) == []
 
 
+@pytest.mark.slow  # synthesizes and replays a 6-frame drive
 def test_truncated_bag_replays_up_to_the_damage(tmp_path, capsys):
     bag = synth_small(tmp_path / "long", frames=6, seed=2)  # ~3.9 MB: several 1 MiB mcap chunks
     data = (bag / "long.mcap").read_bytes()

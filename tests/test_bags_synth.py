@@ -315,6 +315,7 @@ def test_cli_usage_errors(tmp_path, capsys):
 
 
 @needs_generator
+@pytest.mark.slow  # full-size images
 def test_cli_synth_truncated(tmp_path):
     """Full-size images (several 1 MiB mcap chunks): a cut file yields the intact frames."""
     out = tmp_path / "drive"

@@ -141,6 +141,7 @@ def test_mutual_schedule_switches_at_epoch_n():
         assert gv_grad > 0 and (lv_grad > 0) == lv_learns
 
 
+@pytest.mark.slow  # a training run
 def test_short_training_lowers_the_loss():
     torch.manual_seed(0)
     model = BiMapper(TINY, RIG, GRID)
