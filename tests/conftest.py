@@ -27,14 +27,12 @@ os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(TESTS / "fastdds_discovery.xml"))
 sys.path.insert(0, str(TESTS))
 
-from bag_helpers import replay_ipm, synth_small  # noqa: E402
-
 #: Fixtures that make a test a ``ros`` test.
 ROS_FIXTURES = {"ros_domain"}
 #: Fixtures whose set-up alone takes more than ~1 s without ROS (training data).
 SLOW_FIXTURES = {"tiny_data"}
-#: Marks of tests in modules this suite's maintainers do not edit (other owners): test file ->
-#: marker -> test function names. A name that no longer exists in its module is a usage error.
+#: Marks of tests whose modules have other owners (marked here rather than in the module): test
+#: file -> marker -> test function names. A name its module no longer has is a usage error.
 MARKS_BY_NAME = {
     "test_training.py": {
         # training runs and freshly rendered drives
@@ -90,6 +88,8 @@ def small_drive_mcap(tmp_path_factory):
 
     Shared by the replay and play tests: (bag, replay output dir). Read-only for tests.
     """
+    from bag_helpers import replay_ipm, synth_small  # noqa: PLC0415 - needs the bag libraries
+
     root = tmp_path_factory.mktemp("small_drive_mcap")
     bag = synth_small(root / "drive_mcap", storage="mcap")
     assert replay_ipm(bag, root / "out_mcap", "--picture-every", "1", "--gif") == 0
@@ -99,6 +99,8 @@ def small_drive_mcap(tmp_path_factory):
 @pytest.fixture(scope="session")
 def small_drive_sqlite3(tmp_path_factory):
     """The same drive as :func:`small_drive_mcap` as a sqlite3 bag, replayed without pictures."""
+    from bag_helpers import replay_ipm, synth_small  # noqa: PLC0415 - needs the bag libraries
+
     root = tmp_path_factory.mktemp("small_drive_sqlite3")
     bag = synth_small(root / "drive_sqlite3", storage="sqlite3")
     assert replay_ipm(bag, root / "out_sqlite3", "--no-pictures") == 0
