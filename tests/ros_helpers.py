@@ -46,7 +46,7 @@ class DomainClaim:
     def __init__(self) -> None:
         _LOCK_DIR.mkdir(parents=True, exist_ok=True)
         ids = list(DOMAIN_IDS)
-        start = random.randrange(len(ids))  # spread: consecutive claims rarely reuse an id
+        start = random.Random().randrange(len(ids))  # spread (own generator: global state untouched)
         for domain in ids[start:] + ids[:start]:
             fd = os.open(_LOCK_DIR / f"{domain}.lock", os.O_RDWR | os.O_CREAT, 0o666)
             try:
