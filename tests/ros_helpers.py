@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+import fcntl
 import os
 import pathlib
+import random
 import subprocess
 import sys
+import tempfile
 import time
 
 import pytest
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
+FASTDDS_PROFILE = REPO / "tests" / "fastdds_discovery.xml"
 rclpy = pytest.importorskip("rclpy")
 
 
@@ -20,13 +24,44 @@ def ros_env(domain_id: int) -> dict:
     env["ROS_DOMAIN_ID"] = str(domain_id)
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     env.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
+    # Fast discovery (tests/fastdds_discovery.xml), unless the caller chose a profile.
+    env.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(FASTDDS_PROFILE))
     env["PYTHONUNBUFFERED"] = "1"
     return env
 
 
-def free_domain_id(worker_salt: int = 0) -> int:
-    """A domain id unlikely to collide with other test runs on the machine."""
-    return 110 + (os.getpid() + worker_salt) % 100
+#: Domain ids tests claim: 1-100, clear of the default domain 0, of ``scripts/test.sh``'s random
+#: ``ROS_DOMAIN_ID`` (101-200), of the benches' ids and of the ephemeral port range.
+DOMAIN_IDS = range(1, 101)
+_LOCK_DIR = pathlib.Path(tempfile.gettempdir()) / "bev_mapper_test_domains"
+
+
+class DomainClaim:
+    """A ROS domain id held exclusively by this process (an ``flock`` on a file per id).
+
+    Concurrent test runs on the machine (other checkouts, pytest-xdist workers) claim different
+    ids, so their DDS graphs never meet. The lock goes with the process, even when it is killed.
+    """
+
+    def __init__(self) -> None:
+        _LOCK_DIR.mkdir(parents=True, exist_ok=True)
+        ids = list(DOMAIN_IDS)
+        start = random.Random().randrange(len(ids))  # spread (own generator: global state untouched)
+        for domain in ids[start:] + ids[:start]:
+            fd = os.open(_LOCK_DIR / f"{domain}.lock", os.O_RDWR | os.O_CREAT, 0o666)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                os.close(fd)
+                continue
+            self.id, self._fd = domain, fd
+            return
+        raise RuntimeError(f"every ROS domain id in {DOMAIN_IDS} is claimed by other test processes")
+
+    def release(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)  # closing drops the lock
+            self._fd = None
 
 
 def start_process(args: list[str], domain_id: int, log_path: pathlib.Path) -> subprocess.Popen:

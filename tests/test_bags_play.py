@@ -5,14 +5,13 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
 import yaml
 
-from ros_helpers import (REPO, core_map_as_received, free_domain_id, rclpy, ros_env, spin_until, start_process,
-                         stop_process)
+from bag_helpers import SMALL_DRIVE_FRAMES
+from ros_helpers import REPO, core_map_as_received, rclpy, ros_env, spin_until, start_process, stop_process
 
 from bags import topics as T
 from bags.cli import main
@@ -24,17 +23,16 @@ from bev_mapper_core.mapper import MapperConfig, create_mapper
 from bev_mapper_core.rig import Rig, RigCamera
 from bev_mapper_ros.config import node_config_from_params
 
-from nav_msgs.msg import OccupancyGrid  # noqa: E402
+from nav_msgs.msg import OccupancyGrid, Odometry  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
 
 pytest.importorskip("bev_mapper_core.synth")
+pytestmark = pytest.mark.ros  # rclpy in every test; DDS and ROS processes in most
 
 PARAMS_FILE = REPO / "config" / "surround6.yaml"
-GRID_ARGS = ["--grid-x-min", "-20", "--grid-x-max", "20", "--grid-y-min", "-10",
-             "--grid-y-max", "10", "--grid-res", "0.25"]
 NODE_GRID = ["-p", "method:=ipm", "-p", "grid.x_min:=-20.0", "-p", "grid.x_max:=20.0", "-p", "grid.y_min:=-10.0",
              "-p", "grid.y_max:=10.0", "-p", "grid.resolution:=0.25"]
-FRAMES = 4
+FRAMES = SMALL_DRIVE_FRAMES
 
 
 def stamp_ns(msg) -> int:
@@ -42,17 +40,13 @@ def stamp_ns(msg) -> int:
 
 
 @pytest.fixture(scope="module")
-def drive(tmp_path_factory):
-    """A 4-frame drive at half image scale on a small grid, and its offline replay."""
-    root = tmp_path_factory.mktemp("play")
-    bag = root / "drive"
-    assert main(["synth", str(bag), "--frames", str(FRAMES), "--seed", "7", "--scale", "0.5",
-                 *GRID_ARGS]) == 0
-    assert main(["replay", str(bag), "--out", str(root / "replay"), "--quiet",
-                 "--no-pictures", "--method", "ipm"]) == 0
+def drive(small_drive_mcap):
+    """The shared 4-frame drive (half image scale, small grid), its offline IPM replay, its stamps."""
+    bag, replay_out = small_drive_mcap
     with BagReader(bag) as r:
         stamps = [f.stamp_ns for f in r.frames(rgb=False, gt=False)]
-    return bag, root / "replay" / BAG_DIR, stamps
+    assert len(stamps) == FRAMES
+    return bag, replay_out / BAG_DIR, stamps
 
 
 def test_conversion_to_rclpy_is_exact(drive):
@@ -111,42 +105,47 @@ def _node_view(bag) -> tuple[Rig, object]:
     return Rig(rig.name, cams), grid
 
 
-def test_play_through_mapper_node(drive, tmp_path):
+def test_play_through_mapper_node(drive, tmp_path, ros_domain):
     """bev-bag play -> mapper_node (own process) -> test subscriber, all over DDS."""
     bag, replay_bag, stamps = drive
-    domain = free_domain_id(7)
+    domain = ros_domain
     log = tmp_path / "node.log"
     node_proc = start_process(
         ["bev_mapper_ros.mapper_node", "--ros-args", "--params-file", str(PARAMS_FILE), *NODE_GRID,
          "-p", "sync_timeout_s:=5.0"], domain, log)  # a slow image is waited for, not mapped as lost
-    rclpy.init(domain_id=domain)
-    node = rclpy.create_node("bev_play_test")
+    cams = [f"/cameras/{c}/labels" for c in ("front", "front_right", "back_right", "back",
+                                             "back_left", "front_left")]
+    infos = [t.replace("labels", "camera_info") for t in cams]
+    # The player starts at once (both processes boot side by side): it waits (--wait-for) until the
+    # node subscribes to every camera and this test to /clock, then gives discovery 0.5 s.
+    play = node = None
     grids: dict[int, OccupancyGrid] = {}
     clocks: list[int] = []
-    node.create_subscription(OccupancyGrid, "/bev/drivable", lambda m: grids.setdefault(stamp_ns(m), m), 10)
-    node.create_subscription(Clock, "/clock",
-                             lambda m: clocks.append(m.clock.sec * 10**9 + m.clock.nanosec), 10)
-    play = None
     try:
-        assert spin_until(node, lambda: node.count_publishers("/diagnostics") > 0, 30.0), log.read_text()
-        cams = [f"/cameras/{c}/labels" for c in ("front", "front_right", "back_right", "back",
-                                                 "back_left", "front_left")]
-        infos = [t.replace("labels", "camera_info") for t in cams]
         play = subprocess.Popen(
             [sys.executable, "-m", "bags.cli", "play", str(bag), "--rate", "0.5", "--clock",
              "--domain-id", str(domain), "--topics", *cams, *infos, T.TF_STATIC,
              "--wait-for", *cams, "/clock", "--delay", "0.5"],
             cwd=REPO, env=ros_env(domain), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        spin_until(node, lambda: play.poll() is not None and len(grids) >= FRAMES, 40.0)
+        rclpy.init(domain_id=domain)
+        node = rclpy.create_node("bev_play_test")
+        node.create_subscription(OccupancyGrid, "/bev/drivable", lambda m: grids.setdefault(stamp_ns(m), m), 10)
+        node.create_subscription(Clock, "/clock",
+                                 lambda m: clocks.append(m.clock.sec * 10**9 + m.clock.nanosec), 10)
+        # Done when the player has exited and the last frame's grid is here: the node maps sets in
+        # order and its grids arrive in order, so every earlier set has been mapped (or dropped).
+        done = spin_until(node, lambda: play.poll() is not None and stamps[-1] in grids, 60.0)
         out, err = play.communicate(timeout=20)
+        assert done, (sorted(grids), stamps, out, err, log.read_text())
         assert play.returncode == 0, err
         assert "skipping" in err and "/tf_static" in err  # no tf2_msgs for rclpy here
-        spin_until(node, lambda: len(grids) >= FRAMES, 3.0)
     finally:
         if play is not None and play.poll() is None:
             play.kill()
-        node.destroy_node()
-        rclpy.shutdown()
+            play.communicate()
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
         code = stop_process(node_proc)
     assert code in (0, -2), log.read_text()
     # Frame 0 may be dropped while the node still waits for the last CameraInfo.
@@ -176,9 +175,14 @@ def test_play_through_mapper_node(drive, tmp_path):
     assert max((np.asarray(m.data) == 100).sum() for m in grids.values()) > 500
 
 
-def test_play_loop_stops_cleanly_on_ctrl_c(drive, tmp_path):
+def test_play_loop_stops_cleanly_on_ctrl_c(drive, ros_domain):
+    """``--loop`` starts over at the end until Ctrl-C, which stops it cleanly (exit 0)."""
     bag, _, _ = drive
-    domain = free_domain_id(11)
+    domain = ros_domain
+    rclpy.init(domain_id=domain)
+    node = rclpy.create_node("bev_loop_test")
+    odoms: list[int] = []
+    node.create_subscription(Odometry, "/odom", lambda m: odoms.append(stamp_ns(m)), 50)
     proc = subprocess.Popen(
         [sys.executable, "-m", "bags.cli", "play", str(bag), "--loop", "--rate", "4",
          "--topics", "/odom", "/cameras/front/camera_info", "--domain-id", str(domain)],
@@ -186,12 +190,17 @@ def test_play_loop_stops_cleanly_on_ctrl_c(drive, tmp_path):
     try:
         line = proc.stdout.readline()
         assert line.startswith("playing 2 topic(s)"), (line, proc.stderr.read())
-        time.sleep(1.0)  # several loops of a 0.3 s bag at 4x
+        # One pass holds FRAMES odometry messages: more than that received means it looped.
+        assert spin_until(node, lambda: len(odoms) > FRAMES or proc.poll() is not None, 30.0), odoms
         assert proc.poll() is None
+        assert len(odoms) > FRAMES and len(set(odoms)) < len(odoms)  # the same stamps again
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=15)
     finally:
         if proc.poll() is None:
             proc.kill()
+            proc.communicate()
+        node.destroy_node()
+        rclpy.shutdown()
     assert proc.returncode == 0, err
     assert "Traceback" not in err and "stopped" in err

@@ -18,26 +18,17 @@ from bev_mapper_core.classes import BEV_CLASS_NAMES, bev_picture
 from bev_mapper_core.errors import BevMapperError
 from bev_mapper_core.grid import BevGrid
 from bev_mapper_core.mapper import MapperConfig, create_mapper
+from bag_helpers import SMALL_DRIVE_FRAMES, replay_ipm, synth_small
 from msg_adapters import image_to_rgb, occupancy_grid_to_layer
 
 pytest.importorskip("bev_mapper_core.synth")
 
 GRID = BevGrid(-20.0, 20.0, -10.0, 10.0, 0.25)
-GRID_ARGS = ["--grid-x-min", "-20", "--grid-x-max", "20", "--grid-y-min", "-10",
-             "--grid-y-max", "10", "--grid-res", "0.25"]
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+N = SMALL_DRIVE_FRAMES  # frames of the shared drive
 
 
-def synth(out: Path, *, frames=3, storage="mcap", seed=5) -> Path:
-    argv = ["synth", str(out), "--frames", str(frames), "--seed", str(seed), "--scale", "0.5",
-            "--storage", storage, *GRID_ARGS]
-    assert main(argv) == 0
-    return out
-
-
-def replay(bag: Path, out: Path, *extra: str) -> int:
-    """``bev-bag replay`` with IPM (these bags use a small grid no shipped weights fit)."""
-    return main(["replay", str(bag), "--out", str(out), "--quiet", "--method", "ipm", *extra])
+replay = replay_ipm  # bev-bag replay with IPM: these bags use a small grid no shipped weights fit
 
 
 def load_metrics(out: Path) -> dict:
@@ -67,18 +58,18 @@ def no_partials(*dirs: Path) -> list[Path]:
 
 
 @pytest.fixture(scope="module")
-def drive(tmp_path_factory):
-    """One 3-frame drive as MCAP and sqlite3 bags, replayed (mcap with pictures and a GIF)."""
-    root = tmp_path_factory.mktemp("replay")
-    bags = {s: synth(root / f"drive_{s}", storage=s) for s in ("mcap", "sqlite3")}
-    outs = {"mcap": root / "out_mcap", "sqlite3": root / "out_sqlite3"}
-    assert replay(bags["mcap"], outs["mcap"], "--picture-every", "1", "--gif") == 0
-    assert replay(bags["sqlite3"], outs["sqlite3"], "--no-pictures") == 0
-    return root, bags, outs
+def drive(small_drive_mcap, small_drive_sqlite3):
+    """The shared drive as MCAP and sqlite3 bags, replayed (mcap with pictures and a GIF).
+
+    (roots, bags, outs); the bags and outputs are shared with other modules: read-only.
+    """
+    (mcap, out_mcap), (sqlite3, out_sqlite3) = small_drive_mcap, small_drive_sqlite3
+    roots = (mcap.parent, sqlite3.parent)
+    return roots, {"mcap": mcap, "sqlite3": sqlite3}, {"mcap": out_mcap, "sqlite3": out_sqlite3}
 
 
 def test_mcap_and_sqlite3_replays_agree(drive):
-    root, bags, outs = drive
+    roots, bags, outs = drive
     a, b = load_metrics(outs["mcap"]), load_metrics(outs["sqlite3"])
     assert without_run_details(a) == without_run_details(b)
     assert _grids_equal(read_grids(outs["mcap"] / BAG_DIR), read_grids(outs["sqlite3"] / BAG_DIR))
@@ -91,7 +82,7 @@ def _grids_equal(x, y) -> bool:
 
 
 def test_two_replays_are_identical(drive, tmp_path):
-    root, bags, outs = drive
+    roots, bags, outs = drive
     assert replay(bags["mcap"], tmp_path / "again", "--no-pictures") == 0
     assert without_run_details(load_metrics(tmp_path / "again")) == \
         without_run_details(load_metrics(outs["mcap"]))
@@ -99,9 +90,9 @@ def test_two_replays_are_identical(drive, tmp_path):
 
 
 def test_metrics_schema_and_ipm_sanity(drive, capsys):
-    root, bags, outs = drive
+    roots, bags, outs = drive
     m = load_metrics(outs["mcap"])
-    assert m["method"] == "ipm" and m["frames"] == 3 and m["frames_scored"] == 3
+    assert m["method"] == "ipm" and m["frames"] == N and m["frames_scored"] == N
     assert m["scope"] == "visible" and m["complete"] is True and m["damage"] is None
     assert list(m["classes"]) == list(BEV_CLASS_NAMES)
     for name, c in m["classes"].items():
@@ -117,7 +108,7 @@ def test_metrics_schema_and_ipm_sanity(drive, capsys):
 
 
 def test_ground_scope(drive, tmp_path, capsys):
-    root, bags, outs = drive
+    roots, bags, outs = drive
     assert replay(bags["mcap"], tmp_path / "g", "--no-pictures", "--scope", "ground") == 0
     assert "scope: ground" in capsys.readouterr().out
     g, v = load_metrics(tmp_path / "g"), load_metrics(outs["mcap"])
@@ -128,19 +119,19 @@ def test_ground_scope(drive, tmp_path, capsys):
 
 
 def test_output_bag_equals_core_mapper(drive):
-    root, bags, outs = drive
+    roots, bags, outs = drive
     out_bag = outs["mcap"] / BAG_DIR
     with BagReader(bags["mcap"]) as r:
         rig, grid = r.rig(), r.grid()
         mapper = create_mapper(rig, grid, MapperConfig(method="ipm"))
         expected = {f.stamp_ns: mapper.map(f.labels) for f in r.frames(rgb=False)}
         cams = r.camera_names
-    assert grid == GRID and len(expected) == 3
+    assert grid == GRID and len(expected) == N
     with BagReader(out_bag) as o:
         counts = {t: s.count for t, s in o.topics.items()}
-        want = {f"/bev/{c}": 3 for c in BEV_CLASS_NAMES}
-        want.update({IMAGE_TOPIC: 3, T.TF_STATIC: 1})
-        want.update({T.camera_info_topic(c): 3 for c in cams})
+        want = {f"/bev/{c}": N for c in BEV_CLASS_NAMES}
+        want.update({IMAGE_TOPIC: N, T.TF_STATIC: 1})
+        want.update({T.camera_info_topic(c): N for c in cams})
         assert counts == want
         out_rig = o.rig()  # the copied calibration rebuilds the same rig
         assert out_rig.names == rig.names
@@ -163,9 +154,9 @@ def test_output_bag_equals_core_mapper(drive):
 
 
 def test_pictures_are_pngs(drive):
-    root, bags, outs = drive
+    roots, bags, outs = drive
     pics = sorted((outs["mcap"] / FRAMES_DIR).iterdir())
-    assert [p.name for p in pics] == ["frame_0000.png", "frame_0001.png", "frame_0002.png"]
+    assert [p.name for p in pics] == [f"frame_{i:04d}.png" for i in range(N)]
     for p in pics:
         assert p.read_bytes()[:8] == PNG_MAGIC
         img = cv2.imread(str(p))
@@ -174,11 +165,12 @@ def test_pictures_are_pngs(drive):
     if gif.exists():  # Pillow or an OpenCV with a GIF encoder
         assert gif.read_bytes()[:6] in (b"GIF89a", b"GIF87a")
     assert not (outs["sqlite3"] / FRAMES_DIR).exists()
-    assert no_partials(root) == []
+    assert no_partials(*roots) == []
 
 
+@pytest.mark.slow  # synthesizes and replays a 6-frame drive
 def test_truncated_bag_replays_up_to_the_damage(tmp_path, capsys):
-    bag = synth(tmp_path / "long", frames=6, seed=2)  # ~3.9 MB: several 1 MiB mcap chunks
+    bag = synth_small(tmp_path / "long", frames=6, seed=2)  # ~3.9 MB: several 1 MiB mcap chunks
     data = (bag / "long.mcap").read_bytes()
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(data[: int(len(data) * 0.6)])
@@ -206,7 +198,7 @@ def test_truncated_bag_replays_up_to_the_damage(tmp_path, capsys):
 
 
 def test_bag_without_gt_uses_grid_flags(drive, tmp_path, capsys):
-    root, bags, outs = drive
+    roots, bags, outs = drive
     src = bags["mcap"]
     nogt = tmp_path / "nogt"
     with BagReader(src) as r, BagWriter(nogt) as w:
@@ -218,14 +210,14 @@ def test_bag_without_gt_uses_grid_flags(drive, tmp_path, capsys):
     assert replay(nogt, tmp_path / "o", "--no-pictures", "--grid-res", "0.5",
                   "--classes", "drivable", "vehicle") == 0
     m = load_metrics(tmp_path / "o")
-    assert m["frames"] == 3 and m["frames_scored"] == 0 and m["classes"] == {}
+    assert m["frames"] == N and m["frames_scored"] == 0 and m["classes"] == {}
     assert m["grid"]["resolution"] == 0.5
     assert set(read_grids(tmp_path / "o" / BAG_DIR)) == {"/bev/drivable", "/bev/vehicle"}
     assert "no GT layers" in capsys.readouterr().err
 
 
 def test_replay_errors(drive, tmp_path, capsys):
-    root, bags, outs = drive
+    roots, bags, outs = drive
     assert replay(tmp_path / "missing", tmp_path / "o") == 1
     assert "error: " in capsys.readouterr().err
     assert replay(bags["mcap"], outs["mcap"]) == 1  # outputs exist, no --force
@@ -244,7 +236,7 @@ def test_replay_errors(drive, tmp_path, capsys):
 
 @pytest.mark.parametrize("which", ["mcap", "sqlite3", "file"])
 def test_info_lists_cameras_calibration_gt(drive, capsys, which):
-    root, bags, outs = drive
+    roots, bags, outs = drive
     bag = bags["mcap"] / "drive_mcap.mcap" if which == "file" else bags[which]
     assert main(["info", str(bag)]) == 0
     text = capsys.readouterr().out
@@ -255,16 +247,16 @@ def test_info_lists_cameras_calibration_gt(drive, capsys, which):
     assert "GT layers (7): " + ", ".join(BEV_CLASS_NAMES) in text
     assert "160x80 cells at 0.25 m" in text and "ground visibility layer: yes" in text
     assert "/cameras/front/labels" in text and "10.00" in text
-    assert "duration:   0.200 s" in text
+    assert f"duration:   {(N - 1) / 10:.3f} s" in text
 
 
 def test_info_json_and_damage(drive, tmp_path, capsys):
-    root, bags, outs = drive
+    roots, bags, outs = drive
     assert main(["info", "--json", str(outs["mcap"] / BAG_DIR)]) == 0
     d = json.loads(capsys.readouterr().out)
     assert d["gt_layers"] == [] and d["storage"] == "mcap"
     counts = {t["topic"]: t["count"] for t in d["topics"]}
-    assert counts["/bev/drivable"] == 3 and counts[IMAGE_TOPIC] == 3
+    assert counts["/bev/drivable"] == N and counts[IMAGE_TOPIC] == N
     assert all(c["extrinsics"] is not None for c in d["cameras"])
     data = (bags["mcap"] / "drive_mcap.mcap").read_bytes()
     (tmp_path / "cut.mcap").write_bytes(data[: int(len(data) * 0.7)])

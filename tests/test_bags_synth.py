@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import shutil
 from pathlib import Path
 from types import SimpleNamespace
@@ -315,16 +316,17 @@ def test_cli_usage_errors(tmp_path, capsys):
 
 
 @needs_generator
+@pytest.mark.slow  # full-size images
 def test_cli_synth_truncated(tmp_path):
     """Full-size images (several 1 MiB mcap chunks): a cut file yields the intact frames."""
     out = tmp_path / "drive"
     assert main(["synth", str(out), "--frames", "3", *GRID_ARGS]) == 0
     rig = surround6()
-    ref = list(generate_drive(rig, GRID, SynthConfig(frames=3)))
     _truncate(out / "drive.mcap", tmp_path / "cut.mcap", 0.6)
     got = []
     with pytest.raises(BagCorruptError):
         with BagReader(tmp_path / "cut.mcap") as r:
             got.extend(r.frames())
     assert 1 <= len(got) < 3
-    assert_frames_match(got, ref[: len(got)], rig, GRID)
+    ref = list(itertools.islice(generate_drive(rig, GRID, SynthConfig(frames=3)), len(got)))  # render only those
+    assert_frames_match(got, ref, rig, GRID)

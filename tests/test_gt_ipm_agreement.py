@@ -16,6 +16,8 @@ from bev_mapper_core.mapper import MapperConfig
 from bev_mapper_core.metrics import MetricAccumulator
 from bev_mapper_core.synth import SynthConfig
 
+pytestmark = pytest.mark.slow  # renders and writes an 8-frame drive on the full grid
+
 SEED_WITH_CROSSING = 7  # this drive passes a pedestrian crossing within 20 m
 
 

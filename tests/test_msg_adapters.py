@@ -30,7 +30,7 @@ def _rosbags_factory():
 @pytest.fixture(
     params=[
         "rosbags",
-        pytest.param("rclpy", marks=pytest.mark.skipif(not HAVE_RCLPY, reason="rclpy absent")),
+        pytest.param("rclpy", marks=[pytest.mark.ros, pytest.mark.skipif(not HAVE_RCLPY, reason="rclpy absent")]),
     ]
 )
 def factory(request):

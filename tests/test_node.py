@@ -3,17 +3,23 @@
 from __future__ import annotations
 
 
+import pathlib
+import threading
+import time
+
 import numpy as np
 import pytest
 import yaml
+from rclpy.signals import uninstall_signal_handlers
 
-from ros_helpers import REPO, core_map_as_received, free_domain_id, rclpy, spin_until, start_process, stop_process
+from ros_helpers import REPO, core_map_as_received, rclpy, spin_until, start_process, stop_process
 
 from bev_mapper_core.grid import BevGrid
 from bev_mapper_core.ipm import IpmMapper
 from bev_mapper_core.mapper import MapperConfig, create_mapper
 from bev_mapper_core.rig import Rig, RigCamera, preset_rig
 from bev_mapper_core.synth import SynthConfig, generate_drive
+from bev_mapper_ros import mapper_node
 from bev_mapper_ros.config import node_config_from_params
 from msg_adapters import RclpyFactory, camera_info_to_model, make_camera_info, make_image
 
@@ -21,6 +27,8 @@ from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from nav_msgs.msg import OccupancyGrid  # noqa: E402
 from rclpy.qos import qos_profile_sensor_data  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
+
+pytestmark = pytest.mark.ros  # rclpy messages in every test; DDS and a node process in most
 
 GRID = BevGrid(x_min=-20, x_max=20, y_min=-10, y_max=10, resolution=0.25)
 CLASSES = ("drivable", "ped_crossing", "vehicle")
@@ -48,14 +56,14 @@ def drive():
 
 
 @pytest.fixture()
-def ros(tmp_path, request):
+def ros(tmp_path, request, ros_domain):
     """A running mapper_node process and a test node on a private domain.
 
     Parametrize indirectly with the node's ``sync_timeout_s`` (default 5 s: on a loaded machine a
     short timeout maps a set without an image that is merely slow).
     """
     timeout_s = getattr(request, "param", 5.0)
-    domain = free_domain_id()
+    domain = ros_domain
     args = [
         "bev_mapper_ros.mapper_node", "--ros-args", "--params-file", str(PARAMS_FILE), "-p", "method:=ipm",
         "-p", "grid.x_min:=-20.0", "-p", "grid.x_max:=20.0", "-p", "grid.y_min:=-10.0",
@@ -76,10 +84,13 @@ def ros(tmp_path, request):
 
 
 class Driver:
-    """Publishers for every camera's labels + CameraInfo and subscribers to the outputs."""
+    """Publishers for every camera's labels + CameraInfo and subscribers to the outputs.
 
-    def __init__(self, node, rig: Rig):
-        self.node, self.rig, self.factory = node, rig, RclpyFactory()
+    ``log``: the node process's log, where it reports each camera's calibration (readiness).
+    """
+
+    def __init__(self, node, rig: Rig, log: pathlib.Path):
+        self.node, self.rig, self.log, self.factory = node, rig, log, RclpyFactory()
         self.labels = {c: node.create_publisher(Image, f"/cameras/{c}/labels", qos_profile_sensor_data)
                        for c in rig.names}
         self.infos = {c: node.create_publisher(CameraInfo, f"/cameras/{c}/camera_info", 10)
@@ -104,6 +115,20 @@ class Driver:
             if broken == cam.name:
                 msg.k = [0.0] * 9
             self.infos[cam.name].publish(msg)
+
+    def calibrate(self, stamp_ns, timeout=30.0) -> bool:
+        """Send every camera's CameraInfo, again every 50 ms until the node has logged each
+        camera's calibration (CameraInfo goes best effort: one may be lost). Once calibrated: once."""
+        want = [f"calibration of {c}:" for c in self.rig.names]
+        end = time.monotonic() + timeout
+        while True:
+            self.send_info(stamp_ns)
+            text = self.log.read_text()
+            if all(w in text for w in want):
+                return True
+            if time.monotonic() > end:
+                return False
+            spin_until(self.node, lambda: False, 0.05)
 
     def send_frame(self, frame, override: dict | None = None):
         for name, cf in frame.cameras.items():
@@ -140,13 +165,11 @@ def test_core_map_as_received_finds_the_lost_camera(drive):
 def test_node_publishes_the_cores_grids(ros, drive):
     proc, node, log = ros
     rig, frames = drive
-    d = Driver(node, rig)
+    d = Driver(node, rig, log)
     expected_mapper = IpmMapper(node_view_of_rig(rig), GRID, MapperConfig(classes=CLASSES))
     complete = 0
     for f in frames:
-        for _ in range(3):
-            d.send_info(f.stamp_ns)
-            spin_until(node, lambda: False, 0.05)
+        assert d.calibrate(f.stamp_ns), f"the node never reported its calibration:\n{log.read_text()}"
         d.send_frame(f)
         assert d.wait_for(f.stamp_ns), f"no grids for frame {f.index}:\n{log.read_text()}"
     for f in frames:
@@ -171,11 +194,9 @@ def test_node_publishes_the_cores_grids(ros, drive):
 def test_node_survives_broken_input(ros, drive):
     proc, node, log = ros
     rig, frames = drive
-    d = Driver(node, rig)
+    d = Driver(node, rig, log)
     f0, f1, f2 = frames
-    for _ in range(3):
-        d.send_info(f0.stamp_ns)
-        spin_until(node, lambda: False, 0.05)
+    assert d.calibrate(f0.stamp_ns), f"the node never reported its calibration:\n{log.read_text()}"
     d.send_frame(f0)
     assert d.wait_for(f0.stamp_ns), log.read_text()
     front = rig["front"]
@@ -198,8 +219,10 @@ def test_node_survives_broken_input(ros, drive):
     assert d.wait_for(f2.stamp_ns), f"node stopped publishing after bad input:\n{log.read_text()}"
     assert proc.poll() is None
     # Four rejections: rgb8 on a label topic, wrong size, uncalibrated CameraInfo, truncated data.
-    # (The log is throttled; the counters are not.)
-    assert spin_until(node, lambda: int(d.diag_values().get("bad_input", 0)) >= 4, 5.0), d.diag_values()
+    # (The log is throttled; the counters are not.) Read diagnostics published after frame 2 was
+    # counted (mapped_sets >= 3): an older one may come from between a set's decoding and its count.
+    assert spin_until(node, lambda: int(d.diag_values().get("mapped_sets", 0)) >= 3
+                      and int(d.diag_values().get("bad_input", 0)) >= 4, 5.0), d.diag_values()
     text = log.read_text()  # one line per camera and problem, throttled per problem
     assert "uncalibrated" in text and "'rgb8'" in text and "expected 200x112" in text  # size from camera_info
     assert int(d.diag_values()["sets_with_missing_cameras"]) >= 1
@@ -210,24 +233,52 @@ def test_node_survives_broken_input(ros, drive):
     assert np.asarray(d.grids["drivable"][f2.stamp_ns].data)[r * GRID.width + c] != -1
 
 
-@pytest.mark.parametrize(
-    "overrides, message",
-    [
-        (["-p", "grid.resolution:=0.7"], "not a whole number"),
-        (["-p", "cameras:=[front,front]"], "distinct"),
-        (["-p", "method:=bimapper", "-p", "weights:=/nonexistent.safetensors"], "does not exist"),
-        (["-p", "method:=ipm", "-p", "input_kind:=rgb"], "label images only"),
-        (["-p", "input_kind:=rgb"], "none shipped for rig 'surround6' / input 'rgb'"),
-        (["-p", "grid.resolution:=0.25"], "weights were trained for grid"),
-        (["-p", "rig:=mine"], "none shipped for rig 'mine'"),
-        (["-p", "cameras:=[front,back]", "-p", "use_tf:=true"], "weights were trained for cameras"),
-        (["-p", "sync_slop_s:=fast"], "expecting type 'DOUBLE'"),
-    ],
-)
-def test_node_rejects_bad_parameters_at_startup(tmp_path, overrides, message):
-    """Bad parameters: a clear one-line error and exit status 2, not a traceback."""
+BAD_PARAMETERS = [
+    (["-p", "grid.resolution:=0.7"], "not a whole number"),
+    (["-p", "cameras:=[front,front]"], "distinct"),
+    (["-p", "method:=bimapper", "-p", "weights:=/nonexistent.safetensors"], "does not exist"),
+    (["-p", "method:=ipm", "-p", "input_kind:=rgb"], "label images only"),
+    (["-p", "input_kind:=rgb"], "none shipped for rig 'surround6' / input 'rgb'"),
+    (["-p", "grid.resolution:=0.25"], "weights were trained for grid"),
+    (["-p", "rig:=mine"], "none shipped for rig 'mine'"),
+    (["-p", "cameras:=[front,back]", "-p", "use_tf:=true"], "weights were trained for cameras"),
+    (["-p", "sync_slop_s:=fast"], "expecting type 'DOUBLE'"),
+]
+
+
+def run_main_in_process(overrides: list[str], capsys) -> tuple[int, str]:
+    """``mapper_node``'s ``main()`` in this process with the shipped surround6 file plus
+    ``overrides``: (exit status, stderr). A node that starts after all would spin forever: a
+    watchdog shuts its context down after 60 s, main() then returns 0 and the test fails."""
+    watchdog = threading.Timer(60.0, rclpy.try_shutdown)
+    watchdog.start()
+    try:
+        code = mapper_node.main(["mapper_node", "--ros-args", "--params-file", str(PARAMS_FILE), *overrides])
+    finally:
+        watchdog.cancel()
+        uninstall_signal_handlers()  # main()'s rclpy.init installed them; shutting down on error does not
+    return code, capsys.readouterr().err
+
+
+@pytest.mark.parametrize("overrides, message", BAD_PARAMETERS)
+def test_node_rejects_bad_parameters_at_startup(overrides, message, ros_domain, monkeypatch, capsys):
+    """Bad parameters: a clear one-line error and exit status 2 from main(), not an exception.
+
+    In this process (each case in a real process cost 0.5-3 s); the exit status of the process
+    itself is checked by test_node_process_exits_2_on_bad_parameters."""
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(ros_domain))
+    code, err = run_main_in_process(overrides, capsys)
+    assert code == 2, err
+    assert "error: " in err and message in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("overrides, message", [BAD_PARAMETERS[0], BAD_PARAMETERS[-1]], ids=["grid", "type"])
+def test_node_process_exits_2_on_bad_parameters(tmp_path, overrides, message, ros_domain):
+    """A real mapper_node process: exit status 2, the error line and no traceback, for an error
+    of the node's configuration (BevMapperError) and one of rclpy's parameter parsing
+    (ParameterException), main()'s two error branches."""
     proc = start_process(["bev_mapper_ros.mapper_node", "--ros-args", "--params-file", str(PARAMS_FILE),
-                          *overrides], free_domain_id(7), tmp_path / "bad.log")
+                          *overrides], ros_domain, tmp_path / "bad.log")
     try:
         code = proc.wait(60)
     finally:
@@ -237,30 +288,31 @@ def test_node_rejects_bad_parameters_at_startup(tmp_path, overrides, message):
     assert "error: " in text and message in text and "Traceback" not in text
 
 
-def test_node_default_is_the_shipped_bimapper(tmp_path):
+def test_node_default_is_the_shipped_bimapper(tmp_path, ros_domain):
     """Started with only its rig's parameter file, the node runs Bi-Mapper with the shipped
     weights (the default method) on the default grid, and publishes exactly the core's maps."""
-    rig, grid = preset_rig("surround6"), BevGrid()
-    frames = list(generate_drive(rig, grid, SynthConfig(frames=2, seed=12)))
-    domain = free_domain_id(3)
+    domain = ros_domain
     log = tmp_path / "node.log"
+    # The node boots (torch, weights) while this process renders the drive and loads the weights.
     proc = start_process(["bev_mapper_ros.mapper_node", "--ros-args", "--params-file", str(PARAMS_FILE),
                           "-p", "threads:=1", "-p", "sync_timeout_s:=5.0"], domain, log)  # no partial sets under load
-    rclpy.init(domain_id=domain)
-    node = rclpy.create_node("bev_test_default")
+    node = None
     try:
-        d = Driver(node, rig)
+        rig, grid = preset_rig("surround6"), BevGrid()
+        frames = list(generate_drive(rig, grid, SynthConfig(frames=2, seed=12)))
+        expected = create_mapper(node_view_of_rig(rig), grid, MapperConfig(classes=CLASSES, threads=1))
+        rclpy.init(domain_id=domain)
+        node = rclpy.create_node("bev_test_default")
+        d = Driver(node, rig, log)
         for f in frames:
-            for _ in range(3):
-                d.send_info(f.stamp_ns)
-                spin_until(node, lambda: False, 0.05)
+            assert d.calibrate(f.stamp_ns, 60.0), f"the node never reported its calibration:\n{log.read_text()}"
             d.send_frame(f)
             assert d.wait_for(f.stamp_ns, 60.0), f"no grids for frame {f.index}:\n{log.read_text()}"
     finally:
-        node.destroy_node()
-        rclpy.shutdown()
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
         assert stop_process(proc) in (0, -2), log.read_text()
-    expected = create_mapper(node_view_of_rig(rig), grid, MapperConfig(classes=CLASSES, threads=1))
     assert expected.name == "bimapper"
     complete = 0
     for f in frames:
