@@ -80,7 +80,7 @@ class ReplayOptions:
         grid: grid used only when the bag has no GT layers (``None`` = ``BevGrid()``).
         scope: ``'visible'`` scores cells whose GT is not -1; ``'ground'`` additionally requires,
             for flat classes, ``/bev/visibility/ground`` (the cell's ground point is seen by a
-            camera); object classes keep the visible scope (see :class:`_Scorer`).
+            camera); object classes keep the visible scope (see :class:`ReplayScorer`).
         max_frames: stop after this many mapped frames (``None`` = all).
         pictures: write PNG pictures; ``frames_every``: of every k-th mapped frame (frame 0
             included; 1 = every frame). The default 10 keeps long drives cheap: a picture
@@ -240,7 +240,7 @@ def _run(options, reader, rig, grid, mapper, out, tmp_frames, notes) -> ReplayRe
     kind = options.mapper.input_kind
     gt_names = reader.gt_classes
     has_ground = T.GROUND_VISIBILITY in reader.topics
-    scorer = _Scorer(grid, mapper.class_names, gt_names,
+    scorer = ReplayScorer(grid, mapper.class_names, gt_names,
                      ground=options.scope == "ground" and has_ground)
     if gt_names and scorer.mapped:
         notes.append("classes scored against GT layers of the same definition: "
@@ -384,7 +384,7 @@ def _write_frame(bw: BagWriter, grid: BevGrid, mapper, pred: BevPrediction, stam
              stamp)
 
 
-def _metrics(options, scorer: "_Scorer", grid, mapped, skipped, latencies, damage,
+def _metrics(options, scorer: "ReplayScorer", grid, mapped, skipped, latencies, damage,
              bag_counts) -> dict:
     """The ``metrics.json`` document."""
     res = scorer.result()
@@ -414,7 +414,7 @@ def _metrics(options, scorer: "_Scorer", grid, mapped, skipped, latencies, damag
     }
 
 
-class _Scorer:
+class ReplayScorer:
     """Scores a frame's prediction against its GT with the one
     :class:`~bev_mapper_core.metrics.MetricAccumulator`, in the chosen scope.
 
