@@ -50,7 +50,8 @@ def main() -> None:
                 n += 1
                 scorer.update(frame, pred)
     result = scorer.result()
-    print(f"{config.method} (ipm_occlusion={config.ipm_occlusion}) over {len(args.bags)} bag(s), "
+    what = f"ipm (ipm_occlusion={config.ipm_occlusion})" if config.method == "ipm" else config.method
+    print(f"{what} over {len(args.bags)} bag(s), "
           f"{n} frames, {1000 * t_map / max(n, 1):.1f} ms/frame mapping")
     print(format_table(result))
     print()
