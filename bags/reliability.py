@@ -84,7 +84,7 @@ def reliability_picture(calibration: dict, title: str = "") -> np.ndarray:
     for _, color, pts, _ in series:
         poly = np.array([px(x, y) for x, y, _ in pts], np.int32)
         cv2.polylines(img, [poly], False, color, 2, cv2.LINE_AA)
-        for (x, y, n), p in zip(pts, poly):
+        for (_, _, n), p in zip(pts, poly):
             cv2.circle(img, tuple(int(v) for v in p), _radius(n), color, -1, cv2.LINE_AA)
     lx = x0 + _PLOT + 16
     img[:, lx - 4:] = STRIP_BG

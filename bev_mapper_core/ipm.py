@@ -20,7 +20,7 @@ import numpy as np
 from .classes import label_lut
 from .errors import ConfigError, InputError
 from .grid import BevGrid
-from .ipm_occlusion import OcclusionModel, RayRaster, ray_raster
+from .ipm_occlusion import NEAR_EDGE_SLACK_CELLS, OcclusionModel, RayRaster, ray_raster
 from .mapper import BevPrediction, Mapper, MapperConfig
 from .rig import Rig, RigCamera
 from .transforms import transform_points
@@ -121,8 +121,8 @@ class IpmMapper(Mapper):
             warped = table.warp(labels, cv2.INTER_NEAREST)
             valid = table.valid
             if name in self.rays:
-                valid = valid & ~self._occlusion.occluded(self.rays[name], warped, valid,
-                                                         self.grid.resolution * 1.5)
+                slack = self.grid.resolution * NEAR_EDGE_SLACK_CELLS
+                valid = valid & ~self._occlusion.occluded(self.rays[name], warped, valid, slack)
             warped = np.where(warped < n_labels, warped, 0)  # ids unknown to us -> unlabeled
             acc[valid] += lut[warped[valid]]
             count += valid

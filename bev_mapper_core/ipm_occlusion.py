@@ -15,8 +15,10 @@ blocked by the object when that height is ``<= h``, i.e. for every ``d`` when ``
 for ``d <= d0 * hc / (hc - h)`` otherwise (the object's *shadow*). Cells in the shadow farther
 than ``d0 + depth`` (how far beyond its near edge the object itself is assumed to extend,
 from the label's footprint prior :data:`OBJECT_FOOTPRINT_M` and the width of the face the ray
-hits) are **occluded**: that camera
-gives them no value, and a cell no camera sees unoccluded is unknown.
+hits, plus :data:`NEAR_EDGE_SLACK_CELLS` cells) are **occluded** when their own pixel shows the
+object too (a cell whose pixel shows ground was seen: the ray to it is clear, e.g. over an object
+lower than its prior): that camera gives them no value, and a cell no camera sees unoccluded is
+unknown.
 
 The rays are evaluated on a polar raster per camera (angle x range, built once per
 calibration): the camera's warped labels are resampled onto it with ``cv2.remap`` (nearest),
@@ -68,6 +70,9 @@ OBJECT_FOOTPRINT_M: dict[int, tuple[float, float]] = {
 FACE_BREAK_M = 0.5
 #: Near edges evaluated per ray (the first, and the next after a finite shadow).
 MAX_EDGES = 2
+#: The near edge is only known to a cell: a cell counts as occluded only this many cells beyond
+#: the object's assumed depth.
+NEAR_EDGE_SLACK_CELLS = 1.5
 #: Angular step of the polar raster: the ray spacing at 60 m is 0.06 m (below a 0.15 m cell).
 ANGLE_STEP_RAD = 0.001
 
