@@ -157,6 +157,8 @@ def describe(path: Path) -> dict:
             "gt_layers": gt,
             "gt_grid": grid.to_dict() if grid is not None else None,
             "ground_visibility": T.GROUND_VISIBILITY in reader.topics,
+            "any_visibility": T.ANY_VISIBILITY in reader.topics,
+            "truth_layers": list(reader.truth_classes),
             "odometry": T.ODOM in reader.topics,
             "custom_data": reader.custom_data,
             "damage": damage,
@@ -199,6 +201,9 @@ def format_info(d: dict) -> str:
         lines.append(f"GT layers ({len(d['gt_layers'])}): {', '.join(d['gt_layers'])}")
         lines.append(f"GT grid:    {grid}")
         lines.append(f"ground visibility layer: {'yes' if d['ground_visibility'] else 'no'}")
+        lines.append(f"any visibility layer:    {'yes' if d.get('any_visibility') else 'no'}")
+        truth = d.get("truth_layers") or []
+        lines.append(f"full-truth layers ({len(truth)}): {', '.join(truth) or 'none'}")
     else:
         lines.append("GT layers:  none")
     lines.append(f"odometry:   {'yes' if d['odometry'] else 'no'}")

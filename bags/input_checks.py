@@ -50,7 +50,8 @@ def expected_type(topic: str) -> str | None:
         return T.TF_TYPE
     if topic == T.ODOM:
         return T.ODOM_TYPE
-    if topic == T.GROUND_VISIBILITY or T.parse_gt_topic(topic):
+    if (topic in (T.GROUND_VISIBILITY, T.ANY_VISIBILITY) or T.parse_gt_topic(topic)
+            or T.parse_truth_topic(topic)):
         return T.GRID_TYPE
     parsed = T.parse_camera_topic(topic)
     if parsed:

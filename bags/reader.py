@@ -91,6 +91,11 @@ class BagFrame:
         odom: the matched odometry, or ``None``.
         ground_visibility: ``(H, W)`` bool, cells whose ground point some camera sees (from
             ``/bev/visibility/ground``), or ``None`` when the bag has no such layer.
+        visibility: ``(H, W)`` bool, cells some camera sees (from ``/bev/visibility/any``), or
+            ``None`` when the bag has no such layer (then ``gt_known`` tells the same).
+        truth: ``(C, H, W)`` float32 0/1, what is in every cell whether seen or not (from
+            ``/bev/truth/<class>``, layers in ``gt_classes`` order), or ``None`` when the bag
+            lacks a truth layer of one of the GT classes (bags written before they existed).
     """
 
     index: int
@@ -104,6 +109,8 @@ class BagFrame:
     gt_known: np.ndarray | None
     odom: OdometryState | None
     ground_visibility: np.ndarray | None = None
+    visibility: np.ndarray | None = None
+    truth: np.ndarray | None = None
 
     @property
     def valid_mask(self) -> np.ndarray:
@@ -216,6 +223,14 @@ class BagReader:
         return tuple(c for c in BEV_CLASS_NAMES if c in found) + tuple(
             sorted(found - set(BEV_CLASS_NAMES))
         )
+
+    @property
+    def truth_classes(self) -> tuple[str, ...]:
+        """Classes with a ``/bev/truth/<class>`` topic, in the order of :attr:`gt_classes` (then
+        the rest sorted)."""
+        found = {c for c in map(T.parse_truth_topic, self._src.topics) if c}
+        gt = self.gt_classes
+        return tuple(c for c in gt if c in found) + tuple(sorted(found - set(gt)))
 
     def messages(self, topics: Iterable[str] | None = None) -> Iterator[BagMessage]:
         """Deserialized messages in log-time order, optionally only of ``topics``.
@@ -363,8 +378,11 @@ class BagReader:
         classes = self.gt_classes if gt else ()
         grid = self.grid() if classes else None
         gt_topics = {T.gt_topic(c): c for c in classes}
-        if classes and T.GROUND_VISIBILITY in self._src.topics:
-            gt_topics[T.GROUND_VISIBILITY] = T.GROUND_VISIBILITY
+        for extra in (T.GROUND_VISIBILITY, T.ANY_VISIBILITY):
+            if classes and extra in self._src.topics:
+                gt_topics[extra] = extra
+        if classes and set(classes) <= set(self.truth_classes):  # all or nothing
+            gt_topics.update({T.truth_topic(c): T.truth_topic(c) for c in classes})
         want_odom = odom and T.ODOM in self._src.topics
         topics = set(stream_of) | set(gt_topics) | ({T.ODOM} if want_odom else set())
         self._check_types(topics)
@@ -409,14 +427,15 @@ class BagReader:
         images, valid, cam_stamps = self._images(s, index, ctx)
         mean = s.mean_stamp_ns
         stamp, gt, known = self._gt(mean, ctx)
-        ground = None
-        if T.GROUND_VISIBILITY in ctx["gt_buf"]:
-            hit = _nearest(ctx["gt_buf"][T.GROUND_VISIBILITY], mean, ctx["tol"])
-            if hit is not None:
-                try:
-                    ground = occupancy_grid_to_layer(hit[1], ctx["grid"])[0] >= 0.5
-                except DECODE_ERRORS as exc:
-                    self.issues.decode_error(T.GROUND_VISIBILITY, f"frame {index}: {exc}")
+        ground = self._layer(T.GROUND_VISIBILITY, mean, index, ctx)
+        ground = None if ground is None else ground >= 0.5
+        visibility = self._layer(T.ANY_VISIBILITY, mean, index, ctx)
+        visibility = None if visibility is None else visibility >= 0.5
+        truth = None
+        if gt is not None:
+            layers = [self._layer(T.truth_topic(c), mean, index, ctx) for c in ctx["classes"]]
+            if all(layer is not None for layer in layers):
+                truth = (np.stack(layers) >= 0.5).astype(np.float32)  # C x (H, W) -> (C, H, W)
         odom_state = None
         hit = _nearest(ctx["odom_buf"], mean, ctx["tol"])
         if hit is not None:
@@ -440,7 +459,22 @@ class BagReader:
             gt_known=known,
             odom=odom_state,
             ground_visibility=ground,
+            visibility=visibility,
+            truth=truth,
         )
+
+    def _layer(self, topic: str, mean: int, index: int, ctx: dict) -> np.ndarray | None:
+        """``(H, W)`` float32 of the extra layer ``topic`` nearest ``mean`` (unknown cells 0), or
+        ``None`` when the bag has none there or it does not decode (counted in :attr:`issues`)."""
+        buf = ctx["gt_buf"].get(topic)
+        hit = None if buf is None else _nearest(buf, mean, ctx["tol"])
+        if hit is None:
+            return None
+        try:
+            return occupancy_grid_to_layer(hit[1], ctx["grid"])[0]
+        except DECODE_ERRORS as exc:
+            self.issues.decode_error(topic, f"frame {index}: {exc}")
+            return None
 
     def _images(self, s: SyncedSet, index: int, ctx: dict):
         """Decoded images per kind and camera, validity and stamp per camera, of one set.

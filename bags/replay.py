@@ -16,8 +16,12 @@ own CameraInfo and ``/tf_static`` and the grid from its GT layers (``options.gri
   fetched) with the metrics table, IoU by range and per class, the latency histogram, the
   per-frame mIoU and a viewer of ``frames/*.png`` (see :mod:`bags.report`); unless
   ``report=False``;
+* ``reliability.png``: the reliability diagram of the published probabilities per class on
+  the visible cells (:mod:`bags.reliability`), when frames were scored;
 * ``metrics.json``: :class:`~bev_mapper_core.metrics.MetricAccumulator` results over the frames
-  with GT, the scoring scope and mapping latency percentiles. Written last.
+  with GT, the scoring scope and mapping latency percentiles, and beside them the whole-grid
+  scores of :class:`~bev_mapper_core.metrics.WholeGridAccumulator` (keys ``occlusion`` and
+  ``calibration``: occluded claims, unknown recall, known precision, ECE). Written last.
 
 Every file appears under its final name only when complete. A damaged bag is replayed up to
 the damage: the outputs of the frames before it are completed and :attr:`ReplayResult.damage`
@@ -45,7 +49,7 @@ from bev_mapper_core.classes import bev_picture, class_cover, resolve_classes
 from bev_mapper_core.errors import BevMapperError
 from bev_mapper_core.grid import BevGrid
 from bev_mapper_core.mapper import BevPrediction, MapperConfig, create_mapper
-from bev_mapper_core.metrics import SCOPES, MetricAccumulator, scope_masks
+from bev_mapper_core.metrics import SCOPES, MetricAccumulator, WholeGridAccumulator, scope_masks
 from msg_adapters import make_image, make_occupancy_grid
 
 from . import topics as T
@@ -53,6 +57,7 @@ from .errors import BagContentError, BagCorruptError, BagError, BagExistsError
 from .frame_scores import FrameScores
 from .pictures import comparison_picture, encode_gif, encode_png, partial_name, write_atomic
 from .reader import BagReader
+from .reliability import reliability_picture
 from .report import render_report
 from .writer import STORAGES, BagWriter
 
@@ -61,7 +66,7 @@ log = logging.getLogger(__name__)
 OUT_PREFIX = "/bev/"
 IMAGE_TOPIC = "/bev/image"
 BAG_DIR, FRAMES_DIR, METRICS_FILE, GIF_FILE = "bev_bag", "frames", "metrics.json", "replay.gif"
-REPORT_FILE = "report.html"
+REPORT_FILE, RELIABILITY_FILE = "report.html", "reliability.png"
 
 
 @dataclass(frozen=True)
@@ -75,7 +80,7 @@ class ReplayOptions:
         grid: grid used only when the bag has no GT layers (``None`` = ``BevGrid()``).
         scope: ``'visible'`` scores cells whose GT is not -1; ``'ground'`` additionally requires,
             for flat classes, ``/bev/visibility/ground`` (the cell's ground point is seen by a
-            camera); object classes keep the visible scope (see :class:`_Scorer`).
+            camera); object classes keep the visible scope (see :class:`ReplayScorer`).
         max_frames: stop after this many mapped frames (``None`` = all).
         pictures: write PNG pictures; ``frames_every``: of every k-th mapped frame (frame 0
             included; 1 = every frame). The default 10 keeps long drives cheap: a picture
@@ -129,12 +134,13 @@ class ReplayResult:
     latencies_ms: list[float] = field(default_factory=list)
     frame_scores: FrameScores = field(default_factory=FrameScores)
     report: Path | None = None
+    reliability: Path | None = None
 
 
 def _check_outputs(out: Path, force: bool) -> None:
     if out.exists() and not out.is_dir():
         raise BagExistsError(f"{out} exists and is not a directory")
-    existing = [n for n in (BAG_DIR, FRAMES_DIR, METRICS_FILE, GIF_FILE, REPORT_FILE)
+    existing = [n for n in (BAG_DIR, FRAMES_DIR, METRICS_FILE, GIF_FILE, REPORT_FILE, RELIABILITY_FILE)
                 if (out / n).exists()]
     if existing and not force:
         raise BagExistsError(f"{out} already holds replay outputs {existing}; pass --force to "
@@ -234,7 +240,7 @@ def _run(options, reader, rig, grid, mapper, out, tmp_frames, notes) -> ReplayRe
     kind = options.mapper.input_kind
     gt_names = reader.gt_classes
     has_ground = T.GROUND_VISIBILITY in reader.topics
-    scorer = _Scorer(grid, mapper.class_names, gt_names,
+    scorer = ReplayScorer(grid, mapper.class_names, gt_names,
                      ground=options.scope == "ground" and has_ground)
     if gt_names and scorer.mapped:
         notes.append("classes scored against GT layers of the same definition: "
@@ -334,6 +340,11 @@ def _run(options, reader, rig, grid, mapper, out, tmp_frames, notes) -> ReplayRe
     metrics.update(reader.issues.to_metrics())
     result = ReplayResult(metrics, out, out / BAG_DIR, pictures, gif_path, gif_note, damage, notes,
                           latencies, scores)
+    if metrics["frames_scored"]:
+        result.reliability = write_atomic(out / RELIABILITY_FILE, encode_png(
+            reliability_picture(metrics["calibration"], title=options.mapper.method)))
+    elif (out / RELIABILITY_FILE).exists():  # stale, of an earlier replay (only with --force)
+        (out / RELIABILITY_FILE).unlink()
     if options.report:
         result.report = write_atomic(out / REPORT_FILE, render_report(result).encode())
     elif (out / REPORT_FILE).exists():  # stale, of an earlier replay (only with --force)
@@ -373,7 +384,7 @@ def _write_frame(bw: BagWriter, grid: BevGrid, mapper, pred: BevPrediction, stam
              stamp)
 
 
-def _metrics(options, scorer: "_Scorer", grid, mapped, skipped, latencies, damage,
+def _metrics(options, scorer: "ReplayScorer", grid, mapped, skipped, latencies, damage,
              bag_counts) -> dict:
     """The ``metrics.json`` document."""
     res = scorer.result()
@@ -398,10 +409,12 @@ def _metrics(options, scorer: "_Scorer", grid, mapped, skipped, latencies, damag
         "output_bag": {"path": BAG_DIR, "storage": options.storage, "messages": bag_counts},
         "complete": damage is None,
         "damage": damage,
+        "occlusion": res["occlusion"],
+        "calibration": res["calibration"],
     }
 
 
-class _Scorer:
+class ReplayScorer:
     """Scores a frame's prediction against its GT with the one
     :class:`~bev_mapper_core.metrics.MetricAccumulator`, in the chosen scope.
 
@@ -409,6 +422,12 @@ class _Scorer:
     scores the cells whose GT is known (not -1); ``ground`` (with a ground visibility layer)
     scores flat classes only where the ground is seen too, object classes keep the visible
     scope, since an object hides its own ground. Classes the bag has no GT for are not scored.
+
+    Beside it a :class:`~bev_mapper_core.metrics.WholeGridAccumulator` scores the probabilities
+    as published (rounded to whole percent, as in the OccupancyGrids) over the whole grid: the
+    hidden cells are those ``/bev/visibility/any`` marks unseen (bags without it: the cells
+    whose GT is -1), the false claims are counted against ``/bev/truth/<class>`` when the bag
+    has it, and the ECE is taken in the same scope masks as the IoU.
     """
 
     def __init__(self, grid: BevGrid, pred_names, gt_names, ground: bool) -> None:
@@ -423,6 +442,7 @@ class _Scorer:
         self.unscored = [c for c in pred_names if c not in self.class_map]
         self.scope_used = None if not names else ("ground" if ground else "visible")
         self.acc = MetricAccumulator(grid, names) if names else None
+        self.whole = WholeGridAccumulator(grid, names, self.acc.threshold) if names else None
         self._names = names
         self._pred_idx = [list(pred_names).index(c) for c in names]
         self._gt_idx = [[list(gt_names).index(g) for g in self.class_map[c]] for c in names]
@@ -440,11 +460,24 @@ class _Scorer:
         gt = np.stack([(frame.gt[idx] >= 0.5).any(axis=0) for idx in self._gt_idx])  # (C', H, W)
         visible = np.stack([frame.gt_known[idx].all(axis=0) for idx in self._gt_idx]).all(axis=0)  # (H, W)
         masks = scope_masks(self._names, visible, frame.ground_visibility, self.scope_used)
-        self.acc.update(pred.probs[self._pred_idx], gt, masks, pred.known)
+        probs = pred.probs[self._pred_idx]
+        self.acc.update(probs, gt, masks, pred.known)
+        truth = None
+        if frame.truth is not None:
+            truth = np.stack([(frame.truth[idx] >= 0.5).any(axis=0) for idx in self._gt_idx])
+        seen = frame.visibility if frame.visibility is not None else visible
+        published = np.rint(np.clip(probs, 0.0, 1.0) * 100.0) / 100.0  # as in the OccupancyGrids
+        self.whole.update(published, pred.known, seen, gt, truth, masks)
         return gt, visible
 
     def result(self) -> dict:
-        """:meth:`MetricAccumulator.result` over the scored classes, in mapper order."""
+        """:meth:`MetricAccumulator.result` over the scored classes, in mapper order, plus the
+        ``occlusion`` and ``calibration`` parts of :meth:`WholeGridAccumulator.result` (``None``
+        when nothing is scored)."""
         if self.acc is None:
-            return {"frames": 0, "classes": {}, "miou": None, "map": None, "iou_by_range": {}}
-        return self.acc.result()
+            return {"frames": 0, "classes": {}, "miou": None, "map": None, "iou_by_range": {},
+                    "occlusion": None, "calibration": None}
+        whole = self.whole.result()
+        whole["occlusion"]["frames_with_truth"] = whole["frames_with_truth"]
+        return {**self.acc.result(), "occlusion": whole["occlusion"],
+                "calibration": whole["calibration"]}

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from bev_mapper_core.grid import BevGrid
 from bev_mapper_core.mapper import INPUT_KINDS, MapperConfig, available_methods
-from bev_mapper_core.metrics import format_table
+from bev_mapper_core.metrics import format_table, format_whole_grid_table
 
 from .replay import SCOPES, ReplayOptions, replay
 from .writer import STORAGES
@@ -32,8 +32,21 @@ outputs in DIR (each written under a temporary name and renamed when complete):
   report.html         self-contained page (no network): metrics table, IoU by range
                       and per class, latency histogram, per-frame mIoU and a viewer of
                       frames/*.png (keep it beside frames/); --no-report skips it
-  metrics.json        IoU / Chamfer per class, mIoU, IoU by range, latency p50/p95
+  reliability.png     reliability diagram of the published probabilities per class
+                      on the visible cells (with their ECE)
+  metrics.json        IoU / Chamfer per class, mIoU, IoU by range, latency p50/p95;
+                      "occlusion" and "calibration": the whole-grid scores below
                       (written last)
+
+whole-grid scores (a second table; the visible-cell IoU above stays the headline):
+  hidden claim%  of the cells no camera sees (/bev/visibility/any; old bags: GT -1),
+                 the share published known with p >= 0.5 for the class; false%: of
+                 those, where the class is absent in /bev/truth/<class> (bags that
+                 have it); also as m^2 per frame
+  unknown recall hidden cells published as unknown (-1); known precision: published-
+                 known cells that some camera sees
+  ECE%           expected calibration error of the published probabilities on the
+                 visible known cells, 10 equal-width bins
 
 scoring scope (--scope), for bags with /bev/gt/<class> layers:
   visible  cells whose GT is known, i.e. not -1 in the /bev/gt/<class> grids (the
@@ -60,6 +73,10 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default=MapperConfig.device, help="torch device of learned methods")
     p.add_argument("--input", dest="input_kind", default=MapperConfig.input_kind, choices=INPUT_KINDS,
                    help="camera images to map: semantic labels or RGB")
+    p.add_argument("--ipm-occlusion", action=argparse.BooleanOptionalAction,
+                   default=MapperConfig.ipm_occlusion,
+                   help="IPM: cells behind the near edge of an object a camera sees are unknown to "
+                        "that camera, not the object's flat-ground smear (default: %(default)s)")
     p.add_argument("--classes", nargs="+", default=None, metavar="CLASS",
                    help="BEV classes to produce (default: the method's)")
     p.add_argument("--scope", default=ReplayOptions.scope, choices=SCOPES,
@@ -95,7 +112,8 @@ def options_from_args(args: argparse.Namespace) -> ReplayOptions:
                          zip(values, (d.x_min, d.x_max, d.y_min, d.y_max, d.resolution))))
     mapper = MapperConfig(method=args.method, input_kind=args.input_kind,
                           classes=tuple(args.classes) if args.classes else None,
-                          weights=args.weights, device=args.device)
+                          weights=args.weights, device=args.device,
+                          ipm_occlusion=args.ipm_occlusion)
     return ReplayOptions(
         bag=args.bag, out=args.out, mapper=mapper, grid=grid, scope=args.scope,
         max_frames=args.max_frames, pictures=not args.no_pictures,
@@ -118,6 +136,8 @@ def run(args: argparse.Namespace) -> int:
               + (f"; NOT scored (no GT of that definition): {', '.join(m['unscored_classes'])}"
                  if m["unscored_classes"] else ""))
         print(f"scope: {m['scope_used']}")
+        print()
+        print(format_whole_grid_table(m))
     lat = m["latency_ms"]
     lat_text = f"; mapping p50 {lat['p50']} ms, p95 {lat['p95']} ms" if lat["p50"] is not None else ""
     print(f"replayed {m['frames']} frame(s) ({m['frames_scored']} scored) with {m['method']} in "

@@ -4,8 +4,10 @@
 SVG charts (:mod:`bags.svg_plots`) and a few lines of inline JavaScript; it references nothing on
 the network. Sections: the run (method, bag, frames, scope, grid, notes), the metrics table (per
 class IoU, precision and Chamfer distances, mIoU / mAP and the classes mIoU is taken over), bar
-charts of IoU and precision per class, Chamfer per class and IoU by range band, the per-frame
-mIoU, a histogram of the per-frame mapping latency, and a frame viewer (slider, prev / next,
+charts of IoU and precision per class, Chamfer per class and IoU by range band, "Honest maps"
+(what the method publishes where no camera sees: occluded claims per class, unknown recall,
+known precision, and the calibration of its probabilities: ECE and a reliability diagram), the
+per-frame mIoU, a histogram of the per-frame mapping latency, and a frame viewer (slider, prev / next,
 play, arrow keys) of the ``frames/*.png`` pictures, referenced relatively: keep the report beside
 its ``frames/`` folder.
 """
@@ -18,6 +20,7 @@ from typing import TYPE_CHECKING
 
 from bev_mapper_core.classes import CLASS_COLORS
 
+from .reliability import reliability_svg
 from .svg_plots import bar_chart, histogram, line_chart
 
 if TYPE_CHECKING:
@@ -155,6 +158,43 @@ def _charts_section(m: dict) -> str:
     return "\n".join(parts)
 
 
+def _m2(v) -> str:
+    return "-" if v is None else f"{v:.1f}"
+
+
+def _honest_section(m: dict) -> str:
+    """Occluded claims, unknown recall / known precision and calibration (ECE, reliability)."""
+    occ, cal = m.get("occlusion"), m.get("calibration")
+    if not occ or not cal or not m.get("frames_scored"):
+        return ""
+    head = ("<tr><th>class</th><th>hidden cells claimed %</th><th>false %</th>"
+            "<th>claimed m&sup2;/frame</th><th>false m&sup2;/frame</th><th>ECE %</th></tr>")
+    rows = "".join(
+        f"<tr><td>{_swatch(n)}{escape(n)}</td><td>{_pct(o.get('claim_share'))}</td>"
+        f"<td>{_pct(o.get('false_share'))}</td><td>{_m2(o.get('claim_m2_per_frame'))}</td>"
+        f"<td>{_m2(o.get('false_m2_per_frame'))}</td>"
+        f"<td>{_pct((cal['classes'].get(n) or {}).get('ece'))}</td></tr>"
+        for n, o in occ["classes"].items())
+    mean = (f'<tr class="mean"><td>mean ECE</td><td></td><td></td><td></td><td></td>'
+            f'<td>{_pct(cal.get("mean_ece"))}</td></tr>')
+    truth = ("counted against the full truth (/bev/truth/&lt;class&gt;) of "
+             f"{occ.get('frames_with_truth')} frame(s)" if occ.get("frames_with_truth")
+             else "not counted: the bag has no /bev/truth/&lt;class&gt; layers")
+    text = (f"{_pct(occ.get('hidden_share'))} % of the cells are hidden from every camera. Of "
+            f"those, {_pct(occ.get('unknown_recall'))} % are published as unknown (unknown "
+            f"recall); of the cells published as known, {_pct(occ.get('known_precision'))} % are "
+            "seen by some camera (known precision). A hidden cell is claimed for a class when it "
+            f"is published known with p &ge; 0.5; false claims are {truth}. ECE: "
+            f"{cal.get('bins')} equal-width bins of the published probability, on the visible, "
+            "known cells of each class's scoring scope.")
+    return ("<h2>Honest maps</h2>"
+            f'<p class="muted">{text}</p><table>{head}{rows}{mean}</table>'
+            '<p class="muted">Reliability diagram: per bin, the share of cells where the class is '
+            "present against the bin's mean published probability (dashed: perfect calibration; "
+            "dot area grows with the log of the bin's cells; also reliability.png)</p>"
+            + reliability_svg(cal))
+
+
 def _per_frame_section(result: "ReplayResult") -> str:
     scores = result.frame_scores.frames
     if not scores:
@@ -209,6 +249,7 @@ def render_report(result: "ReplayResult") -> str:
         _run_section(m, result),
         "<h2>Metrics</h2>", _metrics_section(m),
         _charts_section(m),
+        _honest_section(m),
         _per_frame_section(result),
         _latency_section(m, result),
         _viewer_section(result),

@@ -7,6 +7,12 @@ ODOM = "/odom"
 GT_PREFIX = "/bev/gt/"
 #: OccupancyGrid: 100 where the cell's ground point is seen by some camera, 0 elsewhere.
 GROUND_VISIBILITY = "/bev/visibility/ground"
+#: OccupancyGrid: 100 where some camera sees the cell (its ground point, or inside an object's
+#: footprint the object), 0 elsewhere: the cells where ``/bev/gt/<class>`` is not -1.
+ANY_VISIBILITY = "/bev/visibility/any"
+#: ``/bev/truth/<class>``: what IS in every cell, seen or not (100 present, 0 absent, never -1);
+#: equal to ``/bev/gt/<class>`` where that is not -1.
+TRUTH_PREFIX = "/bev/truth/"
 CAMERA_PREFIX = "/cameras/"
 
 IMAGE_TYPE = "sensor_msgs/msg/Image"
@@ -34,6 +40,11 @@ def gt_topic(class_name: str) -> str:
     return f"{GT_PREFIX}{class_name}"
 
 
+def truth_topic(class_name: str) -> str:
+    """``/bev/truth/<class>``."""
+    return f"{TRUTH_PREFIX}{class_name}"
+
+
 def parse_camera_topic(topic: str) -> tuple[str, str] | None:
     """``('front', 'rgb' | 'labels' | 'camera_info')`` for a camera topic, else ``None``."""
     if not topic.startswith(CAMERA_PREFIX):
@@ -54,4 +65,11 @@ def parse_gt_topic(topic: str) -> str | None:
     """The class name of a ``/bev/gt/<class>`` topic, else ``None``."""
     if topic.startswith(GT_PREFIX) and "/" not in topic[len(GT_PREFIX):]:
         return topic[len(GT_PREFIX):] or None
+    return None
+
+
+def parse_truth_topic(topic: str) -> str | None:
+    """The class name of a ``/bev/truth/<class>`` topic, else ``None``."""
+    if topic.startswith(TRUTH_PREFIX) and "/" not in topic[len(TRUTH_PREFIX):]:
+        return topic[len(TRUTH_PREFIX):] or None
     return None

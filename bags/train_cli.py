@@ -161,6 +161,10 @@ def eval_parser() -> argparse.ArgumentParser:
     p.add_argument("--rig", default=DEFAULTS["rig"], choices=sorted(PRESETS))
     p.add_argument("--method", default=MapperConfig.method, help="a registered mapper (ipm, bimapper, ...)")
     p.add_argument("--weights", default=None, help="Bi-Mapper weights (default: the shipped file)")
+    p.add_argument("--ipm-occlusion", action=argparse.BooleanOptionalAction,
+                   default=MapperConfig.ipm_occlusion,
+                   help="IPM's occlusion reasoning (default: %(default)s; --no-ipm-occlusion = the "
+                        "classical IPM of the figures in docs/RESULTS.md before 'Honest maps')")
     p.add_argument("--classes", default=AUTO_CLASSES)
     p.add_argument("--val-drives", type=_pos_int, default=DEFAULTS["val_drives"])
     p.add_argument("--val-seeds", type=_int_list, default=None)
@@ -194,7 +198,7 @@ def run_eval(argv: list[str]) -> int:
     classes = class_set(a.classes, a.rig)
     seeds = a.val_seeds or val_seeds(a.val_drives)
     res = evaluate(preset_rig(a.rig), BevGrid(), classes, a.method, a.weights, seeds, a.frames_per_drive, a.stride,
-                   a.cache, a.device, progress=True)
+                   a.cache, a.device, progress=True, ipm_occlusion=a.ipm_occlusion)
     print(format_table(res))
     print(f"{res['ms_per_frame']:.1f} ms/frame (mapper.map, {torch.get_num_threads()} threads)")
     print(summary_header(classes, list(res["iou_by_range"])))

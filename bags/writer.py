@@ -186,8 +186,9 @@ class DriveSummary:
     last_stamp_ns: int
 
 
-def _frame_messages(f, rig: Rig, grid: BevGrid, classes, factory, ego_frame, odom_frame):
-    """(log_ns, topic, msg) of one synthetic frame."""
+def _frame_messages(f, rig: Rig, grid: BevGrid, classes, factory, ego_frame, odom_frame,
+                    truth: bool = True):
+    """(log_ns, topic, msg) of one synthetic frame; ``truth``: also the full-truth layers."""
     out = []
     for cam in rig.cameras:
         cf = f.cameras.get(cam.name)
@@ -213,6 +214,13 @@ def _frame_messages(f, rig: Rig, grid: BevGrid, classes, factory, ego_frame, odo
         layer = np.asarray(ground, dtype=np.float32)
         out.append((s, T.GROUND_VISIBILITY,
                     make_occupancy_grid(factory, grid, layer, None, s, ego_frame)))
+    if truth:
+        out.append((s, T.ANY_VISIBILITY,
+                    make_occupancy_grid(factory, grid, visible.astype(np.float32), None, s, ego_frame)))
+        for ci, c in enumerate(classes):
+            layer = np.asarray(f.gt[ci], dtype=np.float32)
+            out.append((s, T.truth_topic(c.name),
+                        make_occupancy_grid(factory, grid, layer, None, s, ego_frame)))
     out.sort(key=lambda x: x[0])  # stable: per-frame log time order
     return out
 
@@ -229,6 +237,7 @@ def write_drive(
     ego_frame: str = "base_link",
     odom_frame: str = "odom",
     custom_data: dict[str, str] | None = None,
+    truth: bool = True,
 ) -> DriveSummary:
     """Write synthetic drive frames (``SynthFrame``-like objects) as a rosbag2 directory.
 
@@ -236,7 +245,10 @@ def write_drive(
     ``/tf_static`` once (latched) with ``ego_frame -> <camera optical frame>``, ``/odom``
     (``odom_frame -> ego_frame``) and ``/bev/gt/<class>`` (100 present, 0 absent, -1 not
     visible) at the frame stamp, plus ``/bev/visibility/ground`` (100 where the cell's ground
-    point is seen) for frames that carry ``ground_visibility``. Log times equal the header
+    point is seen) for frames that carry ``ground_visibility``. With ``truth`` (default) also the
+    full truth, whose ``gt`` holds what is in every cell whether seen or not:
+    ``/bev/truth/<class>`` (100 present, 0 absent, no -1) and ``/bev/visibility/any`` (100 where
+    the cell is seen, i.e. where ``/bev/gt/<class>`` is not -1). Log times equal the header
     stamps.
 
     Raises:
@@ -254,11 +266,15 @@ def write_drive(
         bw.add_topic(T.ODOM, T.ODOM_TYPE)
         for c in classes:
             bw.add_topic(T.gt_topic(c.name), T.GRID_TYPE)
+        if truth:
+            bw.add_topic(T.ANY_VISIBILITY, T.GRID_TYPE)
+            for c in classes:
+                bw.add_topic(T.truth_topic(c.name), T.GRID_TYPE)
         for key, value in (custom_data or {}).items():
             bw.set_custom_data(key, value)
         for f in frames:
             try:
-                msgs = _frame_messages(f, rig, grid, classes, fac, ego_frame, odom_frame)
+                msgs = _frame_messages(f, rig, grid, classes, fac, ego_frame, odom_frame, truth)
             except BevMapperError as exc:
                 raise BagError(f"frame {n}: {exc}") from None
             if first is None:

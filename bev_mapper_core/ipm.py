@@ -4,7 +4,9 @@ Each BEV cell centre is placed on the ground plane (z = 0 in ``base_link``) and 
 every camera once per calibration; the resulting lookup tables warp each frame with
 ``cv2.remap`` (nearest for label images, linear for RGB). Cameras overlapping on a cell are
 averaged; cells no camera sees are unknown. Objects that stand off the ground are smeared away
-from the camera: the known flat-ground limitation of IPM.
+from the camera: the known flat-ground limitation of IPM. With ``MapperConfig.ipm_occlusion``
+(the default) a camera gives no value to the cells it cannot see behind an object's near edge
+(:mod:`~bev_mapper_core.ipm_occlusion`), so the smear becomes unknown instead of object.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import numpy as np
 from .classes import label_lut
 from .errors import ConfigError, InputError
 from .grid import BevGrid
+from .ipm_occlusion import NEAR_EDGE_SLACK_CELLS, OcclusionModel, RayRaster, ray_raster
 from .mapper import BevPrediction, Mapper, MapperConfig
 from .rig import Rig, RigCamera
 from .transforms import transform_points
@@ -74,7 +77,7 @@ class IpmMapper(Mapper):
 
     On label input each pixel's class becomes the class of the ground cell it projects to; on
     RGB input there is no class to transfer, so :meth:`map` refuses and :meth:`warp_rgb` gives
-    the BEV colour mosaic instead.
+    the BEV colour mosaic instead. ``config.ipm_occlusion`` turns the occlusion reasoning on.
     """
 
     name = "ipm"
@@ -83,6 +86,7 @@ class IpmMapper(Mapper):
         self.preflight(config, rig.name)
         super().__init__(rig, grid, config)
         self._lut = label_lut(self.classes).astype(np.float32)  # (NUM_LABELS, C)
+        self._occlusion = OcclusionModel()
 
     @classmethod
     def preflight(cls, config: MapperConfig, rig_name: str, grid: BevGrid | None = None,
@@ -98,6 +102,10 @@ class IpmMapper(Mapper):
         """Recompute the ground lookup tables for a new calibration."""
         super().set_rig(rig)
         self.tables = ground_tables(rig, self.grid)
+        self.rays: dict[str, RayRaster] = {}
+        if self.config.ipm_occlusion:
+            self.rays = {c.name: ray_raster(c, self.grid, self.tables[c.name].valid)
+                         for c in rig.cameras}
 
     def map(self, images: Mapping[str, np.ndarray], ego_pose=None, stamp_ns=None) -> BevPrediction:
         """Warp each camera's labels to the ground and average the class indicators."""
@@ -111,8 +119,11 @@ class IpmMapper(Mapper):
         for name, labels in images.items():
             table = self.tables[name]
             warped = table.warp(labels, cv2.INTER_NEAREST)
-            warped = np.where(warped < n_labels, warped, 0)  # ids unknown to us -> unlabeled
             valid = table.valid
+            if name in self.rays:
+                slack = self.grid.resolution * NEAR_EDGE_SLACK_CELLS
+                valid = valid & ~self._occlusion.occluded(self.rays[name], warped, valid, slack)
+            warped = np.where(warped < n_labels, warped, 0)  # ids unknown to us -> unlabeled
             acc[valid] += lut[warped[valid]]
             count += valid
         known = count > 0

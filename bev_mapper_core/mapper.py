@@ -35,6 +35,9 @@ class MapperConfig:
         weights: path to a safetensors weights file (learned methods), ``None`` = shipped default.
         device: torch device for learned methods (``cpu``, ``cuda``).
         threads: CPU threads of learned methods' inference; 0 = the method's default.
+        ipm_occlusion: IPM only: cells behind the near edge of an object seen in a camera are
+            unknown to that camera instead of the object's flat-ground smear (see
+            :mod:`~bev_mapper_core.ipm_occlusion`); False = the classical IPM.
     """
 
     method: str = "bimapper"
@@ -43,10 +46,13 @@ class MapperConfig:
     weights: str | None = None
     device: str = "cpu"
     threads: int = 0
+    ipm_occlusion: bool = True
 
     def __post_init__(self) -> None:
         if not isinstance(self.threads, int) or self.threads < 0:
             raise ConfigError(f"threads must be an integer >= 0 (0 = method default), got {self.threads!r}")
+        if not isinstance(self.ipm_occlusion, bool):
+            raise ConfigError(f"ipm_occlusion must be true or false, got {self.ipm_occlusion!r}")
         if self.method not in _REGISTRY:
             raise ConfigError(f"unknown method {self.method!r}; available: {list(available_methods())}")
         if self.input_kind not in INPUT_KINDS:

@@ -90,6 +90,9 @@ def assert_frames_match(bag_frames, ref_frames, rig, grid):
             assert f.ground_visibility is None
         else:
             np.testing.assert_array_equal(f.ground_visibility, ground)
+        # the full truth: every cell, seen or not; and the visibility it is masked with in gt
+        np.testing.assert_array_equal(f.visibility, vis)
+        np.testing.assert_array_equal(f.truth, np.asarray(g.gt, np.float32))
 
 
 def assert_rig_matches(read_rig, rig):
@@ -110,7 +113,10 @@ def assert_layout(reader, rig, n, ground=False):
         expect[T.camera_info_topic(c)] = (T.CAMERA_INFO_TYPE, n)
     for c in BEV_CLASS_NAMES:
         expect[T.gt_topic(c)] = (T.GRID_TYPE, n)
+        expect[T.truth_topic(c)] = (T.GRID_TYPE, n)
+    expect[T.ANY_VISIBILITY] = (T.GRID_TYPE, n)
     assert {k: (v.msgtype, v.count) for k, v in topics.items()} == expect
+    assert reader.truth_classes == BEV_CLASS_NAMES
     encodings = {}
     for m in reader.messages([T.image_topic(rig.names[0], "rgb"), T.image_topic(rig.names[0],
                                                                                 "labels")]):
@@ -121,6 +127,9 @@ def assert_layout(reader, rig, n, ground=False):
     for m in reader.messages([T.gt_topic("drivable")]):
         assert m.msg.header.frame_id == "base_link"
         assert set(np.unique(m.msg.data)) <= {-1, 0, 100}
+    for m in reader.messages([T.truth_topic("drivable"), T.ANY_VISIBILITY]):
+        assert m.msg.header.frame_id == "base_link"
+        assert set(np.unique(m.msg.data)) <= {0, 100}  # never unknown
 
 
 def _tf_static_qos(path):

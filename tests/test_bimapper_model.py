@@ -263,12 +263,12 @@ def random_labels(seed: int) -> torch.Tensor:
 
 
 def test_ipm_skip_starts_at_the_ipm_baseline():
-    """Untrained, an ipm_skip model decides exactly as IpmMapper, cell for cell: the prior's
-    gather reproduces cv2.remap's nearest pixel and the camera averaging. Random labels make
-    every geometry slip visible."""
+    """Untrained, an ipm_skip model decides exactly as the classical IpmMapper (no occlusion
+    reasoning), cell for cell: the prior's gather reproduces cv2.remap's nearest pixel and the
+    camera averaging. Random labels make every geometry slip visible."""
     torch.manual_seed(0)
     model = BiMapper(replace(TINY, ipm_skip=True), RIG, GRID).eval()
-    ipm = IpmMapper(RIG, GRID, MapperConfig(method="ipm", classes=CLASSES))
+    ipm = IpmMapper(RIG, GRID, MapperConfig(method="ipm", classes=CLASSES, ipm_occlusion=False))
     raw = random_labels(3)
     for present in ((True, True), (False, True), (True, False)):
         imgs = {c.name: raw[0, n].numpy() for n, c in enumerate(RIG.cameras) if present[n]}

@@ -170,8 +170,10 @@ class BiMapper(nn.Module):
     def ipm_prior(self, images: torch.Tensor, cam_mask: torch.Tensor | None = None) -> torch.Tensor:
         """The ``ipm_skip`` input: camera-size images IPM'd onto the full ego grid.
 
-        Exactly :class:`~bev_mapper_core.ipm.IpmMapper`'s geometry (a gather through
-        ``prior_index``, nearest pixel) and its averaging over the cameras that see a cell.
+        Exactly the classical :class:`~bev_mapper_core.ipm.IpmMapper`'s geometry (a gather
+        through ``prior_index``, nearest pixel) and its averaging over the cameras that see a
+        cell, without its occlusion reasoning (``ipm_occlusion``): the shipped weights were
+        trained on this prior.
 
         Args:
             images: raw images as for :meth:`preprocess`, at the cameras' delivered size.
