@@ -226,6 +226,7 @@ PARAM_FIELDS: dict[str, ParamField] = {
     "weights": ParamField(MapperConfig, "weights"),
     "device": ParamField(MapperConfig, "device"),
     "threads": ParamField(MapperConfig, "threads"),
+    "ipm_occlusion": ParamField(MapperConfig, "ipm_occlusion"),
     "classes": ParamField(MapperConfig, "classes", string_array=True),
     "grid.x_min": ParamField(BevGrid, "x_min"),
     "grid.x_max": ParamField(BevGrid, "x_max"),

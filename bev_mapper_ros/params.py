@@ -58,6 +58,8 @@ _DECLARATIONS: dict[str, tuple] = {
     "weights": (_T.PARAMETER_STRING, "safetensors weights ('' = shipped default)"),
     "device": (_T.PARAMETER_STRING, "torch device of learned methods"),
     "threads": (_T.PARAMETER_INTEGER, "CPU threads of learned methods; 0 = all CPUs but one (left to the callbacks)"),
+    "ipm_occlusion": (_T.PARAMETER_BOOL, "IPM: cells behind the near edge of an object a camera sees are unknown "
+                      "to it, not the object's flat-ground smear"),
     "classes": (_T.PARAMETER_STRING_ARRAY,
                 f"classes to publish, of {list(BEV_CLASS_NAMES)} or the weights' ([] = all)"),
     "grid.x_min": (_T.PARAMETER_DOUBLE, "grid extent along x (m)"),

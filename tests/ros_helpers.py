@@ -118,3 +118,17 @@ def core_map_as_received(mapper, grid, images: dict, node_data, max_missing: int
             if np.array_equal(pred.known, node_known):
                 return pred, lost
     raise AssertionError(f"the node's unknown cells match no set of cameras with at most {max_missing} missing")
+
+
+_CLAIMS: dict[int, DomainClaim] = {}
+
+
+def free_domain_id(salt: int = 0) -> int:
+    """A domain id held (:class:`DomainClaim`) for the rest of this test process, one per ``salt``.
+
+    For tests that start several ROS processes on one domain without the ``ros_domain`` fixture
+    (module-level helpers); the claim keeps concurrent test runs on the machine apart.
+    """
+    if salt not in _CLAIMS:
+        _CLAIMS[salt] = DomainClaim()
+    return _CLAIMS[salt].id

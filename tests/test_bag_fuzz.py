@@ -31,6 +31,8 @@ from bags.metadata import MAX_METADATA_NODES, MetadataError, parse_yaml
 from bags.reader import BagReader
 from bags.replay import BAG_DIR, IMAGE_TOPIC, METRICS_FILE
 
+pytestmark = [pytest.mark.slow]
+
 pytest.importorskip("bev_mapper_core.synth")
 
 VARIANTS = {v.name: v for v in D.variants()}

@@ -21,6 +21,8 @@ import bag_damage as D
 from bags import topics as T
 from bags.writer import BagWriter
 
+pytestmark = [pytest.mark.slow]
+
 pytest.importorskip("bev_mapper_core.synth")
 
 REPEATS = 20  # 20 x 12 frames: seconds of replay with a picture per frame

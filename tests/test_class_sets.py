@@ -10,6 +10,8 @@ from bags.cli import main as bev_bag
 from bev_mapper_core.classes import BEV_CLASS_NAMES, class_cover
 from bev_mapper_core.errors import ConfigError
 
+pytestmark = [pytest.mark.slow]
+
 
 def test_class_cover_by_definition():
     std = BEV_CLASS_NAMES

@@ -43,6 +43,8 @@ from nav_msgs.msg import OccupancyGrid  # noqa: E402
 from rclpy.qos import qos_profile_sensor_data  # noqa: E402
 from sensor_msgs.msg import CameraInfo, CompressedImage  # noqa: E402
 
+pytestmark = [pytest.mark.ros]
+
 GRID = BevGrid(x_min=-20, x_max=20, y_min=-10, y_max=10, resolution=0.25)
 CLASSES = ("drivable", "ped_crossing", "vehicle")
 PARAMS_FILE = REPO / "config" / "surround6.yaml"

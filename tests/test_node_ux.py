@@ -32,6 +32,8 @@ from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 
+pytestmark = [pytest.mark.ros]
+
 NODE = "bev_mapper_ros.mapper_node"
 ROS2 = pathlib.Path(sys.executable).parent / "ros2"
 READY = r"mapping \[.*\] with"

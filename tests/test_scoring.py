@@ -110,6 +110,7 @@ def test_score_frameset_equals_a_hand_loop_and_batches_do_not_matter():
     assert limited["frames"] == 3
 
 
+@pytest.mark.slow
 def test_replay_and_eval_score_the_same_drive_identically(tmp_path):
     """``bev-bag replay`` of a synthetic bag and ``bev-train eval``'s loop over the same drive
     rendered for training give the same metrics document (one scorer, one set of bands)."""
