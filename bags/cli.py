@@ -54,7 +54,8 @@ def _on_sigterm(signum, frame) -> None:
 @contextlib.contextmanager
 def sigterm_unwinds():
     """While inside, SIGTERM raises :class:`Terminated` (main thread only; the previous
-    handler is restored on exit)."""
+    handler is restored on exit).
+    """
     if threading.current_thread() is not threading.main_thread():
         yield
         return

@@ -8,8 +8,8 @@ but keeps the frame's own IoU per class instead of summing counts over the drive
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import numpy as np
 

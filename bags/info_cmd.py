@@ -61,7 +61,7 @@ def _times(reader: BagReader) -> tuple[dict[str, list[int]], str | None]:
                             raise ValueError(f"{conn.topic} has the negative log time {t}")
                         see(conn.topic, int(t))
                 except Exception as exc:  # storage errors mid-file are damage
-                    raise BagCorruptError(f"{reader.path}: damaged: {type(exc).__name__}: {exc}")
+                    raise BagCorruptError(f"{reader.path}: damaged: {type(exc).__name__}: {exc}") from None
         else:
             for m in reader.messages():
                 see(m.topic, m.log_ns)
@@ -224,7 +224,8 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``bev-bag info``; exit 1 (after printing) when the bag is damaged or has topics of
-    the wrong type."""
+    the wrong type.
+    """
     d = describe(args.bag)
     print(json.dumps(d, indent=2) if args.json else format_info(d))
     if d["wrong_types"]:

@@ -102,7 +102,8 @@ def stamp_ns(msg: Any) -> int:
 class StampDrift:
     """Per topic, the offset stamp - log time of its first valid message; a later message
     whose offset differs from it by more than :data:`MAX_STAMP_DRIFT_NS` has an implausible
-    stamp (see there)."""
+    stamp (see there).
+    """
 
     def __init__(self) -> None:
         self._ref: dict[str, int] = {}
@@ -119,7 +120,8 @@ class StampDrift:
 
 def check_grid_size(info: Any) -> None:
     """Raise :class:`AdapterError` unless an OccupancyGrid ``info`` has a size in
-    ``[1, MAX_GRID_CELLS]`` cells (checked before anything of that size is allocated)."""
+    ``[1, MAX_GRID_CELLS]`` cells (checked before anything of that size is allocated).
+    """
     try:
         w, h = int(info.width), int(info.height)
     except DECODE_ERRORS as exc:
@@ -142,7 +144,8 @@ class TopicIssues:
 
 class InputIssues:
     """Messages a reader skipped because they were damaged, per topic, and cameras that have
-    images but no calibration (see module docstring)."""
+    images but no calibration (see module docstring).
+    """
 
     def __init__(self) -> None:
         self.topics: dict[str, TopicIssues] = {}

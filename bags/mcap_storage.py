@@ -85,7 +85,8 @@ class CrcMcapStorage:
 
 def rosbag2_writer(path: Path, storage: str, chunk_size: int = CHUNK_SIZE) -> Any:
     """A ``rosbags.rosbag2.Writer`` for ``path`` (not opened); MCAP through
-    :class:`CrcMcapStorage` with ``chunk_size``, sqlite3 through rosbags' own storage."""
+    :class:`CrcMcapStorage` with ``chunk_size``, sqlite3 through rosbags' own storage.
+    """
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     class _McapStorage(CrcMcapStorage):

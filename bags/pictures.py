@@ -15,8 +15,8 @@ from __future__ import annotations
 import io
 import math
 import os
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Mapping, Sequence
 
 import cv2
 import numpy as np
@@ -76,7 +76,8 @@ def panel_scale(grid: BevGrid) -> int:
 
 def panel_boxes(grid: BevGrid) -> tuple[tuple[int, int, int, int], tuple[int, int, int, int]]:
     """Where :func:`comparison_picture` puts the prediction and ground-truth maps: two
-    ``(x, y, width, height)`` pixel boxes."""
+    ``(x, y, width, height)`` pixel boxes.
+    """
     scale = panel_scale(grid)
     w, h = grid.height * scale, grid.width * scale
     return (_GAP, _BAND, w, h), (w + 2 * _GAP, _BAND, w, h)

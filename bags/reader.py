@@ -16,9 +16,10 @@ from __future__ import annotations
 
 import logging
 from collections import deque
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Iterator
+from typing import Any
 
 import numpy as np
 
@@ -205,7 +206,8 @@ class BagReader:
     @property
     def type_problems(self) -> list[str]:
         """Topics whose type differs from the one their name calls for (see
-        :func:`bags.input_checks.expected_type`)."""
+        :func:`bags.input_checks.expected_type`).
+        """
         return type_problems({t: s.msgtype for t, s in self._src.topics.items()})
 
     @property
@@ -227,7 +229,8 @@ class BagReader:
     @property
     def truth_classes(self) -> tuple[str, ...]:
         """Classes with a ``/bev/truth/<class>`` topic, in the order of :attr:`gt_classes` (then
-        the rest sorted)."""
+        the rest sorted).
+        """
         found = {c for c in map(T.parse_truth_topic, self._src.topics) if c}
         gt = self.gt_classes
         return tuple(c for c in gt if c in found) + tuple(sorted(found - set(gt)))
@@ -318,7 +321,8 @@ class BagReader:
 
     def _camera_sizes(self) -> dict[str, tuple[int, int]]:
         """Delivered image ``(width, height)`` per camera: the rig's, else from the first
-        CameraInfo (cameras whose CameraInfo does not decode are not checked)."""
+        CameraInfo (cameras whose CameraInfo does not decode are not checked).
+        """
         if self._rig is not None:
             return {c.name: tuple(c.model.image_size) for c in self._rig.cameras}
         names = self.camera_names
@@ -465,7 +469,8 @@ class BagReader:
 
     def _layer(self, topic: str, mean: int, index: int, ctx: dict) -> np.ndarray | None:
         """``(H, W)`` float32 of the extra layer ``topic`` nearest ``mean`` (unknown cells 0), or
-        ``None`` when the bag has none there or it does not decode (counted in :attr:`issues`)."""
+        ``None`` when the bag has none there or it does not decode (counted in :attr:`issues`).
+        """
         buf = ctx["gt_buf"].get(topic)
         hit = None if buf is None else _nearest(buf, mean, ctx["tol"])
         if hit is None:
@@ -480,7 +485,8 @@ class BagReader:
         """Decoded images per kind and camera, validity and stamp per camera, of one set.
 
         A camera is valid when all requested kinds are present, decode, and have the size of
-        its CameraInfo; a failure is counted in :attr:`issues` and invalidates the camera."""
+        its CameraInfo; a failure is counted in :attr:`issues` and invalidates the camera.
+        """
         cams, kinds, sizes = ctx["cams"], ctx["kinds"], ctx["sizes"]
         images: dict[str, dict[str, np.ndarray]] = {"rgb": {}, "labels": {}}
         valid: dict[str, bool] = {}
@@ -513,7 +519,8 @@ class BagReader:
     def _gt(self, mean: int, ctx: dict):
         """``(stamp, gt, known)`` of the GT layers nearest ``mean``; ``gt`` and ``known`` are
         ``None`` when a layer is missing or, counted in :attr:`issues`, does not fit the grid;
-        ``stamp`` is that of the last layer found."""
+        ``stamp`` is that of the last layer found.
+        """
         if not ctx["classes"]:
             return None, None, None
         layers, stamp = [], None

@@ -48,7 +48,8 @@ def _radius(n: int) -> int:
 
 def reliability_picture(calibration: dict, title: str = "") -> np.ndarray:
     """The reliability diagram of ``calibration`` (a ``metrics.json`` ``calibration`` dict) as an
-    ``(H, W, 3)`` uint8 RGB image."""
+    ``(H, W, 3)`` uint8 RGB image.
+    """
     h = _TOP + _PLOT + _BOTTOM
     w = _LEFT + _PLOT + 16 + _LEGEND
     img = np.full((h, w, 3), 255, np.uint8)
@@ -105,7 +106,8 @@ def reliability_picture(calibration: dict, title: str = "") -> np.ndarray:
 
 def reliability_svg(calibration: dict, size: int = 320) -> str:
     """The same diagram as an inline ``<svg>`` element (no legend: the report's table names the
-    classes and their ECE)."""
+    classes and their ECE).
+    """
     m = 36  # margin (px)
     side = size - 2 * m
 

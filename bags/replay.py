@@ -39,9 +39,9 @@ import json
 import logging
 import shutil
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
@@ -121,7 +121,8 @@ class ReplayOptions:
 @dataclass
 class ReplayResult:
     """What :func:`replay` did: the metrics dict, output paths, damage note, GIF note, and per
-    mapped frame its mapping latency (ms) and, per scored frame, its IoU per class."""
+    mapped frame its mapping latency (ms) and, per scored frame, its IoU per class.
+    """
 
     metrics: dict
     out: Path
@@ -365,7 +366,8 @@ def _caption(frame, score) -> str:
 
 def _damage_note(damage: str | None, reader: BagReader) -> str | None:
     """Everything that makes a replay incomplete, in one sentence (``None``: nothing did):
-    the damage the reading met, messages the reader skipped."""
+    the damage the reading met, messages the reader skipped.
+    """
     parts = [damage] if damage else []
     issues = reader.issues.summary()
     if issues:
@@ -473,7 +475,8 @@ class ReplayScorer:
     def result(self) -> dict:
         """:meth:`MetricAccumulator.result` over the scored classes, in mapper order, plus the
         ``occlusion`` and ``calibration`` parts of :meth:`WholeGridAccumulator.result` (``None``
-        when nothing is scored)."""
+        when nothing is scored).
+        """
         if self.acc is None:
             return {"frames": 0, "classes": {}, "miou": None, "map": None, "iou_by_range": {},
                     "occlusion": None, "calibration": None}

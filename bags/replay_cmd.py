@@ -1,5 +1,6 @@
 """``bev-bag replay BAG --out DIR``: map every frame of a bag offline and score it (see
-:mod:`bags.replay`)."""
+:mod:`bags.replay`).
+"""
 
 from __future__ import annotations
 

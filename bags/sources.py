@@ -21,9 +21,10 @@ streams); without MCAP files it is a :class:`BagFormatError`.
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 from .errors import BagCorruptError, BagFormatError
 from .integrity import check_mcap, check_sqlite
@@ -77,6 +78,7 @@ class AnyReaderSource:
         }
 
     def messages(self, topics: set[str] | None = None) -> Iterator[tuple[str, str, int, Any]]:
+        """``(topic, msgtype, log_ns, message)`` of ``topics`` (None = all) in log-time order."""
         conns = [c for c in self._reader.connections if topics is None or c.topic in topics]
         if not conns:
             return
@@ -103,6 +105,7 @@ class AnyReaderSource:
             yield conn.topic, conn.msgtype, t, msg
 
     def close(self) -> None:
+        """Release the storage."""
         self._reader.close()
 
 
@@ -182,6 +185,7 @@ class McapStreamSource:
             return get_typestore(Stores.ROS2_JAZZY)
 
     def messages(self, topics: set[str] | None = None) -> Iterator[tuple[str, str, int, Any]]:
+        """``(topic, msgtype, log_ns, message)`` of ``topics`` (None = all), CRC-checked, up to any damage."""
         from mcap.records import Message
 
         count = 0
@@ -209,7 +213,7 @@ class McapStreamSource:
         raise BagCorruptError(f"{self.path}: bag is damaged ({self.damage}); read {count} messages")
 
     def close(self) -> None:
-        pass
+        """Nothing to release (every read opens the file itself)."""
 
 
 def _sqlite_files(path: Path, meta: dict) -> list[Path]:

@@ -7,8 +7,8 @@ element sized in CSS pixels, its text escaped. Missing values (None / NaN) draw 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from html import escape
-from typing import Sequence
 
 _AXIS = "#555"
 _GRID = "#ddd"

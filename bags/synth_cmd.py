@@ -90,7 +90,8 @@ def synth_bag(options: SynthBagOptions) -> DriveSummary:
 def gt_classes(rig_name: str) -> tuple:
     """GT layers of a synthetic bag: the standard classes, plus, for the Cam2BEV rig, the layers
     of Cam2BEV's class set that the standard ones cannot express (``static``: curbs, sidewalks,
-    obstacles, buildings, terrain), so that models of either class set are scored on it."""
+    obstacles, buildings, terrain), so that models of either class set are scored on it.
+    """
     if rig_name != "cam2bev4":
         return BEV_CLASSES
     names = {c.name for c in BEV_CLASSES}

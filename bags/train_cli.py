@@ -1,4 +1,4 @@
-"""``bev-train``: train a learned method (Bi-Mapper), or score a mapper on held-out drives (``bev-train eval``).
+r"""``bev-train``: train a learned method (Bi-Mapper), or score a mapper on held-out drives (``bev-train eval``).
 
 Training::
 
@@ -60,7 +60,7 @@ def _int_list(s: str) -> tuple[int, ...]:
 
 
 def _int_at_least(lo: int):
-    """argparse type: an integer >= ``lo``."""
+    """Argparse type: an integer >= ``lo``."""
     def parse(s: str) -> int:
         try:
             v = int(s)
@@ -100,7 +100,8 @@ def _add_flag(p, f: CliFlag) -> None:
 
 def _method_name(argv: list[str]) -> str:
     """The training method ``argv`` asks for (``--method``, else the ``--config`` file's, else
-    the default), to know which method flags to offer; unknown names are left to the parser."""
+    the default), to know which method flags to offer; unknown names are left to the parser.
+    """
     pre = argparse.ArgumentParser(add_help=False)
     pre.add_argument("--method")
     pre.add_argument("--config")
@@ -181,9 +182,9 @@ def eval_parser() -> argparse.ArgumentParser:
 def run_eval(argv: list[str]) -> int:
     """``bev-train eval``: score a mapper on held-out drives, print tables (and write ``--json``)."""
     a = eval_parser().parse_args(argv)
-    import torch
-
     import os
+
+    import torch
 
     from bev_mapper_core.grid import BevGrid
     from bev_mapper_core.metrics import format_table

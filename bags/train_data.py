@@ -15,8 +15,8 @@ given (the core never imports ``bags``). Frames become the same in-memory
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Callable, Sequence
 
 import numpy as np
 
@@ -84,12 +84,14 @@ class BagSource(DataSource):
     name = "bag"
 
     def rig_grid(self, cfg: TrainConfig) -> tuple[Rig, BevGrid]:
+        """The rig and GT grid recorded in the first training bag."""
         if not cfg.bag:
             raise ConfigError("the bag data source needs bags (--bag)")
         return bag_rig_grid(cfg.bag[0])
 
     def load(self, cfg: TrainConfig, rig: Rig, grid: BevGrid, needs: DataNeeds,
              log: Callable[[str], None]) -> TrainData:
+        """The frames of ``cfg.bag`` (training) and ``cfg.val_bag`` (held out)."""
         self.check(needs)
         train = bag_frameset(cfg.bag, cfg.class_names, rig, grid, needs.image_size)
         if not cfg.val_bag:

@@ -3,7 +3,8 @@
 :class:`BagWriter` writes into a hidden temporary directory next to the target and renames it
 into place only when the bag is complete, so a crash never leaves a half-written bag under the
 requested name. MCAP bags carry chunk, data section and summary CRCs
-(:class:`bags.mcap_storage.CrcMcapStorage`), so that damage is detected when they are read. :func:`write_drive` maps synthetic drive frames to the topic layout of
+(:class:`bags.mcap_storage.CrcMcapStorage`), so that damage is detected when they are read.
+:func:`write_drive` maps synthetic drive frames to the topic layout of
 :mod:`bags.topics`.
 """
 
@@ -12,9 +13,10 @@ from __future__ import annotations
 import logging
 import os
 import shutil
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 import numpy as np
 

@@ -38,8 +38,7 @@ from bev_mapper_core.mapper import BevPrediction, Mapper, register_method  # noq
 from bev_mapper_core.rig import preset_rig  # noqa: E402
 from bev_mapper_core.synth import SynthConfig, generate_drive  # noqa: E402
 from bev_mapper_core.transforms import rot_to_quat  # noqa: E402
-from msg_adapters import (  # noqa: E402
-    RclpyFactory, image_to_labels, make_camera_info, make_image, make_occupancy_grid)
+from msg_adapters import RclpyFactory, image_to_labels, make_camera_info, make_image, make_occupancy_grid  # noqa: E402
 
 
 class NullMapper(Mapper):
@@ -162,7 +161,7 @@ def main() -> None:
     print(f"callbacks + synchronizer      : {_ms(t_cb)}")
     print(f"worker path with 'null' method: {_ms(t_proc)}")
     print(f"  decode 6 label images       : {_ms(t_dec)}")
-    print(f"  {'build %d OccupancyGrids' % len(node.classes):<28}: {_ms(t_grid)}")
+    print(f"  {f'build {len(node.classes)} OccupancyGrids':<28}: {_ms(t_grid)}")
     print(f"  build the rgb8 picture      : {_ms(t_pic)}")
     print(f"  publish grids + picture     : {_ms(t_pub)}")
     total = [a + b + c for a, b, c in zip(t_deser, t_cb, t_proc)]

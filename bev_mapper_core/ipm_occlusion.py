@@ -79,7 +79,8 @@ ANGLE_STEP_RAD = 0.001
 
 def _prior_table(priors: dict[int, float]) -> np.ndarray:
     """``(NUM_LABELS + 1,)`` float32 lookup; 0 for labels without a prior (and the last entry,
-    used for label ids outside :class:`Label`)."""
+    used for label ids outside :class:`Label`).
+    """
     lut = np.zeros(NUM_LABELS + 1, np.float32)
     for label, value in priors.items():
         lut[int(label)] = value

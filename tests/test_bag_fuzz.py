@@ -20,9 +20,9 @@ import random
 from dataclasses import dataclass
 from pathlib import Path
 
+import bag_damage as D
 import pytest
 
-import bag_damage as D
 from bags import topics as T
 from bags.cli import main
 from bags.errors import BagCorruptError

@@ -15,9 +15,9 @@ import sys
 import time
 from pathlib import Path
 
+import bag_damage as D
 import pytest
 
-import bag_damage as D
 from bags import topics as T
 from bags.writer import BagWriter
 

@@ -9,9 +9,10 @@ import sys
 import numpy as np
 import pytest
 import yaml
-
 from bag_helpers import SMALL_DRIVE_FRAMES
+from nav_msgs.msg import OccupancyGrid, Odometry  # noqa: E402
 from ros_helpers import REPO, core_map_as_received, rclpy, ros_env, spin_until, start_process, stop_process
+from rosgraph_msgs.msg import Clock  # noqa: E402
 
 from bags import topics as T
 from bags.cli import main
@@ -22,9 +23,6 @@ from bev_mapper_core.classes import BEV_CLASS_NAMES
 from bev_mapper_core.mapper import MapperConfig, create_mapper
 from bev_mapper_core.rig import Rig, RigCamera
 from bev_mapper_ros.config import node_config_from_params
-
-from nav_msgs.msg import OccupancyGrid, Odometry  # noqa: E402
-from rosgraph_msgs.msg import Clock  # noqa: E402
 
 pytest.importorskip("bev_mapper_core.synth")
 pytestmark = pytest.mark.ros  # rclpy in every test; DDS and ROS processes in most

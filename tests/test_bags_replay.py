@@ -8,6 +8,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from bag_helpers import SMALL_DRIVE_FRAMES, replay_ipm, synth_small
 
 from bags import topics as T
 from bags.cli import main
@@ -18,7 +19,6 @@ from bev_mapper_core.classes import BEV_CLASS_NAMES, bev_picture
 from bev_mapper_core.errors import BevMapperError
 from bev_mapper_core.grid import BevGrid
 from bev_mapper_core.mapper import MapperConfig, create_mapper
-from bag_helpers import SMALL_DRIVE_FRAMES, replay_ipm, synth_small
 from msg_adapters import image_to_rgb, occupancy_grid_to_layer
 
 pytest.importorskip("bev_mapper_core.synth")

@@ -15,18 +15,27 @@ from bev_mapper_core.errors import BevMapperError, ConfigError
 from bev_mapper_core.grid import BevGrid
 from bev_mapper_core.ipm import IpmMapper, ground_tables, remap_table
 from bev_mapper_core.mapper import MapperConfig
-from bev_mapper_core.rig import Rig, RigCamera
-from bev_mapper_core.transforms import ego_from_optical, transform_points
 from bev_mapper_core.models import (
-    BiMapper, BiMapperConfig, BiMapperLossConfig, EfficientNet, EfficientNetConfig, WeightsError,
-    bimapper_loss, load_bimapper, load_state, mutual_teachers, save_weights,
+    BiMapper,
+    BiMapperConfig,
+    BiMapperLossConfig,
+    EfficientNet,
+    EfficientNetConfig,
+    WeightsError,
+    bimapper_loss,
+    load_bimapper,
+    load_state,
+    mutual_teachers,
+    save_weights,
 )
 from bev_mapper_core.models.bimapper_mapper import BiMapperMapper
 from bev_mapper_core.models.config import RGB_MEAN, RGB_STD
 from bev_mapper_core.models.efficientnet import round_filters
-from bev_mapper_core.models.losses import mutual_loss, warp_target_to_planes
 from bev_mapper_core.models.geometry import BiMapperGeometry
+from bev_mapper_core.models.losses import mutual_loss, warp_target_to_planes
 from bev_mapper_core.models.lv import merge_planes_to_ego, warp_to_planes
+from bev_mapper_core.rig import Rig, RigCamera
+from bev_mapper_core.transforms import ego_from_optical, transform_points
 
 # One thread: on this project's 2 shared cores, 2 OpenMP threads spin-wait for a busy core
 # (this module took 24-30 s with 2 threads and 4-7 s with 1, back to back under load).
@@ -292,7 +301,7 @@ def test_ipm_skip_rgb_prior_is_the_nearest_colour_mosaic():
     prior = model.ipm_prior(torch.from_numpy(rgb)[None])[0].numpy()  # (3 + 1, H, W)
     acc = np.zeros((*GRID.shape, 3))
     cnt = np.zeros(GRID.shape)
-    for n, (name, t) in enumerate(ground_tables(RIG, GRID).items()):
+    for n, t in enumerate(ground_tables(RIG, GRID).values()):
         acc[t.valid] += t.warp(rgb[n], cv2.INTER_NEAREST)[t.valid] / 255.0
         cnt += t.valid
     exp = (acc / np.maximum(cnt, 1)[..., None] - np.array(RGB_MEAN)) / np.array(RGB_STD)

@@ -8,7 +8,6 @@ import subprocess
 import sys
 
 import pytest
-
 from import_check import ros_modules_loaded_by
 
 CORE = pathlib.Path(__file__).resolve().parents[1] / "bev_mapper_core"

@@ -7,9 +7,9 @@ import importlib.util
 
 import numpy as np
 import pytest
+from import_check import ros_modules_loaded_by
 
 import msg_adapters as ma
-from import_check import ros_modules_loaded_by
 from bev_mapper_core.camera import CameraModel, Roi
 from bev_mapper_core.errors import BevMapperError
 from bev_mapper_core.grid import BevGrid

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-
 import pathlib
 import threading
 import time
@@ -10,9 +9,12 @@ import time
 import numpy as np
 import pytest
 import yaml
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from nav_msgs.msg import OccupancyGrid  # noqa: E402
+from rclpy.qos import qos_profile_sensor_data  # noqa: E402
 from rclpy.signals import uninstall_signal_handlers
-
 from ros_helpers import REPO, core_map_as_received, rclpy, spin_until, start_process, stop_process
+from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 
 from bev_mapper_core.grid import BevGrid
 from bev_mapper_core.ipm import IpmMapper
@@ -22,11 +24,6 @@ from bev_mapper_core.synth import SynthConfig, generate_drive
 from bev_mapper_ros import mapper_node
 from bev_mapper_ros.config import node_config_from_params
 from msg_adapters import RclpyFactory, camera_info_to_model, make_camera_info, make_image
-
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
-from nav_msgs.msg import OccupancyGrid  # noqa: E402
-from rclpy.qos import qos_profile_sensor_data  # noqa: E402
-from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 
 pytestmark = pytest.mark.ros  # rclpy messages in every test; DDS and a node process in most
 

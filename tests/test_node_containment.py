@@ -8,9 +8,9 @@ import pytest
 rclpy = pytest.importorskip("rclpy")
 
 from rclpy.parameter import Parameter  # noqa: E402
+from ros_helpers import free_domain_id  # noqa: E402
 
 from bev_mapper_ros.mapper_node import MapperNode  # noqa: E402
-from ros_helpers import free_domain_id  # noqa: E402
 
 pytestmark = pytest.mark.ros
 

@@ -24,10 +24,13 @@ import zlib
 import cv2
 import numpy as np
 import pytest
-import yaml
-
 import ros_helpers
+import yaml
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from nav_msgs.msg import OccupancyGrid  # noqa: E402
+from rclpy.qos import qos_profile_sensor_data  # noqa: E402
 from ros_helpers import REPO, core_map_as_received, rclpy, spin_until, start_process, stop_process
+from sensor_msgs.msg import CameraInfo, CompressedImage  # noqa: E402
 
 from bev_mapper_core.grid import BevGrid
 from bev_mapper_core.ipm import IpmMapper
@@ -37,11 +40,6 @@ from bev_mapper_core.synth import SynthConfig, generate_drive
 from bev_mapper_ros.config import node_config_from_params
 from msg_adapters import RclpyFactory, camera_info_to_model, make_camera_info, make_compressed_image
 from msg_adapters.image_header import PNG_SIGNATURE
-
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
-from nav_msgs.msg import OccupancyGrid  # noqa: E402
-from rclpy.qos import qos_profile_sensor_data  # noqa: E402
-from sensor_msgs.msg import CameraInfo, CompressedImage  # noqa: E402
 
 pytestmark = [pytest.mark.ros]
 

@@ -14,8 +14,13 @@ import time
 
 import numpy as np
 import pytest
-
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from nav_msgs.msg import OccupancyGrid  # noqa: E402
+from rclpy.parameter import Parameter, parameter_value_to_python  # noqa: E402
+from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data  # noqa: E402
 from ros_helpers import REPO, free_domain_id, rclpy, ros_env, start_process, stop_process
+from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 
 from bev_mapper_core.grid import BevGrid
 from bev_mapper_core.rig import PRESETS, preset_rig
@@ -24,13 +29,6 @@ from bev_mapper_ros.config import NodeConfig, preset_parameters
 from bev_mapper_ros.params import PARAMETERS
 from bev_mapper_ros.stats import CLOCK_MISMATCH, ERROR, OK, WARN, NodeStats, diagnostic_values
 from msg_adapters import RclpyFactory, make_camera_info, make_image
-
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
-from nav_msgs.msg import OccupancyGrid  # noqa: E402
-from rclpy.parameter import Parameter, parameter_value_to_python  # noqa: E402
-from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data  # noqa: E402
-from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 
 pytestmark = [pytest.mark.ros]
 
@@ -130,7 +128,7 @@ class Front1:
         while time.monotonic() < end:
             stamp_ns = stamp(k) if stamp else now_ns()
             self.send(0, stamp_ns)
-            if self.s.spin(lambda: stamp_ns in self.grids, 1.0):
+            if self.s.spin(lambda stamp_ns=stamp_ns: stamp_ns in self.grids, 1.0):
                 return stamp_ns, self.grids[stamp_ns]
             k += 1
         raise AssertionError(f"no grid within {timeout} s:\n{self.s.log.read_text()}")
@@ -164,7 +162,7 @@ def test_help_prints_every_parameter_without_starting_ros(flag):
                          timeout=60)
     assert res.returncode == 0 and res.stderr == "", res.stderr
     assert res.stdout.startswith("usage: mapper_node")
-    for name, (default, _type, read_only, text) in PARAMETERS.items():
+    for name, (_default, _type, read_only, text) in PARAMETERS.items():
         line = next((ln for ln in res.stdout.splitlines() if ln.startswith(f"  {name}: ")), None)
         assert line is not None, name
         assert ("[runtime]" in line) == (not read_only), line
@@ -243,7 +241,7 @@ def test_rig_alone_configures_the_preset_and_typos_are_named(session):
     rclpy.spin_until_future_complete(s.node, fut, timeout_sec=30)
     assert len(fut.result().values) == len(listed)
     for cam in preset["cameras"]:
-        assert s.spin(lambda: s.node.count_publishers(f"/cameras/{cam}/labels") == 0
+        assert s.spin(lambda cam=cam: s.node.count_publishers(f"/cameras/{cam}/labels") == 0
                       and s.node.count_subscribers(f"/cameras/{cam}/labels") == 1), cam
 
 
@@ -393,7 +391,7 @@ def test_outputs_reach_volatile_and_late_transient_local_subscribers(session, fr
     s = session
     # the output publishers exist from start-up, before any camera_info: their type is known
     for topic, kind in (("/bev/drivable", "nav_msgs/msg/OccupancyGrid"), ("/bev/image", "sensor_msgs/msg/Image")):
-        assert s.spin(lambda: s.node.get_publishers_info_by_topic(topic)), topic
+        assert s.spin(lambda topic=topic: s.node.get_publishers_info_by_topic(topic)), topic
         (info,) = s.node.get_publishers_info_by_topic(topic)
         assert info.topic_type == kind
         assert info.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL

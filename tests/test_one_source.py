@@ -22,7 +22,10 @@ from bev_mapper_core.mapper import INPUT_KINDS, MapperConfig, available_methods
 from bev_mapper_core.rig import PRESETS
 from bev_mapper_core.synth.config import SynthConfig
 from bev_mapper_ros.config import (
-    PARAM_FIELDS, NodeConfig, node_config_from_params, node_default_threads,
+    PARAM_FIELDS,
+    NodeConfig,
+    node_config_from_params,
+    node_default_threads,
 )
 from bev_mapper_ros.rig_params import CONFIG_DIR
 from msg_adapters import GridMessageError, SyncConfig, check_grid_info

@@ -20,10 +20,8 @@ from bags.cli import main
 from bags.frame_scores import FrameScores
 from bags.pictures import comparison_picture, panel_boxes, panel_scale
 from bags.replay import FRAMES_DIR, REPORT_FILE, ReplayOptions
-from bev_mapper_core.classes import (BEV_CLASSES, CAM2BEV_CLASSES, CLASS_COLORS, EMPTY_COLOR,
-                                     UNKNOWN_COLORS, bev_class, bev_picture)
-from bev_mapper_core.display import (EGO_CENTER_X_M, EGO_LENGTH_M, EGO_WIDTH_M, STRIP_FG,
-                                     BevPainter, painter)
+from bev_mapper_core.classes import BEV_CLASSES, CAM2BEV_CLASSES, CLASS_COLORS, EMPTY_COLOR, UNKNOWN_COLORS, bev_class, bev_picture
+from bev_mapper_core.display import EGO_CENTER_X_M, EGO_LENGTH_M, EGO_WIDTH_M, STRIP_FG, BevPainter, painter
 from bev_mapper_core.grid import BevGrid
 from bev_mapper_core.metrics import MetricAccumulator, scope_masks
 

@@ -17,7 +17,6 @@ import sys
 import time
 
 import pytest
-
 from ros_helpers import REPO, free_domain_id
 
 BIN = pathlib.Path(sys.executable).parent

@@ -91,7 +91,8 @@ def evaluate(rig: Rig, grid: BevGrid, classes: Sequence[str], method: str, weigh
              frames: int = 20, stride: int = 3, cache: str | None = "data/cache", device: str = "cpu",
              progress: bool = False, ipm_occlusion: bool = MapperConfig.ipm_occlusion) -> dict:
     """Build the mapper and score it on the held-out drives ``seeds`` (``ipm_occlusion``: see
-    :class:`~bev_mapper_core.mapper.MapperConfig`; False = the classical IPM)."""
+    :class:`~bev_mapper_core.mapper.MapperConfig`; False = the classical IPM).
+    """
     fs = held_out_frames(rig, grid, classes, seeds, frames, stride, cache, progress)
     mapper = create_mapper(rig, grid, MapperConfig(method=method, input_kind="labels", classes=tuple(classes),
                                                    weights=weights, device=device,
