@@ -8,7 +8,6 @@ runs. Methods register a factory under a name; :func:`create_mapper` builds one.
 
 from __future__ import annotations
 
-import importlib
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -18,6 +17,7 @@ import numpy as np
 from .classes import BEV_CLASS_NAMES, resolve_classes
 from .errors import ConfigError, InputError
 from .grid import BevGrid
+from .registry import resolve
 from .rig import Rig
 
 INPUT_KINDS = ("labels", "rgb")
@@ -211,10 +211,7 @@ def mapper_class(method: str) -> type[Mapper]:
         target = _REGISTRY[method]
     except KeyError:
         raise ConfigError(f"unknown method {method!r}; available: {list(available_methods())}") from None
-    if isinstance(target, str):
-        module, _, attr = target.partition(":")
-        target = getattr(importlib.import_module(module), attr)
-    return target
+    return resolve(target)
 
 
 def preflight(config: MapperConfig, rig_name: str, grid: BevGrid | None = None,

@@ -79,7 +79,6 @@ grid; the trainer scores them with the same scorer as every other method.
 
 from __future__ import annotations
 
-import importlib
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -89,6 +88,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..grid import BevGrid
+from ..registry import resolve
 from ..rig import Rig
 from .sources import DataNeeds, TrainData
 
@@ -252,9 +252,7 @@ def method_class(name: str) -> type[TrainMethod]:
         target = _REGISTRY[name]
     except KeyError:
         raise ConfigError(f"unknown training method {name!r}; available: {list(train_methods())}") from None
-    if isinstance(target, str):
-        module, _, attr = target.partition(":")
-        target = getattr(importlib.import_module(module), attr)
+    target = resolve(target)
     if not (isinstance(target, type) and issubclass(target, TrainMethod)):
         raise ConfigError(f"training method {name!r} is registered as {target!r}, not a TrainMethod")
     return target
