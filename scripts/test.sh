@@ -9,4 +9,13 @@ bash scripts/install_test_browser.sh
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-$(( (RANDOM % 100) + 101 ))}
 export RMW_IMPLEMENTATION=${RMW_IMPLEMENTATION:-rmw_fastrtps_cpp}
-exec .venv/bin/python -m pytest -q -p no:cacheprovider tests "$@"
+# Test files or folders among the arguments replace the default `tests` (bash scripts/test.sh
+# tests/test_ipm.py runs that file only); other arguments (-m "not slow", -k ...) go to pytest.
+paths=()
+for a in "$@"; do
+  case "$a" in -*) ;; *) [ -e "${a%%::*}" ] && paths+=("$a") ;; esac
+done
+if [ ${#paths[@]} -eq 0 ]; then
+  set -- tests "$@"
+fi
+exec .venv/bin/python -m pytest -q -p no:cacheprovider "$@"
