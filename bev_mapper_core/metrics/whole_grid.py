@@ -1,0 +1,221 @@
+"""Whole-grid scores: occluded claims, unknown recall, known precision and calibration (ECE)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from ..errors import ConfigError, InputError
+from ..grid import BevGrid
+from ._checks import _check_bool, _check_mask, _nan_to_none, _safe_div
+from .functional import mean_iou
+
+#: Equal-width probability bins of the expected calibration error (see the package docstring).
+ECE_BINS = 10
+
+
+# ------------------------------------------------------------------------ whole grid
+def _calibration_counts(probs: np.ndarray, truth: np.ndarray, mask: np.ndarray, bins: int):
+    """Per class and bin: ``(count, sum of p, count present)``, each ``(C, bins)``.
+
+    ``probs`` ``(C, H, W)`` float, ``truth`` ``(C, H, W)`` bool, ``mask`` ``(C, H, W)`` bool.
+    """
+    C = probs.shape[0]
+    p = np.clip(probs.astype(np.float64), 0.0, 1.0)
+    b = np.minimum((p * bins).astype(np.int64), bins - 1)  # (C, H, W) bin of each cell
+    flat = (b + bins * np.arange(C)[:, None, None])[mask]  # class-major bin ids of scored cells
+    size = C * bins
+    count = np.bincount(flat, minlength=size).reshape(C, bins)
+    conf = np.bincount(flat, weights=p[mask], minlength=size).reshape(C, bins)
+    pos = np.bincount(flat, weights=truth[mask].astype(np.float64), minlength=size).reshape(C, bins)
+    return count, conf, pos
+
+
+def _ece_from_counts(count, conf_sum, pos_sum) -> np.ndarray:
+    """``(C,)`` ECE from per-bin counts (NaN for a class without scored cells)."""
+    count = np.asarray(count, np.float64)
+    gap = np.abs(np.asarray(pos_sum, np.float64) - np.asarray(conf_sum, np.float64))
+    # n_k / N * |pos_k / n_k - conf_k / n_k| = |pos_k - conf_k| / N
+    return _safe_div(gap.sum(axis=1), count.sum(axis=1))
+
+
+def expected_calibration_error(probs, truth, mask=None, bins: int = ECE_BINS) -> np.ndarray:
+    """Per-class expected calibration error of probability layers (see the package docstring of `bev_mapper_core.metrics`).
+
+    Args:
+        probs: ``(C, H, W)`` float probabilities.
+        truth: ``(C, H, W)`` bool, the class is present.
+        mask: optional ``(H, W)`` or ``(C, H, W)`` bool, the cells that count.
+        bins: number of equal-width bins over [0, 1].
+
+    Returns:
+        ``(C,)`` float64 ECE in [0, 1]; NaN for a class with no cell in the mask.
+    """
+    probs = np.asarray(probs)
+    truth = _check_bool("truth", truth, 3)
+    if probs.shape != truth.shape:
+        raise InputError(f"probs shape {probs.shape} does not match truth shape {truth.shape}")
+    if mask is None:
+        mask = np.ones(truth.shape, bool)
+    mask = np.broadcast_to(_check_bool("mask", mask, np.ndim(mask)), truth.shape)
+    return _ece_from_counts(*_calibration_counts(probs, truth, mask, int(bins)))
+
+
+class WholeGridAccumulator:
+    """What a method publishes over the whole grid, frame by frame (see the package docstring of `bev_mapper_core.metrics`):
+    occluded claims, unknown recall, known precision and calibration (ECE).
+
+    Args:
+        grid: the :class:`BevGrid` of the layers (cell area for m^2).
+        class_names: one name per layer, in layer order.
+        threshold: a known cell claims a class when ``p >= threshold``.
+        bins: equal-width bins of the ECE (default :data:`ECE_BINS`).
+
+    It never changes :class:`MetricAccumulator`'s scores; the replay runs both on each frame.
+    """
+
+    def __init__(self, grid: BevGrid, class_names: Sequence[str], threshold: float = 0.5,
+                 bins: int = ECE_BINS) -> None:
+        if not isinstance(grid, BevGrid):
+            raise ConfigError(f"grid must be a BevGrid, got {type(grid).__name__}")
+        names = tuple(str(n) for n in class_names)
+        if not names or len(set(names)) != len(names):
+            raise ConfigError(f"class_names must be unique and not empty, got {list(names)}")
+        if not (0.0 <= float(threshold) <= 1.0):
+            raise ConfigError(f"threshold must be in [0, 1], got {threshold}")
+        if not (isinstance(bins, int) and bins >= 1):
+            raise ConfigError(f"bins must be an integer >= 1, got {bins!r}")
+        self.grid = grid
+        self.class_names = names
+        self.threshold = float(threshold)
+        self.bins = bins
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget all accumulated frames."""
+        C, B = len(self.class_names), self.bins
+        self.frames = 0
+        self.frames_with_truth = 0
+        self._cells = self._hidden = self._known = 0
+        self._known_visible = self._unknown_hidden = 0
+        self._claims = np.zeros(C, np.int64)  # hidden, known, p >= threshold
+        self._claims_t = np.zeros(C, np.int64)  # the same, in frames with full truth
+        self._false = np.zeros(C, np.int64)  # ... of which the class is absent
+        self._count = np.zeros((C, B), np.int64)
+        self._conf = np.zeros((C, B), np.float64)
+        self._pos = np.zeros((C, B), np.float64)
+
+    def update(self, probs, known, visible, gt, truth=None, calib_mask=None) -> None:
+        """Add one frame.
+
+        Args:
+            probs: ``(C, H, W)`` float, the probabilities as published (in unknown cells ignored).
+            known: ``(H, W)`` bool, cells published as known (not -1).
+            visible: ``(H, W)`` bool, cells some camera sees.
+            gt: ``(C, H, W)`` bool ground truth, meaningful on visible cells (for the ECE).
+            truth: optional ``(C, H, W)`` bool full truth (what is in every cell, seen or not);
+                without it the false share of occluded claims is not counted for this frame.
+            calib_mask: optional ``(H, W)`` or ``(C, H, W)`` bool, the cells whose calibration
+                counts (e.g. the IoU scope masks); default ``visible``. Only known cells count.
+
+        Raises:
+            InputError: wrong dtypes or shapes.
+        """
+        C = len(self.class_names)
+        shape = (C,) + self.grid.shape
+        probs = np.asarray(probs)
+        if not np.issubdtype(probs.dtype, np.floating) or probs.shape != shape:
+            raise InputError(f"probs must be float {shape}, got {probs.dtype} {probs.shape}")
+        known = _check_mask("known", known, self.grid.shape)
+        visible = _check_mask("visible", visible, self.grid.shape)
+        gt = _check_bool("gt", gt, 3)
+        if gt.shape != shape:
+            raise InputError(f"gt shape {gt.shape} does not match (classes, H, W) = {shape}")
+        if truth is not None:
+            truth = _check_bool("truth", truth, 3)
+            if truth.shape != shape:
+                raise InputError(f"truth shape {truth.shape} does not match (classes, H, W) = {shape}")
+        if calib_mask is None:
+            calib_mask = visible
+        calib = np.broadcast_to(_check_bool("calib_mask", calib_mask, np.ndim(calib_mask)), shape)
+
+        hidden = ~visible
+        self._cells += visible.size
+        self._hidden += int(np.count_nonzero(hidden))
+        self._known += int(np.count_nonzero(known))
+        self._known_visible += int(np.count_nonzero(known & visible))
+        self._unknown_hidden += int(np.count_nonzero(hidden & ~known))
+        claims = (probs >= self.threshold) & (hidden & known)  # (C, H, W)
+        n_claims = np.count_nonzero(claims.reshape(C, -1), axis=1)
+        self._claims += n_claims
+        if truth is not None:
+            self._claims_t += n_claims
+            self._false += np.count_nonzero((claims & ~truth).reshape(C, -1), axis=1)
+            self.frames_with_truth += 1
+        count, conf, pos = _calibration_counts(probs, gt, calib & known, self.bins)
+        self._count += count
+        self._conf += conf
+        self._pos += pos
+        self.frames += 1
+
+    def class_ece(self) -> np.ndarray:
+        """``(C,)`` ECE so far (NaN for a class with no scored cell)."""
+        return _ece_from_counts(self._count, self._conf, self._pos)
+
+    def result(self) -> dict:
+        """The whole-grid scores as a plain JSON-serialisable dict.
+
+        Layout::
+
+            {"frames": n, "frames_with_truth": k,
+             "occlusion": {"hidden_share", "unknown_recall", "known_precision",
+                           "classes": {name: {"claim_share", "false_share",
+                                              "claim_m2_per_frame", "false_m2_per_frame"}}},
+             "calibration": {"bins": B, "mean_ece": x,
+                             "classes": {name: {"ece", "cells",
+                                                "reliability": {"count": [B], "confidence": [B],
+                                                                "frequency": [B]}}}}}
+
+        Shares are fractions in [0, 1] (``claim_share``: claims over the hidden cells;
+        ``false_share``: false claims over the claims of the frames with full truth), areas are
+        m^2 per frame (false area per frame with full truth). ``None`` where undefined: no
+        hidden cell, no claim, no frame with full truth, an empty bin.
+        """
+        area = self.grid.resolution ** 2
+        n, nt = self.frames, self.frames_with_truth
+        classes = {}
+        for c, name in enumerate(self.class_names):
+            classes[name] = {
+                "claim_share": _nan_to_none(_safe_div(self._claims[c], self._hidden)),
+                "false_share": _nan_to_none(_safe_div(self._false[c], self._claims_t[c])) if nt else None,
+                "claim_m2_per_frame": _nan_to_none(_safe_div(self._claims[c] * area, n)),
+                "false_m2_per_frame": _nan_to_none(_safe_div(self._false[c] * area, nt)) if nt else None,
+            }
+        ece = self.class_ece()
+        calib = {}
+        for c, name in enumerate(self.class_names):
+            calib[name] = {
+                "ece": _nan_to_none(ece[c]),
+                "cells": int(self._count[c].sum()),
+                "reliability": {
+                    "count": [int(v) for v in self._count[c]],
+                    "confidence": [_nan_to_none(v) for v in _safe_div(self._conf[c], self._count[c])],
+                    "frequency": [_nan_to_none(v) for v in _safe_div(self._pos[c], self._count[c])],
+                },
+            }
+        return {
+            "frames": int(n),
+            "frames_with_truth": int(nt),
+            "occlusion": {
+                "hidden_share": _nan_to_none(_safe_div(self._hidden, self._cells)),
+                "unknown_recall": _nan_to_none(_safe_div(self._unknown_hidden, self._hidden)),
+                "known_precision": _nan_to_none(_safe_div(self._known_visible, self._known)),
+                "classes": classes,
+            },
+            "calibration": {
+                "bins": self.bins,
+                "mean_ece": _nan_to_none(mean_iou(ece)),
+                "classes": calib,
+            },
+        }
