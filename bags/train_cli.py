@@ -92,7 +92,7 @@ def _pos_float(s: str) -> float:
 
 
 def _nonneg_float(s: str) -> float:
-    """argparse type: a finite float >= 0."""
+    """A finite float >= 0 (argparse type)."""
     try:
         v = float(s)
     except ValueError:
