@@ -39,6 +39,10 @@ from .lv import LVStream
 #: ``ipm_skip`` initialisation: logit ``8 p - 4`` for an averaged IPM class indicator ``p``.
 PRIOR_LOGIT_SCALE = 8.0
 
+#: Width of the visibility head's 3x3 layer (``BiMapperConfig.visibility_head``).
+VIS_CHANNELS = 16
+
+
 class BevDecoder(nn.Module):
     """Conv + upsampling decoder from the BEV feature map to per-class logits on the full grid.
 
@@ -68,8 +72,10 @@ class BevDecoder(nn.Module):
             self.head = nn.Sequential(conv_bn_relu(c + skip_channels, c), conv_bn_relu(c, c), last)
         else:
             self.head = nn.Sequential(conv_bn_relu(c, c), nn.Conv2d(c, num_classes, 1))
-        #: optional visibility logit: a 1x1 conv on the features the last class layer sees
-        self.vis_head = nn.Conv2d(c, 1, 1) if visibility_head else None
+        #: optional visibility logit (:data:`VIS_CHANNELS`-wide 3x3 conv + 1x1) on the head's input
+        #: (upsampled features [+ the skip input, whose coverage channel is the cameras' frustum])
+        self.vis_head = (nn.Sequential(conv_bn_relu(c + skip_channels, VIS_CHANNELS), nn.Conv2d(VIS_CHANNELS, 1, 1))
+                         if visibility_head else None)
 
     def forward(self, x: torch.Tensor, skip: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
         """``x`` (B, cin, h, w) [+ ``skip`` (B, skip_channels, H, W)] -> ``(logits (B, classes, H, W),
@@ -84,8 +90,7 @@ class BevDecoder(nn.Module):
             if skip is None:
                 raise ValueError("this decoder needs its full-resolution skip input")
             x = torch.cat([x, skip], dim=1)  # (B, c + skip_channels, H, W)
-        h = self.head[:-1](x)  # (B, c, H, W): the features of the last 1x1 layer
-        return self.head[-1](h), (None if self.vis_head is None else self.vis_head(h))
+        return self.head(x), (None if self.vis_head is None else self.vis_head(x))
 
 
 class BiMapper(nn.Module):

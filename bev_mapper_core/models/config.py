@@ -58,8 +58,9 @@ class BiMapperConfig:
             range) instead of re-deriving 0.15 m detail from 1.2 m features.
         unet_channels: U-Net expanding-path width.
         decoder_channels: BEV decoder width at the feature resolution.
-        visibility_head: **not in the paper** (issue #11). One extra logit per BEV cell, a 1x1
-            conv on the decoder head's last features, trained with BCE on the visibility mask
+        visibility_head: **not in the paper** (issue #11). One extra logit per BEV cell, a small
+            head (3x3 conv + BN + ReLU, 16 channels, then 1x1) on the decoder head's input (the
+            upsampled features and, with ``ipm_skip``, the IPM prior), trained with BCE on the visibility mask
             (cells some camera sees); the mapper publishes cells it calls unobservable as unknown
             (``MapperConfig.unknown_below``). Off for files saved before it existed.
         temperature: per-class temperature ``T_k`` dividing the class logits at inference

@@ -54,6 +54,9 @@ class BiMapperTraining:
         init_weights: start a new run from this weights file (fine-tuning): every tensor of the
             file is loaded; only the visibility head may be missing from it (an old file), and
             starts fresh. Ignored on ``--resume``.
+        visibility_only: train only the visibility head (with ``init_weights``): every other
+            tensor, BatchNorm statistics included, stays as loaded, so the class outputs are
+            exactly those of the initial file.
     """
 
     asl: bool = True
@@ -63,6 +66,7 @@ class BiMapperTraining:
     visibility_weight: float = BiMapperLossConfig.visibility_weight
     uncertainty_weight: float = BiMapperLossConfig.uncertainty_weight
     init_weights: str | None = None
+    visibility_only: bool = False
 
     def __post_init__(self) -> None:
         if not isinstance(self.asl, bool):
@@ -160,6 +164,8 @@ class BiMapperMethod(TrainMethod):
         CliFlag("--uncertainty-weight", "uncertainty_weight", number=True,
                 help="PON uncertainty loss on hidden cells (FocusBEV 0.001)"),
         CliFlag("--init-weights", "init_weights", help="fine-tune: start from this weights file"),
+        CliFlag("--visibility-only", "visibility_only", action="store_true",
+                help="train only the visibility head; the class outputs stay the initial file's"),
     )
 
     @classmethod
@@ -197,6 +203,20 @@ class BiMapperMethod(TrainMethod):
             log(f"initialised from {self.cfg.loss.init_weights}" + (f" (fresh: {missing})" if missing else ""))
         if pw is not None:
             log(f"BCE positive weights {dict(zip(self.cfg.class_names, pw))}")
+
+    @override
+    def trainable_parameters(self):
+        if self.cfg.loss.visibility_only:
+            if self.model.decoder.vis_head is None:
+                raise ConfigError("--visibility-only needs --visibility-head")
+            return self.model.decoder.vis_head.parameters()
+        return self.model.parameters()
+
+    @override
+    def start_epoch(self, epoch: int) -> None:
+        if self.cfg.loss.visibility_only:  # frozen BatchNorm statistics outside the head
+            self.model.eval()
+            self.model.decoder.vis_head.train()
 
     @override
     def loss(self, batch: dict, epoch: int, step: int) -> tuple[torch.Tensor, dict[str, float]]:
