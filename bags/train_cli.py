@@ -184,6 +184,8 @@ def eval_parser() -> argparse.ArgumentParser:
                    default=MapperConfig.ipm_occlusion,
                    help="IPM's occlusion reasoning (default: %(default)s; --no-ipm-occlusion = the "
                         "classical IPM of the figures in docs/RESULTS.md before 'Honest maps')")
+    p.add_argument("--unknown-below", type=float, default=MapperConfig.unknown_below,
+                   help="Bi-Mapper with a visibility head: p_visible threshold of known cells (default: %(default)s)")
     p.add_argument("--classes", default=AUTO_CLASSES)
     p.add_argument("--val-drives", type=_pos_int, default=DEFAULTS["val_drives"])
     p.add_argument("--val-seeds", type=_int_list, default=None)
@@ -217,7 +219,7 @@ def run_eval(argv: list[str]) -> int:
     classes = class_set(a.classes, a.rig)
     seeds = a.val_seeds or val_seeds(a.val_drives)
     res = evaluate(preset_rig(a.rig), BevGrid(), classes, a.method, a.weights, seeds, a.frames_per_drive, a.stride,
-                   a.cache, a.device, progress=True, ipm_occlusion=a.ipm_occlusion)
+                   a.cache, a.device, progress=True, ipm_occlusion=a.ipm_occlusion, unknown_below=a.unknown_below)
     print(format_table(res))
     print(f"{res['ms_per_frame']:.1f} ms/frame (mapper.map, {torch.get_num_threads()} threads)")
     print(summary_header(classes, list(res["iou_by_range"])))
