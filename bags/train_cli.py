@@ -20,6 +20,10 @@ Evaluation (any registered mapper, through ``create_mapper`` like the node and t
     bev-train eval --rig surround6 --method ipm|bimapper [--weights FILE] [--classes ...]
         [--val-drives N | --val-seeds ...] [--json OUT]
 
+Temperature scaling on validation drives (writes a copy of the weights with ``temperature``)::
+
+    bev-train calibrate --rig surround6 --weights IN --out OUT [--val-seeds ...]
+
 Errors print ``error: ...`` on stderr and exit with status 1 (2 for usage errors).
 """
 
@@ -27,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from dataclasses import fields
 from pathlib import Path
@@ -86,6 +91,17 @@ def _pos_float(s: str) -> float:
     return v
 
 
+def _nonneg_float(s: str) -> float:
+    """A finite float >= 0 (argparse type)."""
+    try:
+        v = float(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {s}") from None
+    if not math.isfinite(v) or v < 0:
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {s}")
+    return v
+
+
 def _add_flag(p, f: CliFlag) -> None:
     """Add a method's :class:`CliFlag` (default suppressed: the config dataclass has it)."""
     kw = {"dest": f.dest, "help": f.help, "default": argparse.SUPPRESS}
@@ -95,6 +111,8 @@ def _add_flag(p, f: CliFlag) -> None:
         kw["choices"] = list(f.choices)
     if f.min_value is not None:
         kw["type"] = _int_at_least(f.min_value)
+    if f.number:
+        kw["type"] = _nonneg_float
     p.add_argument(f.flag, **kw)
 
 
@@ -166,6 +184,8 @@ def eval_parser() -> argparse.ArgumentParser:
                    default=MapperConfig.ipm_occlusion,
                    help="IPM's occlusion reasoning (default: %(default)s; --no-ipm-occlusion = the "
                         "classical IPM of the figures in docs/RESULTS.md before 'Honest maps')")
+    p.add_argument("--unknown-below", type=float, default=MapperConfig.unknown_below,
+                   help="Bi-Mapper with a visibility head: p_visible threshold of known cells (default: %(default)s)")
     p.add_argument("--classes", default=AUTO_CLASSES)
     p.add_argument("--val-drives", type=_pos_int, default=DEFAULTS["val_drives"])
     p.add_argument("--val-seeds", type=_int_list, default=None)
@@ -199,13 +219,51 @@ def run_eval(argv: list[str]) -> int:
     classes = class_set(a.classes, a.rig)
     seeds = a.val_seeds or val_seeds(a.val_drives)
     res = evaluate(preset_rig(a.rig), BevGrid(), classes, a.method, a.weights, seeds, a.frames_per_drive, a.stride,
-                   a.cache, a.device, progress=True, ipm_occlusion=a.ipm_occlusion)
+                   a.cache, a.device, progress=True, ipm_occlusion=a.ipm_occlusion, unknown_below=a.unknown_below)
     print(format_table(res))
     print(f"{res['ms_per_frame']:.1f} ms/frame (mapper.map, {torch.get_num_threads()} threads)")
     print(summary_header(classes, list(res["iou_by_range"])))
     print(summary_row(a.name or a.method, res, classes))
     if a.json:
         save_result(res, a.json)
+    return 0
+
+
+def calibrate_parser() -> argparse.ArgumentParser:
+    """``bev-train calibrate`` arguments."""
+    p = argparse.ArgumentParser(prog="bev-train calibrate",
+                                description="fit per-class temperatures of Bi-Mapper weights on validation drives "
+                                            "(NLL of the visible cells) and write them into a copy of the file")
+    p.add_argument("--rig", default=DEFAULTS["rig"], choices=sorted(PRESETS))
+    p.add_argument("--weights", required=True, help="Bi-Mapper weights to calibrate")
+    p.add_argument("--out", required=True, help="calibrated weights file to write")
+    p.add_argument("--val-drives", type=_pos_int, default=DEFAULTS["val_drives"])
+    p.add_argument("--val-seeds", type=_int_list, default=None, help="validation seeds (900000000+, never test seeds)")
+    p.add_argument("--frames-per-drive", type=_pos_int, default=DEFAULTS["frames_per_drive"])
+    p.add_argument("--stride", type=_pos_int, default=DEFAULTS["stride"])
+    p.add_argument("--cache", default=DEFAULTS["cache"])
+    p.add_argument("--threads", type=_pos_int, default=DEFAULTS["threads"])
+    return p
+
+
+def run_calibrate(argv: list[str]) -> int:
+    """``bev-train calibrate``: temperature scaling of a weights file (see ``training.calibrate``)."""
+    a = calibrate_parser().parse_args(argv)
+    import torch
+
+    from bev_mapper_core.grid import BevGrid
+    from bev_mapper_core.models.weights import WeightsFile
+    from bev_mapper_core.rig import preset_rig
+    from bev_mapper_core.training.calibrate import calibrate_weights
+    from bev_mapper_core.training.data import val_seeds
+    from bev_mapper_core.training.evaluate import held_out_frames
+
+    torch.set_num_threads(a.threads)
+    rig, grid = preset_rig(a.rig), BevGrid()
+    classes = WeightsFile.open(a.weights).classes
+    seeds = a.val_seeds or val_seeds(a.val_drives)
+    frames = held_out_frames(rig, grid, classes, seeds, a.frames_per_drive, a.stride, a.cache, progress=False)
+    calibrate_weights(a.weights, a.out, rig, grid, frames, log=lambda m: print(m, flush=True))
     return 0
 
 
@@ -233,6 +291,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if argv[:1] == ["eval"]:
             return run_eval(argv[1:])
+        if argv[:1] == ["calibrate"]:
+            return run_calibrate(argv[1:])
         if argv[:1] == ["train"]:
             argv = argv[1:]
         return run_train(argv)

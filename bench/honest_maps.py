@@ -9,6 +9,7 @@ over all frames) instead of averaging per-drive results.
     .venv/bin/bev-bag synth /tmp/d950000010 --rig surround6 --frames 20 --seed 950000010  # ...
     .venv/bin/python bench/honest_maps.py /tmp/d9500000{10,11,12} --method ipm [--no-ipm-occlusion]
     .venv/bin/python bench/honest_maps.py /tmp/d9500000{10,11,12} --json out.json  # Bi-Mapper
+    .venv/bin/python bench/honest_maps.py /tmp/d9000000{10,11,12} --weights W --unknown-below 0.3 0.5 0.7
 """
 
 from __future__ import annotations
@@ -31,9 +32,19 @@ def main() -> None:
     p.add_argument("--method", default=MapperConfig.method, choices=available_methods())
     p.add_argument("--ipm-occlusion", action=argparse.BooleanOptionalAction,
                    default=MapperConfig.ipm_occlusion)
-    p.add_argument("--json", type=Path, help="also write the pooled result here")
+    p.add_argument("--weights", default=MapperConfig.weights, help="Bi-Mapper weights (default: the shipped file)")
+    p.add_argument("--unknown-below", type=float, nargs="+", default=[MapperConfig.unknown_below],
+                   help="Bi-Mapper visibility threshold(s); several values: one pass, one table each")
+    p.add_argument("--json", type=Path, help="also write the pooled result here (the first threshold's)")
     args = p.parse_args()
-    config = MapperConfig(method=args.method, ipm_occlusion=args.ipm_occlusion)
+    configs = [MapperConfig(method=args.method, ipm_occlusion=args.ipm_occlusion, weights=args.weights,
+                            unknown_below=u) for u in args.unknown_below]
+    for i, config in enumerate(configs):
+        run(args, config, args.json if i == 0 else None)
+
+
+def run(args: argparse.Namespace, config: MapperConfig, json_path: Path | None) -> None:
+    """Map and score every frame of ``args.bags`` with ``config``; print (and write) the result."""
     scorer = None
     t_map, n = 0.0, 0
     for bag in args.bags:
@@ -50,14 +61,16 @@ def main() -> None:
                 n += 1
                 scorer.update(frame, pred)
     result = scorer.result()
-    what = f"ipm (ipm_occlusion={config.ipm_occlusion})" if config.method == "ipm" else config.method
+    what = (f"ipm (ipm_occlusion={config.ipm_occlusion})" if config.method == "ipm"
+            else f"{config.method} (weights {config.weights or 'shipped'}, unknown_below={config.unknown_below})")
     print(f"{what} over {len(args.bags)} bag(s), "
           f"{n} frames, {1000 * t_map / max(n, 1):.1f} ms/frame mapping")
     print(format_table(result))
     print()
     print(format_whole_grid_table(result))
-    if args.json:
-        args.json.write_text(json.dumps({"method": config.method, "ipm_occlusion": config.ipm_occlusion,
+    if json_path:
+        json_path.write_text(json.dumps({"method": config.method, "ipm_occlusion": config.ipm_occlusion,
+                                         "weights": config.weights, "unknown_below": config.unknown_below,
                                          "bags": [str(b) for b in args.bags], **result}, indent=2))
 
 

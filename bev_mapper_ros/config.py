@@ -227,6 +227,7 @@ PARAM_FIELDS: dict[str, ParamField] = {
     "device": ParamField(MapperConfig, "device"),
     "threads": ParamField(MapperConfig, "threads"),
     "ipm_occlusion": ParamField(MapperConfig, "ipm_occlusion"),
+    "unknown_below": ParamField(MapperConfig, "unknown_below"),
     "classes": ParamField(MapperConfig, "classes", string_array=True),
     "grid.x_min": ParamField(BevGrid, "x_min"),
     "grid.x_max": ParamField(BevGrid, "x_max"),

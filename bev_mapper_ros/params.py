@@ -60,6 +60,8 @@ _DECLARATIONS: dict[str, tuple] = {
     "threads": (_T.PARAMETER_INTEGER, "CPU threads of learned methods; 0 = all CPUs but one (left to the callbacks)"),
     "ipm_occlusion": (_T.PARAMETER_BOOL, "IPM: cells behind the near edge of an object a camera sees are unknown "
                       "to it, not the object's flat-ground smear"),
+    "unknown_below": (_T.PARAMETER_DOUBLE, "Bi-Mapper with a visibility head: cells predicted seen with "
+                      "probability below this are unknown (0 = all in-frustum cells known)"),
     "classes": (_T.PARAMETER_STRING_ARRAY,
                 f"classes to publish, of {list(BEV_CLASS_NAMES)} or the weights' ([] = all)"),
     "grid.x_min": (_T.PARAMETER_DOUBLE, "grid extent along x (m)"),

@@ -446,3 +446,22 @@ def test_resume_of_a_run_written_before_the_plugin_split(tmp_path, tiny_data):
     load_state(mb, b / "last.safetensors")
     for (ka, va_), (kb, vb) in zip(ma.state_dict().items(), mb.state_dict().items()):
         assert ka == kb and torch.allclose(va_, vb, atol=1e-6), ka
+
+
+def test_visibility_only_fine_tuning_keeps_the_class_outputs(tmp_path, tiny_data):
+    """``--init-weights`` from a head-less run + ``--visibility-only``: the head learns (its BCE
+    falls), every other tensor (BatchNorm statistics included) stays the initial file's."""
+    from safetensors.torch import load_file
+
+    tr, va, _ = tiny_data
+    train(tiny_cfg(tmp_path, epochs=1, out=str(tmp_path / "base")), log=lambda s: None, data=(tr, va))
+    base = str(tmp_path / "base" / "last.safetensors")
+    cfg = tiny_cfg(tmp_path, epochs=4, lr=1e-2, out=str(tmp_path / "vis"), visibility_head=True,
+                   init_weights=base, visibility_only=True, visibility_weight=1.0)
+    doc = train(cfg, log=lambda s: None, data=(tr, va))
+    vis = [h["loss_visibility"] for h in doc["history"]]
+    assert vis[-1] < vis[0]
+    old, new = load_file(base), load_file(str(tmp_path / "vis" / "last.safetensors"))
+    assert set(new) - set(old) and all(k.startswith("decoder.vis_head.") for k in set(new) - set(old))
+    for k, t in old.items():
+        assert torch.equal(t, new[k]), k

@@ -39,6 +39,10 @@ from .lv import LVStream
 #: ``ipm_skip`` initialisation: logit ``8 p - 4`` for an averaged IPM class indicator ``p``.
 PRIOR_LOGIT_SCALE = 8.0
 
+#: Width of the visibility head's 3x3 layer (``BiMapperConfig.visibility_head``).
+VIS_CHANNELS = 16
+
+
 class BevDecoder(nn.Module):
     """Conv + upsampling decoder from the BEV feature map to per-class logits on the full grid.
 
@@ -48,7 +52,7 @@ class BevDecoder(nn.Module):
     """
 
     def __init__(self, cin: int, channels: int, num_classes: int, in_hw: tuple[int, int], out_hw: tuple[int, int],
-                 skip_channels: int = 0) -> None:
+                 skip_channels: int = 0, visibility_head: bool = False) -> None:
         super().__init__()
         self.out_hw = tuple(out_hw)
         self.stem = nn.Sequential(conv_bn_relu(cin, channels), conv_bn_relu(channels, channels))
@@ -68,9 +72,15 @@ class BevDecoder(nn.Module):
             self.head = nn.Sequential(conv_bn_relu(c + skip_channels, c), conv_bn_relu(c, c), last)
         else:
             self.head = nn.Sequential(conv_bn_relu(c, c), nn.Conv2d(c, num_classes, 1))
+        #: optional visibility logit (:data:`VIS_CHANNELS`-wide 3x3 conv + 1x1) on the head's input
+        #: (upsampled features [+ the skip input, whose coverage channel is the cameras' frustum])
+        self.vis_head = (nn.Sequential(conv_bn_relu(c + skip_channels, VIS_CHANNELS), nn.Conv2d(VIS_CHANNELS, 1, 1))
+                         if visibility_head else None)
 
-    def forward(self, x: torch.Tensor, skip: torch.Tensor | None = None) -> torch.Tensor:
-        """``x`` (B, cin, h, w) [+ ``skip`` (B, skip_channels, H, W)] -> logits (B, classes, H, W)."""
+    def forward(self, x: torch.Tensor, skip: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """``x`` (B, cin, h, w) [+ ``skip`` (B, skip_channels, H, W)] -> ``(logits (B, classes, H, W),
+        visibility logits (B, 1, H, W) or None without the visibility head)``.
+        """
         x = self.stem(x)
         for up in self.ups:
             x = up(F.interpolate(x, scale_factor=2.0, mode="bilinear", align_corners=False))
@@ -80,7 +90,7 @@ class BevDecoder(nn.Module):
             if skip is None:
                 raise ValueError("this decoder needs its full-resolution skip input")
             x = torch.cat([x, skip], dim=1)  # (B, c + skip_channels, H, W)
-        return self.head(x)
+        return self.head(x), (None if self.vis_head is None else self.vis_head(x))
 
 
 class BiMapper(nn.Module):
@@ -117,7 +127,7 @@ class BiMapper(nn.Module):
         self.raw_hw = self._raw_hw(geo, rig)
         self.prior_channels = cin + 1 if config.ipm_skip else 0  # averaged input + coverage
         self.decoder = BevDecoder(dec_in, config.decoder_channels, self.num_classes, self.feat_hw, grid.shape,
-                                  skip_channels=self.prior_channels)
+                                  skip_channels=self.prior_channels, visibility_head=config.visibility_head)
         if config.ipm_skip:
             self.ipm_proj = nn.Conv2d(self.prior_channels, self.num_classes, 1)
             with torch.no_grad():
@@ -274,6 +284,7 @@ class BiMapper(nn.Module):
             ``gv_feat`` / ``lv_feat`` (B, C, hb, wb) stream features (None if disabled);
             ``gv_fg_logits`` / ``lv_fg_logits`` (B, 1, hb, wb) foreground logits for mutual
             learning; ``lv_plane_logits`` (B, N, K, Hp, Wp); ``lv_coverage`` (B, 1, hb, wb);
+            ``visibility_logits`` (B, 1, H, W) the visibility head's logit (None without it);
             ``cam_mask`` (B, N) bool; ``gt_grid`` (N, Hp, Wp, 2) / ``gt_valid`` (N, Hp, Wp) the
             ASL target tables.
         """
@@ -315,10 +326,21 @@ class BiMapper(nn.Module):
         if cfg.ipm_skip:
             if prior is None:
                 raise ValueError("an ipm_skip model needs the IPM prior: call forward() with the camera-size images")
-            out["logits"] = self.decoder(fused, prior) + self.ipm_proj(prior)
+            logits, vis = self.decoder(fused, prior)
+            out["logits"] = logits + self.ipm_proj(prior)
         else:
-            out["logits"] = self.decoder(fused)
+            out["logits"], vis = self.decoder(fused)
+        out["visibility_logits"] = vis
         return out
+
+    def calibrated(self, logits: torch.Tensor) -> torch.Tensor:
+        """Class logits (B, K, H, W) divided by the per-class ``config.temperature`` (unchanged
+        when the model is not calibrated).
+        """
+        t = self.config.temperature
+        if t is None:
+            return logits
+        return logits / torch.tensor(t, dtype=logits.dtype, device=logits.device).view(1, -1, 1, 1)
 
     def known(self, cam_mask: torch.Tensor | None = None) -> torch.Tensor:
         """(B, H, W) bool: grid cells on the ground inside at least one present camera's image."""

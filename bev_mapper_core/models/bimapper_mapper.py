@@ -51,7 +51,9 @@ def inference_threads() -> int:
 class BiMapperMapper(Mapper):
     """Learned Bi-Mapper inference: batch 1, ``torch.inference_mode``, sigmoid probabilities.
 
-    ``known`` = ground cells inside the image of at least one camera present in the frame.
+    ``known`` = ground cells inside the image of at least one camera present in the frame; with
+    a visibility head, only those it predicts seen with probability >= ``unknown_below``.
+    Class probabilities are ``sigmoid(logit / T_k)`` with the weights' per-class temperature.
     Cameras missing from a frame are zeroed and masked out of both streams.
 
     Raises (constructor):
@@ -155,8 +157,13 @@ class BiMapperMapper(Mapper):
             else:  # cameras of different sizes (the model refuses ipm_skip / lv_full_res then)
                 xs = [self.model.preprocess(torch.from_numpy(r)[None, None].to(self.device)) for r in raws]  # (1, 1, C_in, h, w) each
                 out = self.model.forward_preprocessed(torch.cat(xs, dim=1), cam_mask)  # input (1, N, C_in, h, w)
-            probs = torch.sigmoid(out["logits"][0, self._layers]).float().cpu().numpy()  # (K_wanted, H, W)
-            known = self.model.known(cam_mask)[0].cpu().numpy()  # (H, W)
+            logits = self.model.calibrated(out["logits"])  # per-class temperature (1 if uncalibrated)
+            probs = torch.sigmoid(logits[0, self._layers]).float().cpu().numpy()  # (K_wanted, H, W)
+            known_t = self.model.known(cam_mask)[0]  # (H, W)
+            vis = out.get("visibility_logits")
+            if vis is not None and self.config.unknown_below > 0:
+                known_t = known_t & (torch.sigmoid(vis[0, 0]) >= self.config.unknown_below)
+            known = known_t.cpu().numpy()
         return BevPrediction(self.class_names, np.ascontiguousarray(probs, dtype=np.float32), known.astype(bool))
 
 

@@ -58,6 +58,14 @@ class BiMapperConfig:
             range) instead of re-deriving 0.15 m detail from 1.2 m features.
         unet_channels: U-Net expanding-path width.
         decoder_channels: BEV decoder width at the feature resolution.
+        visibility_head: **not in the paper** (issue #11). One extra logit per BEV cell, a small
+            head (3x3 conv + BN + ReLU, 16 channels, then 1x1) on the decoder head's input (the
+            upsampled features and, with ``ipm_skip``, the IPM prior), trained with BCE on the visibility mask
+            (cells some camera sees); the mapper publishes cells it calls unobservable as unknown
+            (``MapperConfig.unknown_below``). Off for files saved before it existed.
+        temperature: per-class temperature ``T_k`` dividing the class logits at inference
+            (temperature scaling fitted on validation drives by ``bev-train calibrate``);
+            ``None`` = 1 for every class (uncalibrated, files saved before it existed).
     """
 
     input_kind: str = "labels"
@@ -84,10 +92,21 @@ class BiMapperConfig:
     ipm_skip: bool = False
     unet_channels: int = 32
     decoder_channels: int = 64
+    visibility_head: bool = False
+    temperature: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         for name in ("classes", "plane_x_range", "plane_z_range", "plane_shape"):
             object.__setattr__(self, name, tuple(getattr(self, name)))
+        if self.temperature is not None:
+            t = tuple(self.temperature)
+            if (len(t) != len(self.classes) or any(isinstance(v, bool) or not isinstance(v, (int, float))
+                                                   or not math.isfinite(v) or not 0.01 <= v <= 100 for v in t)):
+                raise ConfigError(f"temperature must be one number in [0.01, 100] per class "
+                                  f"({len(self.classes)}), got {self.temperature!r}")
+            object.__setattr__(self, "temperature", tuple(float(v) for v in t))
+        if not isinstance(self.visibility_head, bool):
+            raise ConfigError(f"visibility_head must be true or false, got {self.visibility_head!r}")
         if self.input_kind not in ("labels", "rgb"):
             raise ConfigError(f"input_kind must be 'labels' or 'rgb', got {self.input_kind!r}")
         resolve_classes(self.classes)

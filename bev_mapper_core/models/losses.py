@@ -15,11 +15,19 @@
   teaches GV; from epoch N both teach each other (Eq. 4). The loss is restricted to feature
   cells some camera plane covers: LV says nothing elsewhere.
 
+* **Visibility** (not in the paper; issue #11): BCE of the visibility head's logit against the
+  visibility mask (cells some camera sees) over every grid cell, weight ``visibility_weight``.
+* **Uncertainty** (PON, Roddick & Cipolla 2020, used by FocusBEV with weight 0.001): on cells
+  *not* visible, the mean over cells and classes of ``KL(Bernoulli(p) || Bernoulli(0.5)) =
+  log 2 - H(p)``, which pushes each class probability towards 0.5 (maximum entropy) where the
+  cameras have no evidence; weight ``uncertainty_weight``.
+
 Epochs are counted from 0; the paper's "5th epoch" is ``mutual_start_epoch = 4``.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -41,6 +49,9 @@ class BiMapperLossConfig:
         mutual_mode: ``async`` (paper), ``sync`` (both from the start), ``lv`` (LV teacher only),
             ``gv`` (GV teacher only), ``none`` (Table IV ablations).
         pos_weight: optional per-class positive weights of the ego BCE.
+        visibility_weight: weight of the visibility head's BCE (0 = off; needs the head).
+        uncertainty_weight: weight of the PON uncertainty loss on hidden cells (0 = off;
+            FocusBEV 0.001).
     """
 
     asl_weight: float = 1.0
@@ -48,8 +59,14 @@ class BiMapperLossConfig:
     mutual_start_epoch: int = 4
     mutual_mode: str = "async"
     pos_weight: tuple[float, ...] | None = None
+    visibility_weight: float = 0.0
+    uncertainty_weight: float = 0.0
 
     def __post_init__(self) -> None:
+        for name in ("visibility_weight", "uncertainty_weight"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not v >= 0 or v == float("inf"):
+                raise ConfigError(f"{name} must be a finite number >= 0, got {v!r}")
         if self.mutual_mode not in MUTUAL_MODES:
             raise ConfigError(f"mutual_mode must be one of {MUTUAL_MODES}, got {self.mutual_mode!r}")
         if self.mutual_start_epoch < 0:
@@ -87,6 +104,21 @@ def masked_bce(logits: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | 
         return loss.mean()
     m = mask.to(loss.dtype).expand_as(loss)
     return (loss * m).sum() / m.sum().clamp(min=1.0)
+
+
+def uncertainty_loss(logits: torch.Tensor, hidden: torch.Tensor) -> torch.Tensor:
+    """PON's uncertainty loss: mean ``KL(Bernoulli(p) || Bernoulli(0.5)) = log 2 - H(p)`` over
+    the hidden cells and all classes, ``p = sigmoid(logits)``.
+
+    ``logits`` (B, K, H, W); ``hidden`` (B, H, W) bool, cells no camera sees. 0 when every
+    hidden probability is 0.5, ``log 2`` when they are all certain; 0 if nothing is hidden.
+    """
+    p = torch.sigmoid(logits)
+    # H(p) from the logits, stable: -p log p - (1-p) log(1-p) = softplus(x) - p x
+    entropy = F.softplus(logits) - p * logits
+    kl = math.log(2.0) - entropy  # (B, K, H, W)
+    m = hidden[:, None].to(kl.dtype).expand_as(kl)
+    return (kl * m).sum() / m.sum().clamp(min=1.0)
 
 
 def warp_target_to_planes(target: torch.Tensor, gt_grid: torch.Tensor, gt_valid: torch.Tensor,
@@ -158,8 +190,9 @@ def bimapper_loss(outputs: dict, batch: dict, epoch: int,
         config: weights and schedule; default :class:`BiMapperLossConfig`.
 
     Returns:
-        ``(total, parts)``, parts = floats ``bce``, ``asl``, ``mutual``, ``total``. Terms of a
-        disabled stream are 0.
+        ``(total, parts)``, parts = floats ``bce``, ``asl``, ``mutual``, ``total`` (plus
+        ``visibility`` / ``uncertainty`` when their weights are > 0). Terms of a disabled stream
+        are 0.
     """
     cfg = config or BiMapperLossConfig()
     logits = outputs["logits"]
@@ -179,5 +212,21 @@ def bimapper_loss(outputs: dict, batch: dict, epoch: int,
         lv_t, gv_t = mutual_teachers(epoch, cfg.mutual_start_epoch, cfg.mutual_mode)
         mutual = mutual_loss(outputs["gv_fg_logits"], outputs["lv_fg_logits"], outputs["lv_coverage"], lv_t, gv_t)
     total = bce + cfg.asl_weight * asl + cfg.mutual_weight * mutual
-    parts = {"bce": float(bce.detach()), "asl": float(asl.detach()), "mutual": float(mutual.detach()), "total": float(total.detach())}
+    parts = {"bce": float(bce.detach()), "asl": float(asl.detach()), "mutual": float(mutual.detach())}
+    if cfg.visibility_weight > 0:
+        vis_logits = outputs.get("visibility_logits")
+        if vis_logits is None:
+            raise ConfigError("visibility_weight > 0 needs a model with the visibility head")
+        if mask is None:
+            raise ConfigError("visibility_weight > 0 needs the visibility mask in the batch")
+        vis = masked_bce(vis_logits, mask[:, None])
+        total = total + cfg.visibility_weight * vis
+        parts["visibility"] = float(vis.detach())
+    if cfg.uncertainty_weight > 0:
+        if mask is None:
+            raise ConfigError("uncertainty_weight > 0 needs the visibility mask in the batch")
+        unc = uncertainty_loss(logits, ~mask)
+        total = total + cfg.uncertainty_weight * unc
+        parts["uncertainty"] = float(unc.detach())
+    parts["total"] = float(total.detach())
     return total, parts

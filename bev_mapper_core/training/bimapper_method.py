@@ -10,7 +10,7 @@ the asynchronous mutual-learning schedule (see :mod:`bev_mapper_core.models.loss
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -48,12 +48,25 @@ class BiMapperTraining:
             ``clip(sqrt(negatives / positives), 1, 10)`` over the visible cells of the training
             set (thin and rare layers: lane dividers, crossings, pedestrians); ``none``: plain BCE
             as in the paper. See :func:`class_pos_weight`.
+        visibility_weight: weight of the visibility head's BCE (issue #11; needs the model's
+            ``visibility_head``).
+        uncertainty_weight: weight of PON's uncertainty loss on hidden cells (FocusBEV: 0.001).
+        init_weights: start a new run from this weights file (fine-tuning): every tensor of the
+            file is loaded; only the visibility head may be missing from it (an old file), and
+            starts fresh. Ignored on ``--resume``.
+        visibility_only: train only the visibility head (with ``init_weights``): every other
+            tensor, BatchNorm statistics included, stays as loaded, so the class outputs are
+            exactly those of the initial file.
     """
 
     asl: bool = True
     mutual: str = BiMapperLossConfig.mutual_mode
     mutual_start_epoch: int | None = None
     pos_weight: str = "auto"
+    visibility_weight: float = BiMapperLossConfig.visibility_weight
+    uncertainty_weight: float = BiMapperLossConfig.uncertainty_weight
+    init_weights: str | None = None
+    visibility_only: bool = False
 
     def __post_init__(self) -> None:
         if not isinstance(self.asl, bool):
@@ -76,7 +89,9 @@ class BiMapperTraining:
         """The loss configuration of a run of ``epochs`` epochs."""
         return BiMapperLossConfig(asl_weight=BiMapperLossConfig.asl_weight if self.asl else 0.0,
                                   mutual_start_epoch=self.mutual_start(epochs),
-                                  mutual_mode=self.mutual, pos_weight=pos_weight)
+                                  mutual_mode=self.mutual, pos_weight=pos_weight,
+                                  visibility_weight=float(self.visibility_weight),
+                                  uncertainty_weight=float(self.uncertainty_weight))
 
 
 def class_pos_weight(frames: FrameSet, max_weight: float = 10.0) -> tuple[float, ...]:
@@ -91,6 +106,34 @@ def class_pos_weight(frames: FrameSet, max_weight: float = 10.0) -> tuple[float,
     tot = float(np.count_nonzero(frames.mask))
     w = np.sqrt(np.maximum(tot - pos, 1.0) / np.maximum(pos, 1.0))
     return tuple(float(round(v, 3)) for v in np.clip(w, 1.0, max_weight))
+
+
+def init_from(model: BiMapper, path: str) -> list[str]:
+    """Load the tensors of the weights file ``path`` into ``model`` for fine-tuning.
+
+    The file's architecture may differ from the model's only by the visibility head and the
+    temperature (an old file): its tensors must then all exist in the model with the same shapes,
+    and only ``decoder.vis_head.*`` may be missing from the file. Returns the names left fresh.
+
+    Raises:
+        WeightsError: the file is not a Bi-Mapper file of this rig / classes or does not fit.
+    """
+    from safetensors.torch import load_file
+
+    from ..models.weights import WeightsError, WeightsFile
+
+    wf = WeightsFile.open(path)
+    stored = replace(wf.config, visibility_head=model.config.visibility_head, temperature=model.config.temperature)
+    if stored != model.config or list(wf.cameras) != list(model.rig.names):
+        raise WeightsError(f"{path}: its architecture / cameras differ from the run's (beyond the visibility head)")
+    state = load_file(path)
+    own = model.state_dict()
+    bad = [k for k, t in state.items() if k not in own or tuple(own[k].shape) != tuple(t.shape)]
+    missing = [k for k in own if k not in state]
+    if bad or any(not k.startswith("decoder.vis_head.") for k in missing):
+        raise WeightsError(f"{path}: tensors do not fit the run's model (extra/mismatched {bad}, missing {missing})")
+    model.load_state_dict(state, strict=False)
+    return missing
 
 
 class BiMapperMethod(TrainMethod):
@@ -115,6 +158,14 @@ class BiMapperMethod(TrainMethod):
         CliFlag("--pos-weight", "pos_weight", choices=POS_WEIGHTS, help="BCE class weights (none = paper)"),
         CliFlag("--input-width", "input_width", min_value=1),
         CliFlag("--gv-hidden", "gv_hidden", min_value=1),
+        CliFlag("--visibility-head", "visibility_head", action="store_true",
+                help="extra per-cell visibility logit (issue #11; not in the paper)"),
+        CliFlag("--visibility-weight", "visibility_weight", number=True, help="BCE weight of the visibility head"),
+        CliFlag("--uncertainty-weight", "uncertainty_weight", number=True,
+                help="PON uncertainty loss on hidden cells (FocusBEV 0.001)"),
+        CliFlag("--init-weights", "init_weights", help="fine-tune: start from this weights file"),
+        CliFlag("--visibility-only", "visibility_only", action="store_true",
+                help="train only the visibility head; the class outputs stay the initial file's"),
     )
 
     @classmethod
@@ -145,8 +196,27 @@ class BiMapperMethod(TrainMethod):
     def prepare(self, data: TrainData, log: Callable[[str], None]) -> None:
         pw = class_pos_weight(data.train) if self.cfg.loss.pos_weight == "auto" else None
         self.loss_cfg = self.cfg.loss.loss_config(self.cfg.epochs, pw)
+        if self.loss_cfg.visibility_weight > 0 and not self.cfg.model.visibility_head:
+            raise ConfigError("--visibility-weight needs --visibility-head")
+        if self.cfg.loss.init_weights and not self.cfg.resume:
+            missing = init_from(self.model, self.cfg.loss.init_weights)
+            log(f"initialised from {self.cfg.loss.init_weights}" + (f" (fresh: {missing})" if missing else ""))
         if pw is not None:
             log(f"BCE positive weights {dict(zip(self.cfg.class_names, pw))}")
+
+    @override
+    def trainable_parameters(self):
+        if self.cfg.loss.visibility_only:
+            if self.model.decoder.vis_head is None:
+                raise ConfigError("--visibility-only needs --visibility-head")
+            return self.model.decoder.vis_head.parameters()
+        return self.model.parameters()
+
+    @override
+    def start_epoch(self, epoch: int) -> None:
+        if self.cfg.loss.visibility_only:  # frozen BatchNorm statistics outside the head
+            self.model.eval()
+            self.model.decoder.vis_head.train()
 
     @override
     def loss(self, batch: dict, epoch: int, step: int) -> tuple[torch.Tensor, dict[str, float]]:
@@ -158,7 +228,7 @@ class BiMapperMethod(TrainMethod):
     @override
     def predict(self, batch: dict) -> tuple[np.ndarray, np.ndarray]:
         out = self.model(batch["images"].to(self.device))
-        probs = torch.sigmoid(out["logits"]).float().cpu().numpy()
+        probs = torch.sigmoid(self.model.calibrated(out["logits"])).float().cpu().numpy()
         known = self.model.known().cpu().numpy()[0]  # (1, H, W) -> (H, W), the same for every frame
         return probs, np.broadcast_to(known, (len(probs), *known.shape))
 

@@ -89,14 +89,15 @@ def held_out_frames(rig: Rig, grid: BevGrid, classes: Sequence[str], seeds: Sequ
 
 def evaluate(rig: Rig, grid: BevGrid, classes: Sequence[str], method: str, weights: str | None, seeds: Sequence[int],
              frames: int = 20, stride: int = 3, cache: str | None = "data/cache", device: str = "cpu",
-             progress: bool = False, ipm_occlusion: bool = MapperConfig.ipm_occlusion) -> dict:
-    """Build the mapper and score it on the held-out drives ``seeds`` (``ipm_occlusion``: see
+             progress: bool = False, ipm_occlusion: bool = MapperConfig.ipm_occlusion,
+             unknown_below: float = MapperConfig.unknown_below) -> dict:
+    """Build the mapper and score it on the held-out drives ``seeds`` (``ipm_occlusion``, ``unknown_below``: see
     :class:`~bev_mapper_core.mapper.MapperConfig`; False = the classical IPM).
     """
     fs = held_out_frames(rig, grid, classes, seeds, frames, stride, cache, progress)
     mapper = create_mapper(rig, grid, MapperConfig(method=method, input_kind="labels", classes=tuple(classes),
                                                    weights=weights, device=device,
-                                                   ipm_occlusion=ipm_occlusion))
+                                                   ipm_occlusion=ipm_occlusion, unknown_below=unknown_below))
     res = evaluate_mapper(mapper, fs, grid, progress=progress)
     res.update(method=method, weights=weights, rig=rig.name, seeds=list(seeds), frames_per_drive=frames, stride=stride)
     return res

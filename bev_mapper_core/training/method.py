@@ -109,6 +109,7 @@ class CliFlag:
         choices: allowed values (take them from the constant that owns them).
         action: ``store_true`` / ``store_false`` for switches.
         min_value: integer flag with this lower bound.
+        number: a float flag (finite, >= 0).
     """
 
     flag: str
@@ -117,6 +118,7 @@ class CliFlag:
     choices: tuple[str, ...] | None = None
     action: str | None = None
     min_value: int | None = None
+    number: bool = False
 
     def __post_init__(self) -> None:
         if self.action not in (None, "store_true", "store_false"):
