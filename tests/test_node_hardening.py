@@ -19,6 +19,7 @@ Two kinds of assertions, marked where they are made:
 from __future__ import annotations
 
 import struct
+import time
 import zlib
 
 import cv2
@@ -220,7 +221,12 @@ def test_node_survives_bad_camera_info_and_compressed_bombs(tmp_path):
 
     try:
         d = Driver(node, rig)
-        d.send_infos(stamp[0])
+        # CameraInfo goes best effort: resend until the node has logged every camera's calibration
+        want = [f"calibration of {c}:" for c in rig.names]
+        end = time.monotonic() + 30.0
+        while not all(w in log.read_text() for w in want):
+            assert time.monotonic() < end, f"the node never got every camera's calibration:\n{log.read_text()}"
+            d.send_infos(stamp[0], repeat=1)
         mapped(what="healthy start")  # (best effort DDS may lose an image: matched as received)
         hwm_before = _peak_rss_mb(proc.pid)
         n_bad = 0
