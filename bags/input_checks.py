@@ -5,8 +5,8 @@ A bag is untrusted input. :class:`~bags.reader.BagReader` checks
 * each topic's *type* against the role its name gives it (:func:`expected_type`): a topic of
   the wrong type cannot be used at all, so it is an error naming the topic
   (:func:`type_problems`);
-* each message's header *stamp* (:func:`stamp_problem`): negative seconds, nanoseconds
-  outside ``[0, 1e9)`` or a stamp that is not a pair of integers; and a stamp that jumps away
+* each message's header *stamp* (:func:`stamp_problem`, the adapters' rule): negative seconds,
+  nanoseconds outside ``[0, 1e9)`` or a stamp that is not a pair of integers; and a stamp that jumps away
   from its topic's log times by more than :data:`MAX_STAMP_DRIFT_NS` (:class:`StampDrift`);
 * the *size* of a GT grid before anything is allocated for it (:func:`check_grid_size`):
   at most :data:`MAX_GRID_CELLS` cells;
@@ -22,14 +22,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from msg_adapters import AdapterError
+from bev_mapper_core.grid import MAX_GRID_CELLS
+from msg_adapters import AdapterError, header_stamp_ns
 
 from . import topics as T
 from .errors import BagContentError
 
-#: Largest BEV grid (cells) a bag's GT may declare: 2048 x 2048, ~50 times the default
-#: 400 x 200 grid. A replay holds a few float32 layers of this size per class.
-MAX_GRID_CELLS = 1 << 22
 _NS = 1_000_000_000
 
 #: Most a topic's header stamps may drift against its log (receive) times in one bag. The
@@ -78,25 +76,14 @@ def check_types(path: Any, types: dict[str, str], topics: set[str] | None = None
 
 
 def stamp_problem(msg: Any) -> str | None:
-    """Why ``msg.header.stamp`` is not a valid ``builtin_interfaces/Time``, else ``None``."""
+    """Why ``msg.header.stamp`` is not a usable stamp (the adapters' rule,
+    :func:`msg_adapters.header_stamp_ns`: non-negative seconds, nanosec in ``[0, 1e9)``), else ``None``.
+    """
     try:
-        sec, nanosec = msg.header.stamp.sec, msg.header.stamp.nanosec
-    except AttributeError:
-        return "message has no header stamp"
-    try:
-        sec, nanosec = int(sec), int(nanosec)
-    except (TypeError, ValueError, OverflowError):
-        return f"header stamp ({sec!r}, {nanosec!r}) is not a pair of integers"
-    if sec < 0:
-        return f"header stamp has negative seconds ({sec})"
-    if not 0 <= nanosec < _NS:
-        return f"header stamp nanosec {nanosec} is outside [0, 1e9)"
+        header_stamp_ns(msg)
+    except AdapterError as exc:
+        return str(exc)
     return None
-
-
-def stamp_ns(msg: Any) -> int:
-    """Nanoseconds of a stamp that passed :func:`stamp_problem`."""
-    return int(msg.header.stamp.sec) * _NS + int(msg.header.stamp.nanosec)
 
 
 class StampDrift:

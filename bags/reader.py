@@ -36,6 +36,7 @@ from msg_adapters import (
     TfTree,
     camera_info_to_model,
     grid_from_info,
+    header_stamp_ns,
     image_to_labels,
     image_to_rgb,
     occupancy_grid_to_layer,
@@ -50,7 +51,6 @@ from .input_checks import (
     StampDrift,
     check_grid_size,
     check_types,
-    stamp_ns,
     stamp_problem,
     type_problems,
 )
@@ -403,7 +403,7 @@ class BagReader:
         try:
             for m in self.messages(topics):
                 bad = stamp_problem(m.msg)
-                stamp = stamp_ns(m.msg) if bad is None else 0
+                stamp = header_stamp_ns(m.msg) if bad is None else 0
                 bad = bad or drift.problem(m.topic, stamp, m.log_ns)
                 if bad is not None:
                     self.issues.bad_stamp(m.topic, bad)

@@ -23,6 +23,11 @@ import numpy as np
 
 from .errors import GridError
 
+#: Most cells a BEV grid read from untrusted input (a bag's GT, a weights file) may have:
+#: 2048 x 2048, ~50 times the default 400 x 200 grid (a replay holds a few float32 layers of
+#: this size per class); a larger claim is refused before anything of that size is allocated.
+MAX_GRID_CELLS = 2048 * 2048
+
 #: OccupancyGrid value for "unknown".
 OCC_UNKNOWN = -1
 #: Largest OccupancyGrid value: known cells hold 0..OCC_MAX, the probability in percent.

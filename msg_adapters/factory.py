@@ -27,8 +27,10 @@ from .errors import MessageFactoryError, StampError
 
 _NS_PER_S = 1_000_000_000
 #: ``builtin_interfaces/Time`` field ranges: ``sec`` is an int32, ``nanosec`` a uint32.
-_SEC_RANGE = (-(2**31), 2**31 - 1)
-_NANOSEC_RANGE = (0, 2**32 - 1)
+#: A usable ``builtin_interfaces/Time``: non-negative seconds (int32), normalized nanoseconds
+#: (rclpy's ``Time`` refuses negative times; ``nanosec`` >= 1e9 is not a normalized stamp).
+_SEC_RANGE = (0, 2**31 - 1)
+_NANOSEC_RANGE = (0, 10**9 - 1)
 
 
 # ------------------------------------------------------------------------ time
@@ -43,8 +45,8 @@ def stamp_to_ns(stamp: Any) -> int:
     """Integer nanoseconds of a ``builtin_interfaces/Time`` (anything with ``sec``/``nanosec``).
 
     Raises:
-        StampError: a field is missing, not an integer, or outside its range (``sec`` int32,
-            ``nanosec`` uint32).
+        StampError: a field is missing, not an integer, or outside its range (``sec`` in
+            ``[0, 2**31)``, ``nanosec`` in ``[0, 1e9)``).
     """
     sec = as_int(field(stamp, "sec", StampError, "stamp"), "sec", StampError, "stamp", *_SEC_RANGE)
     nanosec = as_int(field(stamp, "nanosec", StampError, "stamp"), "nanosec", StampError, "stamp",

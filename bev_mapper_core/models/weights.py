@@ -13,7 +13,7 @@ offers the start-up checks (:meth:`~WeightsFile.check`, :meth:`~WeightsFile.vali
 model (:meth:`~WeightsFile.build_model`).
 
 * Opening checks the document's schema and bounds (types, known classes, a grid of at most
-  :data:`MAX_GRID_CELLS` cells, an architecture within ``BiMapperConfig``'s sanity bounds) before
+  :data:`~bev_mapper_core.grid.MAX_GRID_CELLS` cells, an architecture within ``BiMapperConfig``'s sanity bounds) before
   anything is allocated.
 * :meth:`~WeightsFile.validate` (the mapper's preflight runs it) builds the stored architecture
   for a stand-in rig of the stored cameras and loads every tensor into it: names, shapes, dtypes
@@ -43,7 +43,7 @@ from safetensors.torch import save_file
 from ..camera import CameraModel
 from ..classes import resolve_classes
 from ..errors import BevMapperError, ConfigError
-from ..grid import BevGrid
+from ..grid import MAX_GRID_CELLS, BevGrid
 from ..rig import Rig, RigCamera
 from .bimapper import BiMapper, BiMapperConfig
 from .config import MAX_WIDTH_PX
@@ -53,9 +53,6 @@ VERSION = 1
 META_KEY = "bev_mapper"
 
 
-#: Most BEV cells a weights file's grid may have (the default grid has 80,000; 4096 x 4096 is
-#: far beyond any model here): a larger claim is refused before anything is allocated.
-MAX_GRID_CELLS = 4096 * 4096
 
 
 class WeightsError(BevMapperError, ValueError):
