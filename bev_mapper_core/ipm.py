@@ -7,6 +7,7 @@ averaged; cells no camera sees are unknown. Objects that stand off the ground ar
 from the camera: the known flat-ground limitation of IPM. With ``MapperConfig.ipm_occlusion``
 (the default) a camera gives no value to the cells it cannot see behind an object's near edge
 (:mod:`~bev_mapper_core.ipm_occlusion`), so the smear becomes unknown instead of object.
+:class:`LineOfSight` holds those rays for a rig; the learned methods use it on label input too.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ import numpy as np
 from .classes import label_lut
 from .errors import ConfigError, InputError
 from .grid import BevGrid
-from .ipm_occlusion import NEAR_EDGE_SLACK_CELLS, OcclusionModel, RayRaster, ray_raster
+from .ipm_occlusion import NEAR_EDGE_SLACK_CELLS, OcclusionModel, ray_raster
 from .mapper import BevPrediction, Mapper, MapperConfig
 from .rig import Rig, RigCamera
 from .transforms import transform_points
@@ -72,6 +73,44 @@ def ground_tables(rig: Rig, grid: BevGrid, z: float = 0.0) -> dict[str, RemapTab
     return {cam.name: remap_table(cam, pts, grid.shape) for cam in rig.cameras}
 
 
+class LineOfSight:
+    """Which ground cells each camera of a rig sees, from its label image (IPM's rays).
+
+    A camera sees the cells of its ground table (:func:`ground_tables`) that its occlusion
+    model does not hide behind the near edge of an object in its warped labels
+    (:class:`~bev_mapper_core.ipm_occlusion.OcclusionModel`). Built once per calibration.
+
+    Args:
+        rig, grid: the calibration and the BEV grid.
+        occlusion: the occlusion model (its priors); ``None`` = no occlusion reasoning (a camera
+            sees its whole ground table, the classical IPM).
+        tables: the rig's ground tables when already built (else built here).
+    """
+
+    def __init__(self, rig: Rig, grid: BevGrid, occlusion: OcclusionModel | None,
+                 tables: dict[str, RemapTable] | None = None) -> None:
+        self.grid = grid
+        self.tables = ground_tables(rig, grid) if tables is None else tables
+        self.occlusion = occlusion
+        self.rays = ({} if occlusion is None else
+                     {c.name: ray_raster(c, grid, self.tables[c.name].valid) for c in rig.cameras})
+
+    def camera_valid(self, name: str, warped: np.ndarray) -> np.ndarray:
+        """``(H, W)`` bool: the cells camera ``name`` sees, given its warped labels ``(H, W)``."""
+        valid = self.tables[name].valid
+        if self.occlusion is None:
+            return valid
+        slack = self.grid.resolution * NEAR_EDGE_SLACK_CELLS
+        return valid & ~self.occlusion.occluded(self.rays[name], warped, valid, slack)
+
+    def known(self, images: Mapping[str, np.ndarray]) -> np.ndarray:
+        """``(H, W)`` bool: the cells some camera in ``images`` (name -> label image) sees."""
+        known = np.zeros(self.grid.shape, bool)
+        for name, labels in images.items():
+            known |= self.camera_valid(name, self.tables[name].warp(labels, cv2.INTER_NEAREST))
+        return known
+
+
 class IpmMapper(Mapper):
     """IPM of semantic label images onto the ground plane.
 
@@ -84,9 +123,9 @@ class IpmMapper(Mapper):
 
     def __init__(self, rig: Rig, grid: BevGrid, config: MapperConfig) -> None:
         self.preflight(config, rig.name)
-        super().__init__(rig, grid, config)
-        self._lut = label_lut(self.classes).astype(np.float32)  # (NUM_LABELS, C)
         self._occlusion = OcclusionModel()
+        super().__init__(rig, grid, config)  # calls set_rig
+        self._lut = label_lut(self.classes).astype(np.float32)  # (NUM_LABELS, C)
 
     @classmethod
     def preflight(cls, config: MapperConfig, rig_name: str, grid: BevGrid | None = None,
@@ -102,10 +141,8 @@ class IpmMapper(Mapper):
         """Recompute the ground lookup tables for a new calibration."""
         super().set_rig(rig)
         self.tables = ground_tables(rig, self.grid)
-        self.rays: dict[str, RayRaster] = {}
-        if self.config.ipm_occlusion:
-            self.rays = {c.name: ray_raster(c, self.grid, self.tables[c.name].valid)
-                         for c in rig.cameras}
+        self.sight = LineOfSight(rig, self.grid, self._occlusion if self.config.ipm_occlusion else None,
+                                 self.tables)
 
     def map(self, images: Mapping[str, np.ndarray], ego_pose=None, stamp_ns=None) -> BevPrediction:
         """Warp each camera's labels to the ground and average the class indicators."""
@@ -119,10 +156,7 @@ class IpmMapper(Mapper):
         for name, labels in images.items():
             table = self.tables[name]
             warped = table.warp(labels, cv2.INTER_NEAREST)
-            valid = table.valid
-            if name in self.rays:
-                slack = self.grid.resolution * NEAR_EDGE_SLACK_CELLS
-                valid = valid & ~self._occlusion.occluded(self.rays[name], warped, valid, slack)
+            valid = self.sight.camera_valid(name, warped)
             warped = np.where(warped < n_labels, warped, 0)  # ids unknown to us -> unlabeled
             acc[valid] += lut[warped[valid]]
             count += valid

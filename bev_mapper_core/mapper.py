@@ -35,9 +35,12 @@ class MapperConfig:
         weights: path to a safetensors weights file (learned methods), ``None`` = shipped default.
         device: torch device for learned methods (``cpu``, ``cuda``).
         threads: CPU threads of learned methods' inference; 0 = the method's default.
-        ipm_occlusion: IPM only: cells behind the near edge of an object seen in a camera are
-            unknown to that camera instead of the object's flat-ground smear (see
-            :mod:`~bev_mapper_core.ipm_occlusion`); False = the classical IPM.
+        ipm_occlusion: occlusion reasoning on label images (see
+            :mod:`~bev_mapper_core.ipm_occlusion`). IPM: cells behind the near edge of an object
+            seen in a camera are unknown to that camera instead of the object's flat-ground
+            smear; False = the classical IPM. Learned methods on label input: cells farther than
+            an object's full length behind its near edge in every camera are unknown; False =
+            the frustum (and visibility head) only.
         unknown_below: Bi-Mapper with a visibility head only: cells whose predicted probability
             of being seen by some camera is below this are published as unknown
             (``known = frustum & p_visible >= unknown_below``); 0 = every in-frustum cell is

@@ -58,8 +58,9 @@ _DECLARATIONS: dict[str, tuple] = {
     "weights": (_T.PARAMETER_STRING, "safetensors weights ('' = shipped default)"),
     "device": (_T.PARAMETER_STRING, "torch device of learned methods"),
     "threads": (_T.PARAMETER_INTEGER, "CPU threads of learned methods; 0 = all CPUs but one (left to the callbacks)"),
-    "ipm_occlusion": (_T.PARAMETER_BOOL, "IPM: cells behind the near edge of an object a camera sees are unknown "
-                      "to it, not the object's flat-ground smear"),
+    "ipm_occlusion": (_T.PARAMETER_BOOL, "occlusion reasoning on label images: cells hidden behind an object a "
+                      "camera sees are unknown to it (IPM: not the flat-ground smear; learned "
+                      "methods: beyond the object's full length)"),
     "unknown_below": (_T.PARAMETER_DOUBLE, "Bi-Mapper with a visibility head: cells predicted seen with "
                       "probability below this are unknown (0 = all in-frustum cells known)"),
     "classes": (_T.PARAMETER_STRING_ARRAY,

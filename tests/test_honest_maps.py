@@ -276,3 +276,47 @@ def test_replay_flag_turns_the_occlusion_reasoning_off(bags, tmp_path):
     assert h["known_precision"] > c["known_precision"]
     hv, cv = h["classes"]["vehicle"], c["classes"]["vehicle"]
     assert hv["false_m2_per_frame"] < 0.3 * cv["false_m2_per_frame"]
+
+
+def test_bimapper_on_labels_withholds_the_cells_no_ray_reaches(box_scene, tmp_path):
+    """Bi-Mapper on label input (an untrained tiny model: only ``known`` is checked): with
+    ``ipm_occlusion`` the cells farther than a car's length behind the box's near edge are
+    unknown, while the box's footprint up to that length, the road in front and the ground
+    beside it stay known; without it, ``known`` is the frustum."""
+    from dataclasses import replace
+
+    import torch
+    from test_bimapper_model import TINY
+
+    from bev_mapper_core.ipm_occlusion import OBJECT_MAX_DEPTH_M
+    from bev_mapper_core.models import BiMapper, save_weights
+    from bev_mapper_core.models.bimapper_mapper import BiMapperMapper
+
+    grid, _ = box_scene
+    rig = _level_rig()
+    labels = _render(rig["front"], [(8.0, 12.0, -1.0, 1.0, 2.0, Label.VEHICLE),
+                                    (8.0, 8.5, 3.75, 4.25, 0.5, Label.OBSTACLE)])
+    torch.manual_seed(0)
+    path = tmp_path / "box.safetensors"
+    save_weights(BiMapper(replace(TINY, ipm_skip=True, classes=("drivable", "vehicle")), rig, grid).eval(), path)
+    preds = {occ: BiMapperMapper(rig, grid, MapperConfig(weights=str(path), ipm_occlusion=occ)).map(
+        {"front": labels}) for occ in (False, True)}
+    xs, ys = grid.centers
+    frustum = preds[False].known
+    length = OBJECT_MAX_DEPTH_M[Label.VEHICLE]
+    front = (xs > 3.0) & (xs < 7.5) & (np.abs(ys) < 0.6)
+    depth = (xs > 8.2) & (xs < 8.0 + length - 0.2) & (np.abs(ys) < 0.6)  # may be the car: the model decides
+    behind = (xs > 8.0 + length + 1.0) & (np.abs(ys) < 0.5) & frustum
+    beside = (xs > 9.0) & (xs < 15.0) & (np.abs(ys) > 2.5) & (np.abs(ys) < 3.5)
+    assert behind.sum() > 300 and frustum[front | depth | beside].all()
+    honest = preds[True].known
+    assert honest[front | depth | beside].all()
+    assert not honest[behind].any()
+    assert not (honest & ~frustum).any()  # the gate only removes cells
+    np.testing.assert_array_equal(preds[True].probs, preds[False].probs)  # and changes no probability
+    # a model that does not map vehicles keeps IPM's face-width depth: the box, seen end-on
+    # (2 m wide), may reach 1.8 * 4.5 / 2 = 4.05 m, so the cells from 12.5 m on are withheld
+    drivable_only = BiMapperMapper(rig, grid, MapperConfig(weights=str(path), classes=("drivable",)))
+    known = drivable_only.map({"front": labels}).known
+    assert known[depth & (xs < 11.5)].all()
+    assert not known[depth & (xs > 12.6)].any()

@@ -19,6 +19,8 @@ import torch
 
 from ..errors import ConfigError
 from ..grid import BevGrid
+from ..ipm import LineOfSight
+from ..ipm_occlusion import OcclusionModel, learned_footprints
 from ..mapper import BevPrediction, Mapper, MapperConfig
 from ..rig import Rig
 from .bimapper import BiMapper
@@ -52,7 +54,11 @@ class BiMapperMapper(Mapper):
     """Learned Bi-Mapper inference: batch 1, ``torch.inference_mode``, sigmoid probabilities.
 
     ``known`` = ground cells inside the image of at least one camera present in the frame; with
-    a visibility head, only those it predicts seen with probability >= ``unknown_below``.
+    a visibility head, only those it predicts seen with probability >= ``unknown_below``; on
+    label input with ``ipm_occlusion``, only those some camera's ray reaches: a cell farther than
+    an object's largest depth (:func:`~bev_mapper_core.ipm_occlusion.learned_footprints`)
+    beyond the near edge of an object in that camera's labels is hidden from it
+    (:class:`~bev_mapper_core.ipm.LineOfSight`).
     Class probabilities are ``sigmoid(logit / T_k)`` with the weights' per-class temperature.
     Cameras missing from a frame are zeroed and masked out of both streams.
 
@@ -132,6 +138,10 @@ class BiMapperMapper(Mapper):
         afterwards rebuild its calibration tables.
         """
         super().set_rig(rig)
+        self.sight = None
+        if self.config.ipm_occlusion and self.config.input_kind == "labels":
+            mapped = {label for c in self.classes for label in c.labels}
+            self.sight = LineOfSight(rig, self.grid, OcclusionModel(footprints=learned_footprints(mapped)))
         if self.model is None:
             self.model = self._weights.build_model(rig, self.grid, input_kind=self.config.input_kind,
                                                    classes=self._weight_classes, device=self.device)
@@ -164,6 +174,8 @@ class BiMapperMapper(Mapper):
             if vis is not None and self.config.unknown_below > 0:
                 known_t = known_t & (torch.sigmoid(vis[0, 0]) >= self.config.unknown_below)
             known = known_t.cpu().numpy()
+        if self.sight is not None:
+            known = known & self.sight.known(images)
         return BevPrediction(self.class_names, np.ascontiguousarray(probs, dtype=np.float32), known.astype(bool))
 
 
