@@ -81,6 +81,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--unknown-below", type=float, default=MapperConfig.unknown_below,
                    help="Bi-Mapper with a visibility head: cells predicted seen with probability below "
                         "this are unknown (0 = every in-frustum cell known; default: %(default)s)")
+    p.add_argument("--segmenter", default=MapperConfig.segmenter, metavar="auto|none|FILE",
+                   help="RGB input: the 2-D segmenter of segipm and of label weights run on RGB "
+                        "(auto = the shipped one; default: %(default)s)")
     p.add_argument("--classes", nargs="+", default=None, metavar="CLASS",
                    help="BEV classes to produce (default: the method's)")
     p.add_argument("--scope", default=ReplayOptions.scope, choices=SCOPES,
@@ -117,7 +120,8 @@ def options_from_args(args: argparse.Namespace) -> ReplayOptions:
     mapper = MapperConfig(method=args.method, input_kind=args.input_kind,
                           classes=tuple(args.classes) if args.classes else None,
                           weights=args.weights, device=args.device,
-                          ipm_occlusion=args.ipm_occlusion, unknown_below=args.unknown_below)
+                          ipm_occlusion=args.ipm_occlusion, unknown_below=args.unknown_below,
+                          segmenter=args.segmenter)
     return ReplayOptions(
         bag=args.bag, out=args.out, mapper=mapper, grid=grid, scope=args.scope,
         max_frames=args.max_frames, pictures=not args.no_pictures,

@@ -48,6 +48,11 @@ class MapperConfig:
             900000010-12, see docs/RESULTS.md "Honest maps"): the largest threshold tried (0.03-0.7)
             that keeps the visible mIoU within 1 point of the head-less model on both. Weights
             without the head ignore it.
+        segmenter: the 2-D segmenter that turns RGB images into label images, for ``segipm``
+            and for label-input models on RGB input (chained, e.g. the shipped label Bi-Mapper
+            with ``input_kind`` ``rgb``): ``auto`` (the shipped segmenter; Bi-Mapper: only when
+            no end-to-end RGB weights are given or shipped), ``none``, or a safetensors path.
+            Label input ignores it.
     """
 
     method: str = "bimapper"
@@ -58,6 +63,7 @@ class MapperConfig:
     threads: int = 0
     ipm_occlusion: bool = True
     unknown_below: float = 0.05
+    segmenter: str = "auto"
 
     def __post_init__(self) -> None:
         v = self.unknown_below
@@ -67,6 +73,8 @@ class MapperConfig:
             raise ConfigError(f"threads must be an integer >= 0 (0 = method default), got {self.threads!r}")
         if not isinstance(self.ipm_occlusion, bool):
             raise ConfigError(f"ipm_occlusion must be true or false, got {self.ipm_occlusion!r}")
+        if not isinstance(self.segmenter, str) or not self.segmenter:
+            raise ConfigError(f"segmenter must be 'auto', 'none' or a weights path, got {self.segmenter!r}")
         if self.method not in _REGISTRY:
             raise ConfigError(f"unknown method {self.method!r}; available: {list(available_methods())}")
         if self.input_kind not in INPUT_KINDS:
@@ -202,6 +210,7 @@ class Mapper(ABC):
 _REGISTRY: dict[str, str] = {
     "ipm": "bev_mapper_core.ipm:IpmMapper",
     "bimapper": "bev_mapper_core.models.bimapper_mapper:BiMapperMapper",
+    "segipm": "bev_mapper_core.models.segipm_mapper:SegIpmMapper",
 }
 
 

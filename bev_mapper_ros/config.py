@@ -228,6 +228,7 @@ PARAM_FIELDS: dict[str, ParamField] = {
     "threads": ParamField(MapperConfig, "threads"),
     "ipm_occlusion": ParamField(MapperConfig, "ipm_occlusion"),
     "unknown_below": ParamField(MapperConfig, "unknown_below"),
+    "segmenter": ParamField(MapperConfig, "segmenter"),
     "classes": ParamField(MapperConfig, "classes", string_array=True),
     "grid.x_min": ParamField(BevGrid, "x_min"),
     "grid.x_max": ParamField(BevGrid, "x_max"),

@@ -2,7 +2,9 @@
 
 Register as ``"bimapper": "bev_mapper_core.models.bimapper_mapper:BiMapperMapper"``. Built from
 ``MapperConfig(method="bimapper", weights=path, device=...)``; with ``weights=None`` it looks for
-the shipped file ``bev_mapper_core/weights/bimapper_<rig>_<input_kind>.safetensors``. With
+the shipped file ``bev_mapper_core/weights/bimapper_<rig>_<input_kind>.safetensors`` (on RGB
+input without shipped RGB weights: the label weights behind the segmenter, see
+:meth:`BiMapperMapper.plan`). With
 ``classes=None`` the weights' classes are used; otherwise they must be among the weights'
 classes (a subset, in any order: only those layers are returned).
 """
@@ -24,6 +26,8 @@ from ..ipm_occlusion import OcclusionModel, learned_footprints
 from ..mapper import BevPrediction, Mapper, MapperConfig
 from ..rig import Rig
 from .bimapper import BiMapper
+from .segipm_mapper import SegmenterStage, segmenter_path
+from .segmenter_weights import read_segmenter_metadata
 from .weights import WeightsError, WeightsFile
 
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
@@ -71,7 +75,9 @@ class BiMapperMapper(Mapper):
 
     @classmethod
     def weights_path(cls, config: MapperConfig, rig_name: str) -> Path:
-        """The weights file to use: ``config.weights`` or the shipped one for the rig.
+        """The weights file to use: ``config.weights``, or the shipped one for the rig and input
+        kind; on RGB input without shipped RGB weights and with a segmenter, the shipped label
+        weights (chained input, :meth:`plan`).
 
         Raises:
             ConfigError: none given and none shipped for this rig and input kind.
@@ -79,6 +85,8 @@ class BiMapperMapper(Mapper):
         if config.weights:
             return Path(config.weights)
         path = default_weights_path(rig_name, config.input_kind)
+        if not path.is_file() and config.input_kind == "rgb" and config.segmenter != "none":
+            path = default_weights_path(rig_name, "labels")
         if not path.is_file():
             shipped = sorted(p.name for p in WEIGHTS_DIR.glob("bimapper_*.safetensors"))
             raise ConfigError(
@@ -89,20 +97,44 @@ class BiMapperMapper(Mapper):
         return path
 
     @classmethod
+    def plan(cls, config: MapperConfig, rig_name: str) -> tuple[Path, str, Path | None]:
+        """``(weights file, the model's input kind, segmenter file or None)``.
+
+        RGB input with label weights runs chained: the segmenter (``config.segmenter``) turns
+        each RGB image into a label image first. End-to-end RGB weights take no segmenter.
+
+        Raises:
+            ConfigError: label weights on RGB input with ``segmenter`` ``none``; an explicit
+                segmenter with RGB weights; or no weights (see :meth:`weights_path`).
+            WeightsError: the weights file cannot be read.
+        """
+        path = cls.weights_path(config, rig_name)
+        if config.input_kind == "labels":
+            return path, "labels", None  # preflight refuses RGB weights
+        if WeightsFile.open(path).input_kind == "rgb":
+            if config.segmenter not in ("auto", "none"):
+                raise ConfigError(f"{path} maps RGB end to end; it takes no segmenter (got {config.segmenter!r})")
+            return path, "rgb", None
+        return path, "labels", segmenter_path(config, rig_name)
+
+    @classmethod
     def preflight(cls, config: MapperConfig, rig_name: str, grid: BevGrid | None = None,
                   cameras: tuple[str, ...] | None = None) -> None:
         """The weights file exists and is a Bi-Mapper safetensors file for this input kind, rig,
         classes and (when given) grid and camera names (in rig order), and every tensor fits the
         stored architecture (:meth:`WeightsFile.validate`): a node never starts with weights it
-        cannot run.
+        cannot run. Chained RGB input (:meth:`plan`) also needs a readable segmenter file.
 
         Reads the file once (:meth:`WeightsFile.open` caches the header and the checked tensors
         for the constructor).
         """
-        weights = WeightsFile.open(cls.weights_path(config, rig_name))
-        weights.check(rig_name=rig_name, cameras=cameras, grid=grid, input_kind=config.input_kind,
+        path, kind, seg = cls.plan(config, rig_name)
+        weights = WeightsFile.open(path)
+        weights.check(rig_name=rig_name, cameras=cameras, grid=grid, input_kind=kind,
                       classes=config.classes)
         weights.validate()
+        if seg is not None:
+            read_segmenter_metadata(seg)
 
     @classmethod
     def output_classes(cls, config: MapperConfig, rig_name: str) -> tuple[str, ...]:
@@ -113,7 +145,7 @@ class BiMapperMapper(Mapper):
 
     def __init__(self, rig: Rig, grid: BevGrid, config: MapperConfig) -> None:
         self.preflight(config, rig.name, grid, rig.names)  # the clear errors first (file, rig, grid, cameras)
-        path = self.weights_path(config, rig.name)
+        path, self.model_input, seg = self.plan(config, rig.name)
         self._weights = WeightsFile.open(path)  # the header preflight just read (cached)
         weight_classes = self._weights.classes
         if config.classes is None:
@@ -130,6 +162,8 @@ class BiMapperMapper(Mapper):
         if self.device.type == "cpu":
             torch.set_num_threads(config.threads or inference_threads())
         self.weights_path = path
+        #: the chained first stage (RGB -> labels), None when the model reads the input itself
+        self.stage = None if seg is None else SegmenterStage(seg, config.device)
         self.model: BiMapper | None = None
         super().__init__(rig, grid, config)
 
@@ -139,11 +173,11 @@ class BiMapperMapper(Mapper):
         """
         super().set_rig(rig)
         self.sight = None
-        if self.config.ipm_occlusion and self.config.input_kind == "labels":
+        if self.config.ipm_occlusion and self.model_input == "labels":
             mapped = {label for c in self.classes for label in c.labels}
             self.sight = LineOfSight(rig, self.grid, OcclusionModel(footprints=learned_footprints(mapped)))
         if self.model is None:
-            self.model = self._weights.build_model(rig, self.grid, input_kind=self.config.input_kind,
+            self.model = self._weights.build_model(rig, self.grid, input_kind=self.model_input,
                                                    classes=self._weight_classes, device=self.device)
         else:
             self.model.set_rig(rig)
@@ -151,13 +185,15 @@ class BiMapperMapper(Mapper):
     def map(self, images: Mapping[str, np.ndarray], ego_pose=None, stamp_ns=None) -> BevPrediction:
         """Map one synchronized set of images; cameras absent from ``images`` are unseen."""
         images = self.check_images(images)
+        if self.stage is not None:  # chained: RGB -> labels first
+            images = self.stage.segment(images)
         present = [name in images for name in self.rig.names]
         raws = []
         for name in self.rig.names:
             img = images.get(name)
             if img is None:
                 w, h = self.rig[name].model.image_size
-                img = np.zeros((h, w) if self.config.input_kind == "labels" else (h, w, 3), np.uint8)
+                img = np.zeros((h, w) if self.model_input == "labels" else (h, w, 3), np.uint8)
             raws.append(np.ascontiguousarray(img))
         with torch.inference_mode():
             cam_mask = torch.tensor([present], dtype=torch.bool, device=self.device)  # (1, N)

@@ -9,7 +9,10 @@ apart instead of 1 m):
   resolution so that the same file serves IPM and the Mapper interface at evaluation time);
 * ``gt`` ``(F, K, Hg, Wg)`` bool: BEV ground truth of the requested classes (the renderer's
   class table is swapped for the requested classes, e.g. Cam2BEV's road / vehicle / static);
-* ``visibility`` / ``ground_visibility`` ``(F, Hg, Wg)`` bool.
+* ``visibility`` / ``ground_visibility`` ``(F, Hg, Wg)`` bool;
+* ``rgb`` ``(F, N, h, w, 3)`` uint8, only when the spec asks for RGB: the camera images resized
+  to ``DriveSpec.rgb`` = ``(h, w)`` with the models' own resize (:func:`resize_rgb`), so a model
+  whose input is that size sees exactly what its preprocess would make of the camera image.
 
 The key directory name encodes rig, classes, grid, frames and stride, so incompatible caches
 never mix. Everything is a pure function of ``(rig, grid, classes, seed, frames, stride)``:
@@ -83,24 +86,50 @@ class DriveSpec:
     grid: tuple[float, float, float, float, float]
     frames: int
     stride: int
+    rgb: tuple[int, int] | None = None
 
     def key(self) -> str:
-        """Cache sub-directory name: readable prefix + hash of the full spec."""
-        h = hashlib.sha1(json.dumps(asdict(self), sort_keys=True).encode()).hexdigest()[:10]
-        return f"{self.rig}_{len(self.classes)}cls_f{self.frames}s{self.stride}_v{CACHE_VERSION}_{h}"
+        """Cache sub-directory name: readable prefix + hash of the full spec (fields left at
+        ``None`` do not enter the hash, so caches written before they existed stay valid).
+        """
+        d = {k: v for k, v in asdict(self).items() if v is not None}
+        h = hashlib.sha1(json.dumps(d, sort_keys=True).encode()).hexdigest()[:10]
+        rgb = f"_rgb{self.rgb[1]}" if self.rgb else ""
+        return f"{self.rig}_{len(self.classes)}cls_f{self.frames}s{self.stride}{rgb}_v{CACHE_VERSION}_{h}"
 
 
-def drive_spec(rig: Rig, grid: BevGrid, classes: Sequence[str], frames: int, stride: int) -> DriveSpec:
-    """The :class:`DriveSpec` of a rig/grid/classes and sampling."""
+def drive_spec(rig: Rig, grid: BevGrid, classes: Sequence[str], frames: int, stride: int,
+               rgb: tuple[int, int] | None = None) -> DriveSpec:
+    """The :class:`DriveSpec` of a rig/grid/classes and sampling (``rgb``: RGB storage size ``(h, w)``)."""
     if frames < 1 or stride < 1:
         raise ConfigError(f"frames and stride must be >= 1, got {frames}, {stride}")
     resolve_classes(classes)
+    if rgb is not None:
+        if len({c.model.image_size for c in rig.cameras}) != 1:
+            raise ConfigError(f"RGB training data needs cameras of one size; rig {rig.name!r} mixes sizes")
+        rgb = (int(rgb[0]), int(rgb[1]))
     g = (grid.x_min, grid.x_max, grid.y_min, grid.y_max, grid.resolution)
-    return DriveSpec(rig.name, tuple(rig.names), tuple(classes), g, int(frames), int(stride))
+    return DriveSpec(rig.name, tuple(rig.names), tuple(classes), g, int(frames), int(stride), rgb)
+
+
+def resize_rgb(images: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """``(..., H, W, 3)`` uint8 -> ``(..., h, w, 3)`` uint8 with the models' RGB resize (bilinear,
+    antialiased, ``align_corners=False``), rounded back to uint8.
+    """
+    import torch
+    from torch.nn import functional as F
+
+    lead, (H, W) = images.shape[:-3], images.shape[-3:-1]
+    if (H, W) == tuple(size):
+        return images
+    t = torch.from_numpy(np.ascontiguousarray(images.reshape(-1, H, W, 3))).permute(0, 3, 1, 2).float()  # (M, 3, H, W)
+    t = F.interpolate(t, size=tuple(size), mode="bilinear", align_corners=False, antialias=True)
+    out = t.round().clamp(0, 255).to(torch.uint8).permute(0, 2, 3, 1).numpy()  # (M, h, w, 3)
+    return out.reshape(*lead, *size, 3)
 
 
 def render_drive(rig: Rig, grid: BevGrid, classes: Sequence[str], seed: int, frames: int,
-                 stride: int = 3) -> dict[str, np.ndarray]:
+                 stride: int = 3, rgb: tuple[int, int] | None = None) -> dict[str, np.ndarray]:
     """Render one drive: frames ``0, stride, 2*stride, ...`` of the world of ``seed``.
 
     Returns the arrays described in the module docstring. ``gt`` is built for ``classes`` by
@@ -114,15 +143,20 @@ def render_drive(rig: Rig, grid: BevGrid, classes: Sequence[str], seed: int, fra
     cfg = SynthConfig(frames=(frames - 1) * stride + 1, seed=int(seed))
     renderer = DriveRenderer(build_world(cfg), rig, grid)
     renderer.lut = label_lut(cls)  # GT of the requested classes
-    labels, gt, vis, gvis = [], [], [], []
+    labels, gt, vis, gvis, rgbs = [], [], [], [], []
     for i in range(frames):
         f = renderer.frame(i * stride)
         labels.append(np.stack([f.cameras[n].labels for n in rig.names]))
+        if rgb is not None:
+            rgbs.append(resize_rgb(np.stack([f.cameras[n].rgb for n in rig.names]), rgb))
         gt.append(f.gt.astype(bool))
         vis.append(f.visibility.astype(bool))
         gvis.append((f.ground_visibility if f.ground_visibility is not None else f.visibility).astype(bool))
-    return {"labels": np.stack(labels).astype(np.uint8), "gt": np.stack(gt), "visibility": np.stack(vis),
-            "ground_visibility": np.stack(gvis)}
+    out = {"labels": np.stack(labels).astype(np.uint8), "gt": np.stack(gt), "visibility": np.stack(vis),
+           "ground_visibility": np.stack(gvis)}
+    if rgb is not None:
+        out["rgb"] = np.stack(rgbs)
+    return out
 
 
 def drive_path(cache_dir: str | os.PathLike, spec: DriveSpec, seed: int) -> Path:
@@ -140,13 +174,15 @@ def load_or_render(rig: Rig, grid: BevGrid, spec: DriveSpec, seed: int,
         path = drive_path(cache_dir, spec, seed)
         if path.is_file():
             try:
+                keys = ("labels", "gt", "visibility", "ground_visibility") + (("rgb",) if spec.rgb else ())
                 with np.load(path, allow_pickle=False) as z:
-                    d = {k: z[k] for k in ("labels", "gt", "visibility", "ground_visibility")}
-                if d["labels"].shape[:2] == (spec.frames, len(spec.cameras)) and d["gt"].shape[1] == len(spec.classes):
+                    d = {k: z[k] for k in keys}
+                if (d["labels"].shape[:2] == (spec.frames, len(spec.cameras)) and d["gt"].shape[1] == len(spec.classes)
+                        and (not spec.rgb or d["rgb"].shape[2:4] == spec.rgb)):
                     return d
             except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError):
                 pass
-    d = render_drive(rig, grid, spec.classes, seed, spec.frames, spec.stride)
+    d = render_drive(rig, grid, spec.classes, seed, spec.frames, spec.stride, spec.rgb)
     if cache_dir is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         meta = path.parent / "spec.json"
@@ -178,15 +214,16 @@ class FrameSet:
     """Frames held in memory: ``labels`` (M, N, h, w) uint8, ``target`` (M, K, Hg, Wg) bool,
     ``mask`` (M, Hg, Wg) bool (+ ``ground_mask``), with :meth:`batches` for training.
 
-    ``labels_full`` keeps full-resolution images when requested (for evaluation through a
-    Mapper, which needs camera-size images).
+    ``rgb`` (M, N, h, w, 3) uint8, when loaded, holds the camera images (batches carry it as
+    ``rgb``).
     """
 
     def __init__(self, labels: np.ndarray, target: np.ndarray, mask: np.ndarray,
-                 ground_mask: np.ndarray | None = None, camera_names: Sequence[str] = ()) -> None:
-        if not (len(labels) == len(target) == len(mask)):
-            raise ConfigError("labels, target and mask must have the same number of frames")
-        self.labels, self.target, self.mask = labels, target, mask
+                 ground_mask: np.ndarray | None = None, camera_names: Sequence[str] = (),
+                 rgb: np.ndarray | None = None) -> None:
+        if not (len(labels) == len(target) == len(mask)) or (rgb is not None and len(rgb) != len(labels)):
+            raise ConfigError("labels, rgb, target and mask must have the same number of frames")
+        self.labels, self.target, self.mask, self.rgb = labels, target, mask, rgb
         self.ground_mask = mask if ground_mask is None else ground_mask
         self.camera_names = tuple(camera_names)
 
@@ -198,9 +235,12 @@ class FrameSet:
         import torch
 
         idx = np.asarray(idx)
-        return {"images": torch.from_numpy(self.labels[idx]),
-                "target": torch.from_numpy(self.target[idx]).float(),
-                "mask": torch.from_numpy(self.mask[idx])}
+        out = {"images": torch.from_numpy(self.labels[idx]),
+               "target": torch.from_numpy(self.target[idx]).float(),
+               "mask": torch.from_numpy(self.mask[idx])}
+        if self.rgb is not None:
+            out["rgb"] = torch.from_numpy(self.rgb[idx])
+        return out
 
     def batches(self, batch_size: int, seed: int, epoch: int, limit: int | None = None,
                 shuffle: bool = True) -> Iterator[dict]:
@@ -215,19 +255,21 @@ class FrameSet:
 
 def synth_frameset(rig: Rig, grid: BevGrid, classes: Sequence[str], seeds: Sequence[int], frames: int,
                    stride: int = 3, cache_dir: str | os.PathLike | None = None,
-                   input_size: tuple[int, int] | None = None, progress: bool = False) -> FrameSet:
+                   input_size: tuple[int, int] | None = None, progress: bool = False,
+                   rgb: tuple[int, int] | None = None) -> FrameSet:
     """Load (rendering missing drives) the drives ``seeds`` into a :class:`FrameSet`.
 
     ``input_size`` = (h, w): store labels resized as the model's preprocess would (see module
-    docstring); ``None`` keeps full resolution.
+    docstring); ``None`` keeps full resolution. ``rgb`` = (h, w): also load the camera images
+    at that size.
     """
-    spec = drive_spec(rig, grid, classes, frames, stride)
+    spec = drive_spec(rig, grid, classes, frames, stride, rgb)
     it = seeds
     if progress:
         from tqdm import tqdm
 
         it = tqdm(seeds, desc=f"drives {rig.name}", unit="drive")
-    L, T, M, G = [], [], [], []
+    L, T, M, G, R = [], [], [], [], []
     for s in it:
         d = load_or_render(rig, grid, spec, s, cache_dir)
         lab = d["labels"] if input_size is None else resize_labels(d["labels"], input_size)
@@ -235,7 +277,10 @@ def synth_frameset(rig: Rig, grid: BevGrid, classes: Sequence[str], seeds: Seque
         T.append(d["gt"])
         M.append(d["visibility"])
         G.append(d["ground_visibility"])
-    return FrameSet(np.concatenate(L), np.concatenate(T), np.concatenate(M), np.concatenate(G), rig.names)
+        if rgb is not None:
+            R.append(d["rgb"])
+    return FrameSet(np.concatenate(L), np.concatenate(T), np.concatenate(M), np.concatenate(G), rig.names,
+                    np.concatenate(R) if R else None)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -229,6 +229,7 @@ class TrainMethod(ABC):
 # ----------------------------------------------------------------------- registry
 _REGISTRY: dict[str, str | type[TrainMethod]] = {
     "bimapper": "bev_mapper_core.training.bimapper_method:BiMapperMethod",
+    "segmenter": "bev_mapper_core.training.segmenter_method:SegmenterMethod",
 }
 
 

@@ -41,21 +41,25 @@ class DataNeeds:
         sequence_length: frames per sample; > 1 = windows of consecutive frames of one drive
             (FocusBEV's temporal fusion).
         poses: each frame carries its ego pose (FocusBEV warps its memory bank with them).
+        rgb: each frame also carries its RGB camera images ``(N, h, w, 3)`` uint8 (batches:
+            ``rgb``), at ``image_size`` (``None``: camera size), resized as the models' own
+            preprocess would.
     """
 
     image_size: tuple[int, int] | None = None
     unlabeled: bool = False
     sequence_length: int = 1
     poses: bool = False
+    rgb: bool = False
 
     def __post_init__(self) -> None:
         if self.sequence_length < 1:
             raise ConfigError(f"sequence_length must be >= 1, got {self.sequence_length}")
 
     def extras(self) -> frozenset[str]:
-        """Needs beyond labeled single frames: ``unlabeled``, ``sequences``, ``poses``."""
+        """Needs beyond labeled single frames: ``unlabeled``, ``sequences``, ``poses``, ``rgb``."""
         return frozenset(n for n, on in (("unlabeled", self.unlabeled), ("sequences", self.sequence_length > 1),
-                                         ("poses", self.poses)) if on)
+                                         ("poses", self.poses), ("rgb", self.rgb)) if on)
 
 
 @dataclass
@@ -106,6 +110,7 @@ class SynthSource(DataSource):
     """Seeded synthetic drives of the preset rig (``cfg.train_drives`` / held-out seeds), cached."""
 
     name = "synthetic"
+    supports = frozenset({"rgb"})
 
     @override
     def rig_grid(self, cfg: "TrainConfig") -> tuple[Rig, BevGrid]:
@@ -118,10 +123,15 @@ class SynthSource(DataSource):
              log: Callable[[str], None]) -> TrainData:
         self.check(needs)
         t0 = time.time()
+        rgb = None
+        if needs.rgb:
+            w, h = rig.cameras[0].model.image_size
+            rgb = needs.image_size or (h, w)
         train = synth_frameset(rig, grid, cfg.class_names, train_seeds(cfg.seed, cfg.train_drives),
-                               cfg.frames_per_drive, cfg.stride, cfg.cache, needs.image_size, progress=cfg.progress)
+                               cfg.frames_per_drive, cfg.stride, cfg.cache, needs.image_size, progress=cfg.progress,
+                               rgb=rgb)
         val = synth_frameset(rig, grid, cfg.class_names, cfg.held_out_seeds, cfg.frames_per_drive, cfg.stride,
-                             cfg.cache, needs.image_size, progress=cfg.progress)
+                             cfg.cache, needs.image_size, progress=cfg.progress, rgb=rgb)
         log(f"data: {len(train)} training / {len(val)} held-out frames ({time.time() - t0:.1f} s)")
         return TrainData(train, val)
 

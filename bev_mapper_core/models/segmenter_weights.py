@@ -1,0 +1,131 @@
+"""Segmenter weights: one safetensors file, its configuration in the metadata (never pickle).
+
+The header's ``__metadata__`` holds ``bev_mapper``, a JSON document::
+
+    {"format": "bev_mapper.segmenter", "version": 1, "method": "segmenter",
+     "rig": "surround6", "config": {SegmenterConfig fields}}
+
+``rig`` only records what the weights were trained on: a segmenter works per camera image, so
+it runs on any camera (its quality is best on cameras like those it saw). Loading checks the
+document, builds the stored architecture, and checks every tensor's name, shape, dtype and
+finiteness before the model is used (:func:`load_segmenter`); files are read once per file
+version (cached), as Bi-Mapper's :class:`~.weights.WeightsFile`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import threading
+from pathlib import Path
+
+import torch
+from safetensors import safe_open
+from safetensors.torch import save_file
+
+from ..errors import BevMapperError, ConfigError
+from .segmenter import Segmenter, SegmenterConfig
+from .weights import _DTYPES, META_KEY, WeightsError, _check_tensors
+
+FORMAT = "bev_mapper.segmenter"
+VERSION = 1
+
+_CACHE: dict[tuple, Segmenter] = {}
+_LOCK = threading.Lock()
+
+
+def save_segmenter(model: Segmenter, path: str | os.PathLike, rig_name: str = "") -> Path:
+    """Write ``model``'s tensors and metadata to ``path`` (atomically)."""
+    path = Path(path)
+    meta = {"format": FORMAT, "version": VERSION, "method": "segmenter", "rig": rig_name,
+            "config": model.config.to_dict()}
+    tensors = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
+    tmp = path.with_name(path.name + ".tmp")
+    save_file(tensors, str(tmp), metadata={META_KEY: json.dumps(meta, sort_keys=True)})
+    os.replace(tmp, path)
+    return path
+
+
+def read_segmenter_metadata(path: str | os.PathLike) -> dict:
+    """The checked metadata document of a segmenter file (header only).
+
+    Raises:
+        WeightsError: missing file, not safetensors, no or malformed segmenter metadata.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise WeightsError(f"segmenter weights {path} do not exist")
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            raw = (f.metadata() or {}).get(META_KEY)
+    except Exception as e:  # SafetensorError is not exported as a stable type
+        raise WeightsError(f"{path} is not a valid safetensors file ({e})") from None
+    if raw is None:
+        raise WeightsError(f"{path} has no '{META_KEY}' metadata: not a bev_mapper weights file")
+    try:
+        meta = json.loads(raw)
+    except json.JSONDecodeError as e:
+        raise WeightsError(f"{path}: metadata is not valid JSON ({e})") from None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        got = meta.get("format") if isinstance(meta, dict) else None
+        raise WeightsError(f"{path}: not segmenter weights (format {got!r}, expected {FORMAT!r})")
+    if meta.get("version") != VERSION:
+        raise WeightsError(f"{path}: metadata version {meta.get('version')!r}, this code reads {VERSION}")
+    if not isinstance(meta.get("config"), dict) or not isinstance(meta.get("rig", ""), str):
+        raise WeightsError(f"{path}: metadata lacks a config")
+    try:
+        SegmenterConfig.from_dict(meta["config"])
+    except (ConfigError, TypeError) as e:
+        raise WeightsError(f"{path}: bad segmenter config ({e})") from None
+    return meta
+
+
+def load_segmenter(path: str | os.PathLike, device: str | torch.device = "cpu") -> Segmenter:
+    """The segmenter stored in ``path``, checked tensor by tensor, in eval mode.
+
+    The checked model is cached per file version (path, size, mtime); each call returns a copy
+    on ``device`` only when the device differs, so callers must not train the returned model.
+
+    Raises:
+        WeightsError: the first problem found (see :func:`read_segmenter_metadata`; missing,
+            extra, misshapen or non-finite tensors).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise WeightsError(f"segmenter weights {path} do not exist")
+    try:
+        st = path.stat()
+    except OSError as e:
+        raise WeightsError(f"segmenter weights {path}: {e.strerror or e}") from None
+    key = (str(path.resolve()), st.st_size, st.st_mtime_ns, str(device))
+    with _LOCK:
+        if key in _CACHE:
+            return _CACHE[key]
+    meta = read_segmenter_metadata(path)
+    try:
+        model = Segmenter(SegmenterConfig.from_dict(meta["config"]))
+    except (BevMapperError, ValueError, RuntimeError) as e:
+        raise WeightsError(f"{path}: cannot build the stored segmenter ({e})") from None
+    expected = model.state_dict()
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            header = {k: (tuple(f.get_slice(k).get_shape()), _DTYPES.get(f.get_slice(k).get_dtype())) for k in f.keys()}
+            _check_tensors(path, header, expected)
+            state = {}
+            for k in expected:
+                t = f.get_tensor(k)
+                if t.is_floating_point() and not torch.isfinite(t).all():
+                    raise WeightsError(f"{path}: tensor {k!r} has non-finite values")
+                state[k] = t
+    except WeightsError:
+        raise
+    except Exception as e:
+        raise WeightsError(f"{path}: cannot read tensors ({e})") from None
+    model.load_state_dict(state, strict=True)
+    model = model.to(device).eval()
+    with _LOCK:
+        _CACHE[key] = model
+    return model
+
+
+__all__ = ["FORMAT", "load_segmenter", "read_segmenter_metadata", "save_segmenter"]
