@@ -190,7 +190,11 @@ class BiMapperMethod(TrainMethod):
         # Full-resolution LV input and the IPM prior need the camera-size images in memory (else:
         # stored resized, exactly as preprocess would).
         full = self.cfg.model.lv_full_res or self.cfg.model.ipm_skip
-        return DataNeeds(image_size=None if full else self.model.input_size)
+        return DataNeeds(image_size=None if full else self.model.input_size, rgb=self.cfg.model.input_kind == "rgb")
+
+    def _inputs(self, batch: dict) -> torch.Tensor:
+        """The model's input of a batch: the RGB images on RGB input, else the label images."""
+        return (batch["rgb"] if self.cfg.model.input_kind == "rgb" else batch["images"]).to(self.device)
 
     @override
     def prepare(self, data: TrainData, log: Callable[[str], None]) -> None:
@@ -221,13 +225,13 @@ class BiMapperMethod(TrainMethod):
     @override
     def loss(self, batch: dict, epoch: int, step: int) -> tuple[torch.Tensor, dict[str, float]]:
         dev = self.device
-        outputs = self.model(batch["images"].to(dev))
+        outputs = self.model(self._inputs(batch))
         return bimapper_loss(outputs, {"target": batch["target"].to(dev), "mask": batch["mask"].to(dev)}, epoch,
                              self.loss_cfg)
 
     @override
     def predict(self, batch: dict) -> tuple[np.ndarray, np.ndarray]:
-        out = self.model(batch["images"].to(self.device))
+        out = self.model(self._inputs(batch))
         probs = torch.sigmoid(self.model.calibrated(out["logits"])).float().cpu().numpy()
         known = self.model.known().cpu().numpy()[0]  # (1, H, W) -> (H, W), the same for every frame
         return probs, np.broadcast_to(known, (len(probs), *known.shape))
