@@ -86,9 +86,10 @@ class Driver:
     ``log``: the node process's log, where it reports each camera's calibration (readiness).
     """
 
-    def __init__(self, node, rig: Rig, log: pathlib.Path):
-        self.node, self.rig, self.log, self.factory = node, rig, log, RclpyFactory()
-        self.labels = {c: node.create_publisher(Image, f"/cameras/{c}/labels", qos_profile_sensor_data)
+    def __init__(self, node, rig: Rig, log: pathlib.Path, kind: str = "labels"):
+        self.node, self.rig, self.log, self.factory, self.kind = node, rig, log, RclpyFactory(), kind
+        topic = "labels" if kind == "labels" else "image_raw"
+        self.labels = {c: node.create_publisher(Image, f"/cameras/{c}/{topic}", qos_profile_sensor_data)
                        for c in rig.names}
         self.infos = {c: node.create_publisher(CameraInfo, f"/cameras/{c}/camera_info", 10)
                       for c in rig.names}
@@ -129,7 +130,8 @@ class Driver:
 
     def send_frame(self, frame, override: dict | None = None):
         for name, cf in frame.cameras.items():
-            msg = (override or {}).get(name) or make_image(self.factory, cf.labels, "mono8", frame.stamp_ns,
+            img, enc = (cf.labels, "mono8") if self.kind == "labels" else (cf.rgb, "rgb8")
+            msg = (override or {}).get(name) or make_image(self.factory, img, enc, frame.stamp_ns,
                                                             self.rig[name].frame_id)
             self.labels[name].publish(msg)
             spin_until(self.node, lambda: False, 0.01)  # paced like separate drivers: less loss under load
@@ -235,7 +237,8 @@ BAD_PARAMETERS = [
     (["-p", "cameras:=[front,front]"], "distinct"),
     (["-p", "method:=bimapper", "-p", "weights:=/nonexistent.safetensors"], "does not exist"),
     (["-p", "method:=ipm", "-p", "input_kind:=rgb"], "label images only"),
-    (["-p", "input_kind:=rgb"], "none shipped for rig 'surround6' / input 'rgb'"),
+    (["-p", "input_kind:=rgb", "-p", "segmenter:=none"], "none shipped for rig 'surround6' / input 'rgb'"),
+    (["-p", "method:=segipm"], "segipm maps RGB images"),
     (["-p", "grid.resolution:=0.25"], "weights were trained for grid"),
     (["-p", "rig:=mine"], "none shipped for rig 'mine'"),
     (["-p", "cameras:=[front,back]", "-p", "use_tf:=true"], "weights were trained for cameras"),
@@ -324,3 +327,36 @@ def test_node_default_is_the_shipped_bimapper(tmp_path, ros_domain):
             assert np.abs(got - want).max() <= 1 and (got == want).mean() > 0.999, c
     assert complete >= 1, "every set lost a camera"
     assert (np.asarray(d.grids["vehicle"][frames[0].stamp_ns].data) == 100).sum() > 50
+
+
+def test_node_maps_rgb_cameras_with_the_shipped_weights(tmp_path, ros_domain):
+    """``input_kind:=rgb`` and nothing else: the shipped segmenter feeds the shipped label
+    Bi-Mapper (chained), and the node publishes exactly the core's maps of the RGB images."""
+    log = tmp_path / "node.log"
+    proc = start_process(["bev_mapper_ros.mapper_node", "--ros-args", "--params-file", str(PARAMS_FILE),
+                          "-p", "input_kind:=rgb", "-p", "threads:=1", "-p", "sync_timeout_s:=5.0"], ros_domain, log)
+    node = None
+    try:
+        rig, grid = preset_rig("surround6"), BevGrid()
+        frames = list(generate_drive(rig, grid, SynthConfig(frames=1, seed=13)))
+        expected = create_mapper(node_view_of_rig(rig), grid, MapperConfig(input_kind="rgb", classes=CLASSES, threads=1))
+        rclpy.init(domain_id=ros_domain)
+        node = rclpy.create_node("bev_test_rgb")
+        d = Driver(node, rig, log, kind="rgb")
+        f = frames[0]
+        assert d.calibrate(f.stamp_ns, 60.0), f"the node never reported its calibration:\n{log.read_text()}"
+        d.send_frame(f)
+        assert d.wait_for(f.stamp_ns, 60.0), f"no grids:\n{log.read_text()}"
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+        assert stop_process(proc) in (0, -2), log.read_text()
+    assert expected.stage is not None  # chained: segmenter, then the label weights
+    pred, lost = core_map_as_received(expected, grid, {n: c.rgb for n, c in f.cameras.items()},
+                                      d.grids[CLASSES[0]][f.stamp_ns].data)
+    for ci, c in enumerate(CLASSES):
+        got = np.asarray(d.grids[c][f.stamp_ns].data, dtype=np.int16)
+        want = grid.to_occupancy(pred.probs[ci], pred.known).astype(np.int16)
+        assert np.abs(got - want).max() <= 1 and (got == want).mean() > 0.999, c
+    assert (np.asarray(d.grids["drivable"][f.stamp_ns].data) == 100).sum() > 500
