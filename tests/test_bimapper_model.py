@@ -418,8 +418,8 @@ def test_mapper_adapter(saved):
     assert only_front.known[xs < -4].sum() == 0 and only_front.known[xs > 4].any()
     mapper.set_rig(RIG.with_camera(replace(RIG["back"], ego_from_cam=ego_from_optical((-1.2, 0.0, 1.6), yaw=math.pi))))
     assert mapper.map(imgs).probs.shape == (3, *GRID.shape)
-    with pytest.raises(WeightsError):
-        BiMapperMapper(RIG, GRID, MapperConfig(method="bimapper", weights=str(path), input_kind="rgb"))
+    with pytest.raises(ConfigError, match="segmenter is 'none'"):  # label weights on RGB need a segmenter
+        BiMapperMapper(RIG, GRID, MapperConfig(method="bimapper", weights=str(path), input_kind="rgb", segmenter="none"))
     # a subset of the weights' classes, in another order: those layers only
     sub = BiMapperMapper(RIG, GRID, MapperConfig(method="bimapper", weights=str(path), classes=("sidewalk", "drivable")))
     part = sub.map(imgs)
