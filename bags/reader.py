@@ -26,6 +26,7 @@ import numpy as np
 from bev_mapper_core.classes import BEV_CLASS_NAMES
 from bev_mapper_core.errors import BevMapperError
 from bev_mapper_core.grid import BevGrid
+from bev_mapper_core.label_maps import LabelMap
 from bev_mapper_core.rig import Rig, RigCamera
 from msg_adapters import (
     AdapterError,
@@ -350,6 +351,7 @@ class BagReader:
         odom: bool = True,
         sync: SyncConfig = DEFAULT_SYNC,
         lookahead_ns: int = 500 * MS,
+        label_map: LabelMap | None = None,
     ) -> Iterator[BagFrame]:
         """Synchronized frames of the bag (see :class:`BagFrame`).
 
@@ -361,6 +363,9 @@ class BagReader:
             sync: synchronizer settings (stamp-driven time).
             lookahead_ns: a frame is yielded once the bag's log time passes its newest camera
                 stamp by this much, so that its GT and odometry have been read.
+            label_map: what the label images hold (:mod:`bev_mapper_core.label_maps`), applied as
+                each is decoded, so ``labels`` are Label ids; None = ``native``. A label image of
+                another encoding than the map takes is a decode error (skipped, counted).
 
         Messages with an invalid header stamp, images that do not decode or whose size differs
         from their camera's CameraInfo, GT layers that do not fit the grid and odometry that
@@ -397,7 +402,7 @@ class BagReader:
         odom_buf: deque = deque()
         ready: deque[SyncedSet] = deque()
         ctx = dict(cams=cams, kinds=kinds, classes=classes, grid=grid, gt_buf=gt_buf,
-                   odom_buf=odom_buf, tol=sync.slop_ns, sizes=self._camera_sizes())
+                   odom_buf=odom_buf, tol=sync.slop_ns, sizes=self._camera_sizes(), label_map=label_map)
         drift = StampDrift()
         index = 0
         try:
@@ -499,7 +504,8 @@ class BagReader:
                 for k in kinds:
                     msg = s.messages[f"{c}/{k}"]
                     try:
-                        arr = image_to_rgb(msg) if k == "rgb" else image_to_labels(msg)
+                        arr = (image_to_rgb(msg) if k == "rgb"
+                               else image_to_labels(msg, label_map=ctx["label_map"]))
                         h, w = arr.shape[:2]
                         if c in sizes and (w, h) != sizes[c]:
                             raise AdapterError(f"image is {w}x{h}, camera {c!r} is calibrated "

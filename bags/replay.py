@@ -48,6 +48,7 @@ import numpy as np
 from bev_mapper_core.classes import bev_picture, class_cover, resolve_classes
 from bev_mapper_core.errors import BevMapperError
 from bev_mapper_core.grid import BevGrid
+from bev_mapper_core.label_maps import label_map
 from bev_mapper_core.mapper import BevPrediction, MapperConfig, create_mapper
 from bev_mapper_core.metrics import SCOPES, MetricAccumulator, WholeGridAccumulator, scope_masks
 from msg_adapters import make_image, make_occupancy_grid
@@ -277,10 +278,12 @@ def _run(options, reader, rig, grid, mapper, out, tmp_frames, notes) -> ReplayRe
         copier = _InfoCopier(Path(options.bag), reader, bw)
         custom = dict(reader.custom_data)
         custom["bev_mapper.replay"] = json.dumps(
-            {"method": options.mapper.method, "input": kind, "classes": list(mapper.class_names)})
+            {"method": options.mapper.method, "input": kind, "label_map": options.mapper.label_map,
+             "classes": list(mapper.class_names)})
         for k, v in custom.items():
             bw.set_custom_data(k, v)
-        frames = reader.frames(rgb=kind == "rgb", labels=kind == "labels")
+        frames = reader.frames(rgb=kind == "rgb", labels=kind == "labels",
+                               label_map=label_map(options.mapper.label_map))
         try:
             for frame in frames:
                 images = frame.labels if kind == "labels" else frame.rgb
@@ -393,6 +396,7 @@ def _metrics(options, scorer: "ReplayScorer", grid, mapped, skipped, latencies, 
     return {
         "method": options.mapper.method,
         "input": options.mapper.input_kind,
+        "label_map": options.mapper.label_map,
         "bag": str(options.bag),
         "frames": mapped,
         "frames_scored": res["frames"],

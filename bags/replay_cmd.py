@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 from bev_mapper_core.grid import BevGrid
+from bev_mapper_core.label_maps import PRESET_NAMES
 from bev_mapper_core.mapper import INPUT_KINDS, MapperConfig, available_methods
 from bev_mapper_core.metrics import format_table, format_whole_grid_table
 
@@ -74,6 +75,10 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default=MapperConfig.device, help="torch device of learned methods")
     p.add_argument("--input", dest="input_kind", default=MapperConfig.input_kind, choices=INPUT_KINDS,
                    help="camera images to map: semantic labels or RGB")
+    p.add_argument("--label-map", default=MapperConfig.label_map, metavar="PRESET|YAML",
+                   help=f"what the bag's label images hold: one of {', '.join(PRESET_NAMES)} (cam2bev: "
+                        "rgb8 palette images) or a YAML file of upstream id (or colour) -> label name "
+                        "(default: %(default)s, this package's own ids)")
     p.add_argument("--ipm-occlusion", action=argparse.BooleanOptionalAction,
                    default=MapperConfig.ipm_occlusion,
                    help="IPM: cells behind the near edge of an object a camera sees are unknown to "
@@ -121,7 +126,7 @@ def options_from_args(args: argparse.Namespace) -> ReplayOptions:
                           classes=tuple(args.classes) if args.classes else None,
                           weights=args.weights, device=args.device,
                           ipm_occlusion=args.ipm_occlusion, unknown_below=args.unknown_below,
-                          segmenter=args.segmenter)
+                          segmenter=args.segmenter, label_map=args.label_map)
     return ReplayOptions(
         bag=args.bag, out=args.out, mapper=mapper, grid=grid, scope=args.scope,
         max_frames=args.max_frames, pictures=not args.no_pictures,

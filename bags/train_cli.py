@@ -5,7 +5,7 @@ Training::
     bev-train --method bimapper --rig surround6 --input labels --out runs/NAME \\
         [--config run.yaml] [--epochs E] [--frames-per-epoch F] [--batch B] [--lr 1e-3] [--seed S]
         [--val-seeds 900000000,900000001 | --val-drives N] [--cache DIR | --no-cache]
-        [--device cpu|cuda] [--resume] [--bag PATH ... --val-bag PATH ...]
+        [--device cpu|cuda] [--resume] [--bag PATH ... --val-bag PATH ... [--label-map PRESET|YAML]]
         [method flags, Bi-Mapper's: --streams both|gv|lv|none --fusion sum|concat --no-asl
          --mutual async|sync|lv|gv|none --pos-weight auto|none --ipm-skip --lv-full-res ...]
 
@@ -37,6 +37,7 @@ from dataclasses import fields
 from pathlib import Path
 
 from bev_mapper_core.errors import BevMapperError
+from bev_mapper_core.label_maps import PRESET_NAMES
 from bev_mapper_core.mapper import INPUT_KINDS, MapperConfig
 from bev_mapper_core.rig import PRESETS
 from bev_mapper_core.training.config import AUTO_CLASSES, TrainConfig
@@ -167,6 +168,9 @@ def train_parser(method: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--time-budget", dest="time_budget_min", type=_pos_float, help="minutes; stop (resumable) after")
     p.add_argument("--bag", nargs="+", help="rosbag2 paths with GT topics to train on")
     p.add_argument("--val-bag", dest="val_bag", nargs="+", help="held-out rosbag2 paths with GT")
+    p.add_argument("--label-map", dest="label_map", metavar="PRESET|YAML",
+                   help=f"what the bags' label images hold: one of {', '.join(PRESET_NAMES)} or a YAML file "
+                        f"(default {DEFAULTS['label_map']}: this package's ids)")
     p.add_argument("--no-progress", dest="progress", action="store_false", default=argparse.SUPPRESS)
     g = p.add_argument_group(f"{cls.name} options")
     for f in cls.cli_flags:

@@ -5,8 +5,8 @@ point (:mod:`bags.train_cli`) hands :class:`BagSource` to the core's trainer whe
 given (the core never imports ``bags``). Frames become the same in-memory
 :class:`~bev_mapper_core.training.data.FrameSet` as the synthetic drives:
 
-* label images of every camera in rig order (frames where a camera's labels are missing or
-  undecodable are skipped, and counted);
+* label images of every camera in rig order, mapped to Label ids by ``TrainConfig.label_map``
+  (frames where a camera's labels are missing or undecodable are skipped, and counted);
 * ``target`` = GT layers of the requested classes thresholded at 0.5;
 * ``mask`` = cells whose GT is known (not -1) in every requested layer; ``ground_mask`` = the
   bag's ``/bev/visibility/ground`` when present, else ``mask``.
@@ -22,6 +22,7 @@ import numpy as np
 
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.grid import BevGrid
+from bev_mapper_core.label_maps import NATIVE, label_map
 from bev_mapper_core.rig import Rig
 from bev_mapper_core.training.config import TrainConfig
 from bev_mapper_core.training.data import FrameSet, resize_labels
@@ -42,8 +43,9 @@ def bag_rig_grid(path: str | Path) -> tuple[Rig, BevGrid]:
 
 
 def bag_frameset(paths: Sequence[str | Path], classes: Sequence[str], rig: Rig, grid: BevGrid,
-                 input_size: tuple[int, int] | None = None) -> FrameSet:
-    """All complete frames of ``paths`` (see module docstring) for ``rig`` and ``grid``.
+                 input_size: tuple[int, int] | None = None, label_map_spec: str = NATIVE) -> FrameSet:
+    """All complete frames of ``paths`` (see module docstring) for ``rig`` and ``grid``; their
+    label images hold what ``label_map_spec`` says (:func:`bev_mapper_core.label_maps.label_map`).
 
     Raises:
         ConfigError: a bag lacks a requested GT class, has other cameras, another grid, or no
@@ -51,6 +53,7 @@ def bag_frameset(paths: Sequence[str | Path], classes: Sequence[str], rig: Rig, 
     """
     L, T, M, G = [], [], [], []
     skipped = 0
+    lm = label_map(label_map_spec)
     for path in paths:
         with BagReader(path) as r:
             missing = [c for c in classes if c not in r.gt_classes]
@@ -60,7 +63,7 @@ def bag_frameset(paths: Sequence[str | Path], classes: Sequence[str], rig: Rig, 
                 raise ConfigError(f"{path}: cameras {list(r.rig().names)} differ from {list(rig.names)}")
             if not r.grid().isclose(grid):
                 raise ConfigError(f"{path}: GT grid {r.grid().describe()} differs from {grid.describe()}")
-            for f in r.frames(rgb=False, labels=True, gt=True, odom=False):
+            for f in r.frames(rgb=False, labels=True, gt=True, odom=False, label_map=lm):
                 if f.gt is None or not all(n in f.labels for n in rig.names):
                     skipped += 1
                     continue
@@ -93,10 +96,10 @@ class BagSource(DataSource):
              log: Callable[[str], None]) -> TrainData:
         """The frames of ``cfg.bag`` (training) and ``cfg.val_bag`` (held out)."""
         self.check(needs)
-        train = bag_frameset(cfg.bag, cfg.class_names, rig, grid, needs.image_size)
+        train = bag_frameset(cfg.bag, cfg.class_names, rig, grid, needs.image_size, cfg.label_map)
         if not cfg.val_bag:
             raise ConfigError("training on bags needs held-out bags (--val-bag)")
-        return TrainData(train, bag_frameset(cfg.val_bag, cfg.class_names, rig, grid, needs.image_size))
+        return TrainData(train, bag_frameset(cfg.val_bag, cfg.class_names, rig, grid, needs.image_size, cfg.label_map))
 
 
 __all__ = ["BagSource", "bag_frameset", "bag_rig_grid"]

@@ -1,7 +1,8 @@
 """Semantic classes: the per-pixel label ids of camera label images and the BEV layers.
 
 A label image (``sensor_msgs/Image`` mono8) carries one :class:`Label` id per pixel, as an
-upstream 2-D segmenter would publish. BEV layers are multi-label: each :class:`BevClass` lists
+upstream 2-D segmenter would publish (other segmenters' ids or colour palettes are converted to
+these by :mod:`~bev_mapper_core.label_maps`). BEV layers are multi-label: each :class:`BevClass` lists
 the label ids that count as that class (a lane divider also lies on drivable surface).
 """
 

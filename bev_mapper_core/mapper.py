@@ -17,6 +17,7 @@ import numpy as np
 from .classes import BEV_CLASS_NAMES, resolve_classes
 from .errors import ConfigError, InputError
 from .grid import BevGrid
+from .label_maps import NATIVE, label_map
 from .registry import resolve
 from .rig import Rig
 
@@ -30,7 +31,7 @@ class MapperConfig:
     Args:
         method: registered method name (``bimapper`` with the shipped weights by default,
             ``ipm``, ...).
-        input_kind: ``labels`` (mono8 semantic label images) or ``rgb``.
+        input_kind: ``labels`` (semantic label images, see ``label_map``) or ``rgb``.
         classes: BEV class names to produce, ``None`` = the method's/standard set.
         weights: path to a safetensors weights file (learned methods), ``None`` = shipped default.
         device: torch device for learned methods (``cpu``, ``cuda``).
@@ -53,6 +54,12 @@ class MapperConfig:
             with ``input_kind`` ``rgb``): ``auto`` (the shipped segmenter; Bi-Mapper: only when
             no end-to-end RGB weights are given or shipped), ``none``, or a safetensors path.
             Label input ignores it.
+        label_map: how the ids of the label images (``input_kind`` labels) map onto this
+            package's :class:`~bev_mapper_core.classes.Label`: ``native`` (they are Label
+            ids), a preset of another segmenter (``cityscapes_ids``, ``cityscapes_train_ids``,
+            ``cam2bev``: rgb8 palette images) or the path of a YAML file; see
+            :mod:`~bev_mapper_core.label_maps`. The node and the bag tools apply it as they
+            decode each image; the mapper itself always receives Label ids.
     """
 
     method: str = "bimapper"
@@ -64,6 +71,7 @@ class MapperConfig:
     ipm_occlusion: bool = True
     unknown_below: float = 0.05
     segmenter: str = "auto"
+    label_map: str = NATIVE
 
     def __post_init__(self) -> None:
         v = self.unknown_below
@@ -84,6 +92,10 @@ class MapperConfig:
             if not self.classes:
                 raise ConfigError("classes must not be empty (use None for all classes)")
             resolve_classes(self.classes)  # raises ConfigError on unknown names
+        label_map(self.label_map)  # raises ConfigError: no preset, or a bad YAML file
+        if self.label_map != NATIVE and self.input_kind != "labels":
+            raise ConfigError(f"label_map {self.label_map!r} applies to label images (input_kind 'labels'), "
+                              f"not to input_kind {self.input_kind!r}")
 
 
 @dataclass(frozen=True)

@@ -219,6 +219,7 @@ PARAM_FIELDS: dict[str, ParamField] = {
     "rig": ParamField(NodeConfig, "rig"),
     "cameras": ParamField(NodeConfig, "cameras", string_array=True),
     "input_kind": ParamField(MapperConfig, "input_kind"),
+    "label_map": ParamField(MapperConfig, "label_map"),
     "image_topic": ParamField(NodeConfig, "image_topic"),
     "camera_info_topic": ParamField(NodeConfig, "camera_info_topic"),
     "compressed": ParamField(NodeConfig, "compressed"),

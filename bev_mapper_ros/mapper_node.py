@@ -39,12 +39,14 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from bev_mapper_core.classes import bev_picture
 from bev_mapper_core.errors import BevMapperError
+from bev_mapper_core.label_maps import label_map
 from bev_mapper_core.mapper import create_mapper, output_classes, preflight
 from msg_adapters import (
     FrameSynchronizer,
     RclpyFactory,
     camera_info_to_model,
     compressed_to_array,
+    compressed_to_labels,
     header_stamp_ns,
     image_to_labels,
     image_to_rgb,
@@ -102,6 +104,7 @@ class MapperNode(Node):
         cfg = self.cfg
         preflight(cfg.mapper, cfg.rig, cfg.grid, cfg.cameras)  # e.g. missing weights: fail now
         self.class_names = output_classes(cfg.mapper, cfg.rig)
+        self.label_map = label_map(cfg.mapper.label_map)  # one lookup table, applied as images are decoded
         self.factory = RclpyFactory()
         self.stats = NodeStats()
         self._last_logged: dict[str, float] = {}
@@ -135,8 +138,9 @@ class MapperNode(Node):
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
         self.worker.start()
+        label_text = f", label_map {self.label_map.name} ({self.label_map.encoding})" if cfg.mapper.input_kind == "labels" else ""
         self.get_logger().info(
-            f"mapping {list(cfg.cameras)} with {cfg.mapper.method} ({cfg.mapper.input_kind}) onto "
+            f"mapping {list(cfg.cameras)} with {cfg.mapper.method} ({cfg.mapper.input_kind}{label_text}) onto "
             f"{cfg.grid.describe()} in {cfg.base_frame}; publishing {list(self.class_names)} on "
             f"{cfg.output_prefix}/<class>; waiting for camera_info and extrinsics"
         )
@@ -281,13 +285,14 @@ class MapperNode(Node):
         """Decode one camera's image; None (counted, logged) when it is unusable."""
         try:
             w, h = self.mapper.rig[cam].model.image_size
-            # the calibrated size is checked before decoding (a compressed image's header first)
+            # the calibrated size is checked before decoding (a compressed image's header first);
+            # label images leave the adapters in Label ids (the label map applied once)
+            labels = self.cfg.mapper.input_kind == "labels"
             if self.cfg.compressed:
-                img = compressed_to_array(msg, expected_size=(w, h))
-                if self.cfg.mapper.input_kind == "labels" and img.ndim == 3:
-                    raise BevMapperError("compressed label image must be single-channel")
-            elif self.cfg.mapper.input_kind == "labels":
-                img = image_to_labels(msg, expected_size=(w, h))
+                img = (compressed_to_labels(msg, (w, h), label_map=self.label_map) if labels
+                       else compressed_to_array(msg, expected_size=(w, h)))
+            elif labels:
+                img = image_to_labels(msg, expected_size=(w, h), label_map=self.label_map)
             else:
                 img = image_to_rgb(msg, expected_size=(w, h))
             if img.shape[:2] != (h, w):

@@ -28,6 +28,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from bev_mapper_core.classes import BEV_CLASS_NAMES
+from bev_mapper_core.label_maps import PRESET_NAMES
 from bev_mapper_core.mapper import INPUT_KINDS, available_methods
 from bev_mapper_core.rig import PRESETS
 
@@ -49,6 +50,10 @@ _DECLARATIONS: dict[str, tuple] = {
             "cameras / extrinsics.<camera> are set, and selects the shipped weights"),
     "cameras": (_T.PARAMETER_STRING_ARRAY, "camera names, in rig order ([] = the preset rig's)"),
     "input_kind": (_T.PARAMETER_STRING, f"one of {list(INPUT_KINDS)}"),
+    "label_map": (_T.PARAMETER_STRING,
+                  f"what the label images hold: one of {list(PRESET_NAMES)} (native: this package's ids; "
+                  "cam2bev: rgb8 palette images) or the path of a YAML file of upstream id (or colour) -> "
+                  "label name (README, 'Label images from other segmenters')"),
     "image_topic": (_T.PARAMETER_STRING,
                     "image topic pattern with {camera}; '' = /cameras/{camera}/labels or /image_raw"),
     "camera_info_topic": (_T.PARAMETER_STRING, "CameraInfo topic pattern with {camera}"),
@@ -119,6 +124,8 @@ def descriptor(name: str) -> ParameterDescriptor:
         desc.additional_constraints = f"one of {list(available_methods())}"
     elif name == "input_kind":
         desc.additional_constraints = f"one of {list(INPUT_KINDS)}"
+    elif name == "label_map":
+        desc.additional_constraints = f"one of {list(PRESET_NAMES)}, or a label-map YAML file"
     elif name == "rig":
         desc.additional_constraints = f"a preset ({', '.join(PRESETS)}), or any name with cameras set"
     return desc

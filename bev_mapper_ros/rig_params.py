@@ -25,6 +25,7 @@ def rig_parameters(rig: Rig, grid: BevGrid | None = None, method: str = MapperCo
         "rig": rig.name,
         "cameras": list(rig.names),
         "input_kind": MapperConfig.input_kind,
+        "label_map": MapperConfig.label_map,
         "method": method,
         "grid": grid.to_dict(),
         "extrinsics": {},

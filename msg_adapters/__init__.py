@@ -34,12 +34,12 @@ from .image import (
     check_image_size,
     compressed_to_array,
     image_to_array,
-    image_to_labels,
     image_to_rgb,
     make_compressed_image,
     make_image,
 )
 from .image_header import CompressedHeader, compressed_image_header
+from .labels import LABEL_IMAGE_ENCODINGS, compressed_to_labels, image_to_labels
 from .limits import DEFAULT_LIMITS, AdapterLimits
 from .sync import FrameSynchronizer, SyncConfig, SyncedSet, SyncStats
 from .tf import (
@@ -58,6 +58,7 @@ from .tf import (
 __all__ = [
     "DEFAULT_LIMITS",
     "ENCODINGS",
+    "LABEL_IMAGE_ENCODINGS",
     "AdapterError",
     "AdapterLimits",
     "CalibrationMessageError",
@@ -85,6 +86,7 @@ __all__ = [
     "check_image_size",
     "compressed_image_header",
     "compressed_to_array",
+    "compressed_to_labels",
     "ego_from_camera",
     "grid_from_info",
     "header_stamp_ns",

@@ -193,22 +193,6 @@ def image_to_rgb(msg: Any, expected_size: Any = None, *,
     return np.ascontiguousarray(arr[..., :3])
 
 
-def image_to_labels(msg: Any, expected_size: Any = None, *,
-                    limits: AdapterLimits = DEFAULT_LIMITS) -> np.ndarray:
-    """Decode a label image (``mono8`` / ``8UC1``) to ``(H, W)`` uint8 label ids.
-
-    ``expected_size`` and ``limits`` as in :func:`image_to_array`.
-
-    Raises:
-        EncodingError: as :func:`image_to_array`, or another encoding.
-    """
-    encoding = as_str(field(msg, "encoding", EncodingError, "label image"), "encoding", EncodingError,
-                      "label image")
-    if encoding not in ("mono8", "8UC1"):
-        raise EncodingError(f"label images must be mono8 or 8UC1, got {encoding!r}")
-    return image_to_array(msg, expected_size=expected_size, limits=limits)
-
-
 def array_to_image_fields(
     array: np.ndarray, encoding: str, *, step: int | None = None, bigendian: bool = False
 ) -> dict[str, Any]:

@@ -10,6 +10,7 @@ Outcome counts per adapter are printed (``pytest -s``).
 from __future__ import annotations
 
 import array
+import functools
 import struct
 import time
 import tracemalloc
@@ -25,6 +26,7 @@ import msg_adapters as ma
 from bev_mapper_core.camera import DISTORTION_MODELS, CameraModel, Roi
 from bev_mapper_core.errors import BevMapperError, GridError
 from bev_mapper_core.grid import OCC_MAX, OCC_UNKNOWN, BevGrid
+from bev_mapper_core.label_maps import label_map
 from bev_mapper_core.rig import surround6
 from bev_mapper_core.transforms import make_transform, rpy_to_rot
 from msg_adapters.image import AMBIGUOUS_ENCODINGS
@@ -372,7 +374,7 @@ def test_occupancy_data_types(data, match):
 # ====================================================================== 5. the fuzz
 SEED = 10  # issue #10
 #: Cases per adapter: a few thousand, seconds in all.
-CASES = {"CameraInfo": 3000, "Image": 3000, "CompressedImage": 2000, "OccupancyGrid": 2000,
+CASES = {"CameraInfo": 3000, "Image": 3000, "CompressedImage": 2000, "CompressedLabels": 400, "OccupancyGrid": 2000,
          "TransformStamped": 2000, "TFMessage": 1000, "Odometry": 2000}
 #: Limits of the compressed cases without an expected size: a low cap keeps the fuzz fast.
 FUZZ_LIMITS = ma.AdapterLimits(max_image_side=2048, max_image_pixels=2**18)
@@ -632,7 +634,12 @@ IMAGE_SPEC = {
     "encoding": ("str", sorted(ma.ENCODINGS) + list(AMBIGUOUS_ENCODINGS) + ["yuv422", "32FC1"]),
     "is_bigendian": ("choice", [0, 1, 2, 255, 256, -1]), "data": ("bytes", None),
 }
-IMAGE_CALLS = [ma.image_to_array, ma.image_to_rgb, ma.image_to_labels]
+#: label maps of the label-image cases: mono8 ids and an rgb8 palette (its dense table built
+#: here, once, not inside a case's allocation budget)
+FUZZ_LABEL_MAPS = [label_map("cityscapes_ids"), label_map("cam2bev")]
+FUZZ_LABEL_MAPS[1].apply(np.zeros((1, 1, 3), np.uint8))
+IMAGE_CALLS = [ma.image_to_array, ma.image_to_rgb, ma.image_to_labels,
+               *(functools.partial(ma.image_to_labels, label_map=lm) for lm in FUZZ_LABEL_MAPS)]
 
 
 def _image_case(rng):
@@ -666,7 +673,7 @@ def _check_image(arr, msg, kwargs):
         assert (w, h) == kwargs["expected_size"]
     if kwargs["call"] is ma.image_to_rgb:
         assert arr.shape == (h, w, 3) and arr.dtype == np.uint8
-    if kwargs["call"] is ma.image_to_labels:
+    if kwargs["call"] is ma.image_to_labels or getattr(kwargs["call"], "func", None) is ma.image_to_labels:
         assert arr.shape == (h, w) and arr.dtype == np.uint8
 
 
@@ -751,6 +758,33 @@ def _check_compressed(img, msg, kwargs):
 def test_fuzz_compressed_image():
     counts = run_fuzz("CompressedImage", _compressed_case, ma.compressed_to_array, ma.EncodingError,
                       _check_compressed)
+    assert set(counts) == {"valid", "EncodingError"}
+
+
+def _compressed_labels_case(rng):
+    """Every base image (RGB, mono, 16-bit, RGBA, JPEG, palette PNG) through every label map, with
+    mutated message fields; the bytes stay intact (the decoder's own fuzz is the case above, and
+    some damaged PNGs take OpenCV most of a second to refuse)."""
+    data = COMPRESSED_BASES[rng.integers(len(COMPRESSED_BASES))]
+    msg = _compressed(data, "png" if data.startswith(b"\x89") else "jpeg")
+    if rng.random() < 0.5:
+        msg = to_ns(msg)
+    if rng.random() < 0.3:
+        mutate(rng, msg, COMPRESSED_SPEC)
+    kwargs = {"expected_size": (24, 16)} if rng.random() < 0.6 else {"limits": FUZZ_LIMITS}
+    kwargs["label_map"] = [None, *FUZZ_LABEL_MAPS][rng.integers(len(FUZZ_LABEL_MAPS) + 1)]
+    return msg, kwargs, BYTES_PER_PIXEL * 24 * 16 + 4 * len(data) + MIB
+
+
+def _check_compressed_labels(labels, msg, kwargs):
+    assert isinstance(labels, np.ndarray) and labels.dtype == np.uint8 and labels.ndim == 2
+    _check_compressed(labels, msg, kwargs)
+
+
+def test_fuzz_compressed_label_image():
+    """``compressed_to_labels`` through the native, a mono8 and an rgb8 label map."""
+    counts = run_fuzz("CompressedLabels", _compressed_labels_case, ma.compressed_to_labels, ma.EncodingError,
+                      _check_compressed_labels)
     assert set(counts) == {"valid", "EncodingError"}
 
 

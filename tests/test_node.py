@@ -242,6 +242,7 @@ BAD_PARAMETERS = [
     (["-p", "grid.resolution:=0.25"], "weights were trained for grid"),
     (["-p", "rig:=mine"], "none shipped for rig 'mine'"),
     (["-p", "cameras:=[front,back]", "-p", "use_tf:=true"], "weights were trained for cameras"),
+    (["-p", "label_map:=cityscapes"], "label_map 'cityscapes' is no preset"),
     (["-p", "sync_slop_s:=fast"], "expecting type 'DOUBLE'"),
 ]
 

@@ -160,6 +160,12 @@ def test_bev_bag_choices_come_from_the_constants():
     assert tuple(_action(replay, "--storage").choices) == STORAGES
     assert sorted(_action(synth, "--rig").choices) == sorted(PRESETS)
     assert tuple(_action(synth, "--storage").choices) == STORAGES
+    # --label-map takes a preset or a YAML path: no choices, but the help names every preset
+    from bev_mapper_core.label_maps import PRESET_NAMES
+
+    label_map = _action(replay, "--label-map")
+    assert label_map.default == MapperConfig.label_map == PRESET_NAMES[0]
+    assert all(name in label_map.help for name in PRESET_NAMES)
     # every input kind has a bag topic and a default node topic
     from bags.topics import IMAGE_KINDS
     from bev_mapper_ros.config import DEFAULT_TOPICS

@@ -22,6 +22,8 @@ from typing import Any
 from ..classes import BEV_CLASS_NAMES, CAM2BEV_CLASSES, resolve_classes
 from ..errors import BevMapperError, ConfigError
 from ..grid import BevGrid
+from ..label_maps import label_map
+from ..mapper import MapperConfig
 from ..rig import PRESETS
 from .method import method_class
 
@@ -104,6 +106,9 @@ class TrainConfig:
         resume: continue ``out``'s last checkpoint.
         time_budget_min: stop (checkpointed, resumable) once this much wall time has passed.
         bag, val_bag: rosbag2 paths with GT topics to train / validate on instead of drives.
+        label_map: what the bags' label images hold (``native``, a preset of another segmenter
+            or a YAML file, see :mod:`~bev_mapper_core.label_maps`; default: MapperConfig's);
+            bags only: synthetic drives are in this package's own ids.
         progress: tqdm progress bars.
         grid: the BEV grid (default: 60 m x 30 m at 0.15 m, which the shipped weights use);
             synthetic data only (bags bring their own).
@@ -136,6 +141,7 @@ class TrainConfig:
     time_budget_min: float | None = None
     bag: tuple[str, ...] | None = None
     val_bag: tuple[str, ...] | None = None
+    label_map: str = MapperConfig.label_map
     progress: bool = True
     grid: BevGrid = field(default_factory=BevGrid)
     model: Any = None
@@ -183,6 +189,10 @@ class TrainConfig:
             raise ConfigError("val_seeds must not be empty")
         if self.val_bag is not None and self.bag is None:
             raise ConfigError("val_bag needs bag")
+        label_map(self.label_map)  # ConfigError: no preset, or a bad YAML file
+        if self.label_map != MapperConfig.label_map and (self.bag is None or self.model.input_kind != "labels"):
+            raise ConfigError(f"label_map {self.label_map!r} applies to the label images of bags (bag, input "
+                              "labels); synthetic drives are in this package's own ids")
         # The splits must be disjoint (checked here so that a bad config fails before any work).
         from .data import check_disjoint, train_seeds
 
