@@ -18,6 +18,7 @@ from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.grid import BevGrid
 from bev_mapper_core.rig import PRESETS, Rig, preset_rig
 from bev_mapper_core.synth.config import SynthConfig
+from bev_mapper_core.synth.styles import STYLE_CHOICES, resolve_style, style_help
 
 from .errors import BagError
 from .writer import STORAGES, DriveSummary, check_output, write_drive
@@ -80,6 +81,8 @@ def synth_bag(options: SynthBagOptions) -> DriveSummary:
         "bev_mapper.scale": repr(options.scale),
         "bev_mapper.grid": json.dumps(options.grid.to_dict()),
         "bev_mapper.synth": json.dumps(asdict(options.synth)),
+        # the style the drive was rendered in (``mixed`` resolved): what its RGB images look like
+        "bev_mapper.style": resolve_style(options.synth.style, options.synth.seed),
     }
     classes = gt_classes(rig.name)
     frames = generate_drive(rig, options.grid, options.synth, classes)
@@ -112,6 +115,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rate-hz", type=float, default=sc.rate_hz, help="frame rate")
     p.add_argument("--jitter-ms", type=float, default=sc.jitter_ms,
                    help="max abs per-camera stamp offset from the frame stamp")
+    p.add_argument("--style", default=sc.style, choices=STYLE_CHOICES, help=style_help())
     p.add_argument("--storage", choices=STORAGES, default=o.storage, help="rosbag2 storage plugin")
     p.add_argument("--force", action="store_true", help="overwrite an existing bag at OUT")
     p.add_argument("--grid-x-min", type=float, default=g.x_min, help="BEV grid x min (m)")
@@ -126,7 +130,7 @@ def options_from_args(args: argparse.Namespace) -> SynthBagOptions:
     grid = BevGrid(args.grid_x_min, args.grid_x_max, args.grid_y_min, args.grid_y_max,
                    args.grid_res)
     synth = SynthConfig(frames=args.frames, seed=args.seed, rate_hz=args.rate_hz,
-                        jitter_ms=args.jitter_ms)
+                        jitter_ms=args.jitter_ms, style=args.style)
     return SynthBagOptions(out=args.out, rig=args.rig, scale=args.scale, storage=args.storage,
                            force=args.force, grid=grid, synth=synth)
 

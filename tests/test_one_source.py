@@ -21,6 +21,7 @@ from bev_mapper_core.grid import GRID_TOL_M, BevGrid
 from bev_mapper_core.mapper import INPUT_KINDS, MapperConfig, available_methods
 from bev_mapper_core.rig import PRESETS
 from bev_mapper_core.synth.config import SynthConfig
+from bev_mapper_core.synth.styles import STYLE_CHOICES
 from bev_mapper_ros.config import (
     PARAM_FIELDS,
     NodeConfig,
@@ -159,6 +160,7 @@ def test_bev_bag_choices_come_from_the_constants():
     assert tuple(_action(replay, "--scope").choices) == SCOPES
     assert tuple(_action(replay, "--storage").choices) == STORAGES
     assert sorted(_action(synth, "--rig").choices) == sorted(PRESETS)
+    assert tuple(_action(synth, "--style").choices) == STYLE_CHOICES
     assert tuple(_action(synth, "--storage").choices) == STORAGES
     # --label-map takes a preset or a YAML path: no choices, but the help names every preset
     from bev_mapper_core.label_maps import PRESET_NAMES

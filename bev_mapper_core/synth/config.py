@@ -6,6 +6,7 @@ import math
 from dataclasses import dataclass, fields
 
 from ..errors import ConfigError
+from .styles import MIXED, check_style
 
 #: Stamp of frame 0: 1_700_000_000 s after the Unix epoch, in nanoseconds.
 EPOCH_NS = 1_700_000_000 * 1_000_000_000
@@ -17,7 +18,8 @@ class SynthConfig:
 
     Args:
         frames: number of frames to generate.
-        seed: seed of everything random (layout, objects, look, noise, trajectory).
+        seed: seed of everything random (layout, objects, look, noise, trajectory, and the
+            style ``mixed`` picks).
         rate_hz: frame rate.
         jitter_ms: max abs per-camera stamp offset from the frame stamp (for the bag writer).
         vehicle_density: multiplier of the number of parked and moving vehicles (0 = none).
@@ -29,6 +31,9 @@ class SynthConfig:
         image_noise: scale of the RGB sensor noise (0 = noise free).
         cull_distance: objects farther than this from the ego (m) are not rendered.
         raster_resolution: cell size (m) of the world ground raster near the ego.
+        style: appearance style (:mod:`~bev_mapper_core.synth.styles`): a style name, or
+            ``"mixed"`` (one of the training styles per seed, never the held-out one). Changes
+            the RGB images only.
     """
 
     frames: int = 50
@@ -45,9 +50,13 @@ class SynthConfig:
     image_noise: float = 1.0
     cull_distance: float = 70.0
     raster_resolution: float = 0.05
+    style: str = MIXED
 
     def __post_init__(self) -> None:
+        check_style(self.style)
         for f in fields(self):
+            if f.name == "style":
+                continue
             v = getattr(self, f.name)
             if isinstance(v, bool) or not isinstance(v, (int, float)):
                 raise ConfigError(f"SynthConfig.{f.name} must be a number, got {v!r}")

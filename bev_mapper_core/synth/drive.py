@@ -31,7 +31,8 @@ from ..rig import Rig
 from ..transforms import invert_transform
 from .config import SynthConfig
 from .objects import Boxes
-from .render import CameraRenderer, Look
+from .render import CameraRenderer
+from .styles import resolve_style, style_look
 from .world import World, build_world
 
 #: depth tolerance (m) of the occlusion test
@@ -71,7 +72,9 @@ class DriveRenderer:
         self.world, self.rig, self.grid = world, rig, grid
         self.config = world.config
         self.cams = [CameraRenderer(c) for c in rig.cameras]
-        self.look = Look.random(np.random.default_rng([self.config.seed, 9]), self.config.image_noise)
+        #: the appearance style of the drive (``config.style``, ``mixed`` resolved) and its look
+        self.style = resolve_style(self.config.style, self.config.seed)
+        self.look = style_look(self.style, self.config.seed, self.config.image_noise)
         self.lut = label_lut(BEV_CLASSES)  # (NUM_LABELS, C)
         self.cell_points = grid.points(0.0)  # (H*W, 3) ego frame
 

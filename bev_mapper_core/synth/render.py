@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from ..rig import RigCamera
@@ -38,6 +39,21 @@ class Look:
     fog: float  # haze distance, m
     window: np.ndarray  # (3,)
     clouds: float  # cloud cover 0..1
+    # Appearance-style extras (see styles.py); the defaults leave the image as Look.random's.
+    texture: float = 1.0  # scale of the ground texture contrast
+    wear: float = 0.0  # 0..1: how much lane paint fades into the asphalt (patchy)
+    wet: float = 0.0  # 0..1: wet asphalt mirrors the sky at grazing angles (puddles)
+    cloud_color: float | np.ndarray = 235.0  # grey level (or RGB) of the clouds
+    lit_windows: float = 0.0  # fraction of windows lit from inside (emissive)
+    lamp: np.ndarray | None = None  # (3,) colour of lit windows
+    facade: np.ndarray | None = None  # (K, 3) facade palette, picked per building by its id
+    facade_mix: float = 0.0  # 0..1: how far facades move from their own colour to the palette
+    paint_saturation: float = 1.0  # saturation scale of object colours (cars, people, ...)
+    paint_gain: np.ndarray | None = None  # (3,) per-channel scale of object colours
+    tint: np.ndarray | None = None  # (3,) white balance: per-channel scale of the image
+    saturation: float = 1.0  # saturation scale of the whole image
+    vignette: float = 0.18  # corner darkening: 1 - vignette * r^2 (r = 1 at the side edges)
+    blur: float = 0.0  # Gaussian blur sigma, pixels of a 400 px wide image (scales with width)
 
     @staticmethod
     def random(rng: np.random.Generator, noise_scale: float = 1.0) -> "Look":
@@ -63,6 +79,27 @@ class Look:
                     fog=rng.uniform(250.0, 700.0),
                     window=np.array([45, 60, 80]) * rng.uniform(0.8, 1.3),
                     clouds=rng.uniform(0.1, 0.8))
+
+    def box_colors(self, boxes: Boxes) -> np.ndarray:
+        """Base colours ``(N, 3)`` float32 of ``boxes`` under this look: facades moved towards
+        the look's palette (entry picked by a hash of the object id), object paint scaled in
+        saturation and per channel. Geometry and labels are untouched.
+        """
+        col = boxes.color
+        if self.facade is not None and self.facade_mix > 0 and len(boxes):
+            fac = boxes.kind == FACADE
+            if fac.any():
+                pick = (_hash(boxes.obj[fac], np.zeros(int(fac.sum()), np.int64), 11)
+                        * len(self.facade)).astype(np.int64)
+                col = col.copy()
+                col[fac] += (self.facade[pick].astype(np.float32) - col[fac]) * np.float32(self.facade_mix)
+        if self.paint_saturation != 1.0 or self.paint_gain is not None:
+            grey = col.mean(axis=1, keepdims=True)
+            col = grey + (col - grey) * np.float32(self.paint_saturation)
+            if self.paint_gain is not None:
+                col = col * self.paint_gain.astype(np.float32)
+            col = np.clip(col, 0.0, 255.0)
+        return col.astype(np.float32, copy=False)
 
 
 @dataclass
@@ -108,7 +145,15 @@ class CameraRenderer:
         self.K = self.model.K_array
         u = (np.arange(self.w) - self.w / 2) / (self.w / 2)
         v = (np.arange(self.h) - self.h / 2) / (self.w / 2)
-        self.vignette = (1.0 - 0.18 * (u[None, :] ** 2 + v[:, None] ** 2)).astype(np.float32)
+        self._r2 = u[None, :] ** 2 + v[:, None] ** 2  # (H, W) squared radius, 1 at the side edges
+        self._vignettes: dict[float, np.ndarray] = {}
+        self.vignette = self.vignette_mask(0.18)
+
+    def vignette_mask(self, strength: float) -> np.ndarray:
+        """``(H, W)`` float32 gain ``1 - strength * r^2`` (cached per strength)."""
+        if strength not in self._vignettes:
+            self._vignettes[strength] = (1.0 - strength * self._r2).astype(np.float32)
+        return self._vignettes[strength]
 
     # ------------------------------------------------------------- geometry
     def rects(self, boxes: Boxes, cam_from_world: np.ndarray) -> np.ndarray:
@@ -202,7 +247,11 @@ class CameraRenderer:
     # -------------------------------------------------------------- shading
     def render(self, world_from_ego: np.ndarray, boxes: Boxes, ground: GroundRaster, look: Look,
                rng: np.random.Generator) -> CameraRender:
-        """Render RGB + labels (+ depth and box index buffers) of one frame."""
+        """Render RGB + labels (+ depth and box index buffers) of one frame.
+
+        Only ``rgb`` depends on ``look`` and ``rng`` (sensor noise); labels, depth and the box
+        buffer are the scene's alone.
+        """
         d, o, depth, part, face = self.cast(world_from_ego, boxes)
         labels = np.zeros((self.h, self.w), np.uint8)
         rgb = np.empty((self.h, self.w, 3), np.float32)
@@ -213,10 +262,7 @@ class CameraRenderer:
             gx, gy = o[0] + t * d[..., 0][gnd], o[1] + t * d[..., 1][gnd]
             lab, mat = unpack(ground.lookup(gx, gy, center=world_from_ego[:2, 3]))
             labels[gnd] = lab
-            tex = ((0.8 + 0.35 * value_noise(gx, gy, 1.7, 1))
-                   * (0.93 + 0.14 * value_noise(gx, gy, 0.11, 2)))
-            light = look.ambient + look.diffuse * max(look.sun[2], 0.0)
-            rgb[gnd] = look.ground[mat] * (tex * light)[:, None]
+            rgb[gnd] = self._shade_ground(gx, gy, mat, d[..., 2][gnd] / self.ray_len[gnd], look)
         obj = part >= 0
         if obj.any():
             rgb[obj], labels[obj] = self._shade_boxes(boxes, part[obj], face[obj], o,
@@ -226,10 +272,48 @@ class CameraRenderer:
             rgb[sky] = self._sky(d[sky], o, look)
         fog = 1.0 - np.exp(-np.where(sky, 0.0, dist) / look.fog).astype(np.float32)
         rgb += (look.horizon.astype(np.float32) - rgb) * fog[..., None]
-        rgb *= (look.gain * self.vignette)[..., None]
+        if look.saturation != 1.0 or look.tint is not None:  # one 3x3 colour matrix per pixel
+            s = look.saturation
+            m = s * np.eye(3) + (1.0 - s) / 3.0  # saturation about the channel mean
+            if look.tint is not None:
+                m = look.tint[:, None] * m  # then white balance
+            rgb = cv2.transform(rgb, m.astype(np.float32))
+        rgb *= (look.gain * self.vignette_mask(look.vignette))[..., None]
+        sigma = look.blur * self.w / 400.0
+        if sigma >= 0.2:  # optics: blur before the sensor adds its noise
+            rgb = cv2.GaussianBlur(rgb, (0, 0), sigmaX=sigma, borderType=cv2.BORDER_REFLECT)
         if look.noise > 0:
             rgb += rng.standard_normal(rgb.shape, dtype=np.float32) * np.float32(look.noise)
         return CameraRender(np.clip(rgb, 0, 255).astype(np.uint8), labels, depth, part)
+
+    @staticmethod
+    def _shade_ground(gx, gy, mat, dz, look: Look) -> np.ndarray:
+        """Colours ``(M, 3)`` of ground points ``(gx, gy)`` of materials ``mat``, seen along rays
+        of unit z component ``dz`` (< 0).
+        """
+        k = look.texture
+        tex = ((0.8 + 0.35 * k * value_noise(gx, gy, 1.7, 1))
+               * (0.93 + 0.14 * k * value_noise(gx, gy, 0.11, 2)))
+        light = look.ambient + look.diffuse * max(look.sun[2], 0.0)
+        col = look.ground[mat]
+        paint = None
+        if look.wear > 0 or look.wet > 0:
+            paint = (mat == Mat.WHITE) | (mat == Mat.YELLOW)
+        if look.wear > 0 and paint.any():  # worn paint: patches of it show the asphalt
+            keep = np.clip(1.0 - look.wear * (0.5 + value_noise(gx[paint], gy[paint], 0.6, 4)),
+                           0.0, 1.0)[:, None]
+            asphalt = look.ground[Mat.ASPHALT]
+            col[paint] = asphalt + (col[paint] - asphalt) * keep
+        col *= (tex * light)[:, None]
+        if look.wet > 0:  # wet road: mirrors the horizon at grazing angles, more in puddles
+            road = paint | (mat == Mat.ASPHALT)
+            if road.any():
+                fresnel = 0.04 + 0.96 * (1.0 + dz[road]).astype(np.float32) ** 5
+                puddle = 0.35 + 0.65 * np.clip(value_noise(gx[road], gy[road], 4.0, 5) * 2.0 - 0.6,
+                                               0.0, 1.0)
+                a = np.clip(look.wet * fresnel * puddle, 0.0, 0.9)[:, None]
+                col[road] += (look.horizon.astype(np.float32) - col[road]) * a
+        return col
 
     @staticmethod
     def _shade_boxes(boxes: Boxes, p, f, o, d, t, look: Look):
@@ -243,7 +327,7 @@ class CameraRenderer:
         nz = np.where(axis == 2, sign, 0.0)
         sun = look.sun
         lam = look.ambient + look.diffuse * np.maximum(nx * sun[0] + ny * sun[1] + nz * sun[2], 0)
-        col = boxes.color[p] * lam[:, None].astype(np.float32)
+        col = look.box_colors(boxes)[p] * lam[:, None].astype(np.float32)
         hit = o + t[:, None] * d  # (M, 3) world hit points
         kind = boxes.kind[p]
         lx = c * (hit[:, 0] - boxes.center[p, 0]) + s * (hit[:, 1] - boxes.center[p, 1])
@@ -255,6 +339,11 @@ class CameraRenderer:
             win = fac & (fu > 0.22) & (fu < 0.78) & (fz > 0.3) & (fz < 0.8) & (hit[:, 2] > 0.8)
             shade = 0.6 + 0.7 * _hash(np.floor(u / 2.8), np.floor(hit[:, 2] / 3.2), 7)[win]
             col[win] = (look.window * shade[:, None] * lam[win, None]).astype(np.float32)
+            if look.lit_windows > 0:  # lit from inside: emissive, independent of the light
+                cell = (np.floor(u[win] / 2.8), np.floor(hit[win, 2] / 3.2))
+                lit = _hash(*cell, 8) < look.lit_windows
+                idx = np.flatnonzero(win)[lit]
+                col[idx] = (look.lamp * (0.75 + 0.25 * shade[lit, None])).astype(np.float32)
         roof = (kind == FACADE) & (axis == 2)
         col[roof] *= 0.7
         tyre = (kind == CAR_BODY) & (hit[:, 2] < 0.32)
@@ -274,5 +363,5 @@ class CameraRenderer:
             h = 1500.0 / d[up, 2]
             n = value_noise(o[0] + h * d[up, 0], o[1] + h * d[up, 1], 600.0, 3)
             cover = np.clip((n - (1 - look.clouds)) * 3.0, 0.0, 1.0)[:, None]
-            col[up] += (np.float32(235.0) - col[up]) * cover * 0.8
+            col[up] += (np.asarray(look.cloud_color, np.float32) - col[up]) * cover * 0.8
         return col
