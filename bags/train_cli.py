@@ -40,6 +40,7 @@ from bev_mapper_core.errors import BevMapperError
 from bev_mapper_core.label_maps import PRESET_NAMES
 from bev_mapper_core.mapper import INPUT_KINDS, MapperConfig
 from bev_mapper_core.rig import PRESETS
+from bev_mapper_core.synth.styles import STYLE_CHOICES, style_help
 from bev_mapper_core.training.config import AUTO_CLASSES, TrainConfig
 from bev_mapper_core.training.method import CliFlag, method_class, train_methods
 
@@ -171,6 +172,8 @@ def train_parser(method: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--label-map", dest="label_map", metavar="PRESET|YAML",
                    help=f"what the bags' label images hold: one of {', '.join(PRESET_NAMES)} or a YAML file "
                         f"(default {DEFAULTS['label_map']}: this package's ids)")
+    p.add_argument("--style", choices=STYLE_CHOICES,
+                   help=style_help() + f" (default {DEFAULTS['style']})")
     p.add_argument("--no-progress", dest="progress", action="store_false", default=argparse.SUPPRESS)
     g = p.add_argument_group(f"{cls.name} options")
     for f in cls.cli_flags:

@@ -14,6 +14,8 @@ from bev_mapper_core.errors import ConfigError  # noqa: E402
 from bev_mapper_core.grid import BevGrid  # noqa: E402
 from bev_mapper_core.models import BiMapper, load_state  # noqa: E402
 from bev_mapper_core.rig import preset_rig  # noqa: E402
+from bev_mapper_core.synth.config import SynthConfig  # noqa: E402
+from bev_mapper_core.synth.styles import STYLE_CHOICES  # noqa: E402
 from bev_mapper_core.training.config import TrainConfig  # noqa: E402
 from bev_mapper_core.training.data import (  # noqa: E402
     VAL_SEED_BASE,
@@ -361,7 +363,8 @@ def test_cli_choices_and_defaults_come_from_the_owning_constants():
     p = cli.train_parser()
     assert _choices(p) == {"--method": list(train_methods()), "--rig": sorted(PRESETS), "--input": list(INPUT_KINDS),
                            "--streams": list(STREAMS), "--fusion": list(FUSIONS), "--mutual": list(MUTUAL_MODES),
-                           "--pos-weight": list(POS_WEIGHTS)}
+                           "--pos-weight": list(POS_WEIGHTS), "--style": STYLE_CHOICES}
+    assert TrainConfig().style == SynthConfig.style
     assert vars(p.parse_args([])) == {}  # no flag has a default of its own: the dataclasses have them
     assert _choices(cli.eval_parser())["--rig"] == sorted(PRESETS)
     e, d = cli.eval_parser().parse_args([]), TrainConfig()

@@ -25,6 +25,8 @@ from ..grid import BevGrid
 from ..label_maps import label_map
 from ..mapper import MapperConfig
 from ..rig import PRESETS
+from ..synth.config import SynthConfig
+from ..synth.styles import check_style
 from .method import method_class
 
 #: Paper schedule (Bi-Mapper, 30 epochs): lr x0.1 at epoch 10.
@@ -106,6 +108,9 @@ class TrainConfig:
         resume: continue ``out``'s last checkpoint.
         time_budget_min: stop (checkpointed, resumable) once this much wall time has passed.
         bag, val_bag: rosbag2 paths with GT topics to train / validate on instead of drives.
+        style: appearance style of the synthetic drives' RGB images (a
+            :mod:`~bev_mapper_core.synth.styles` name; default ``mixed``: one training style per
+            drive, never the held-out one); label images do not depend on it.
         label_map: what the bags' label images hold (``native``, a preset of another segmenter
             or a YAML file, see :mod:`~bev_mapper_core.label_maps`; default: MapperConfig's);
             bags only: synthetic drives are in this package's own ids.
@@ -142,6 +147,7 @@ class TrainConfig:
     bag: tuple[str, ...] | None = None
     val_bag: tuple[str, ...] | None = None
     label_map: str = MapperConfig.label_map
+    style: str = SynthConfig.style
     progress: bool = True
     grid: BevGrid = field(default_factory=BevGrid)
     model: Any = None
@@ -190,6 +196,7 @@ class TrainConfig:
         if self.val_bag is not None and self.bag is None:
             raise ConfigError("val_bag needs bag")
         label_map(self.label_map)  # ConfigError: no preset, or a bad YAML file
+        check_style(self.style)
         if self.label_map != MapperConfig.label_map and (self.bag is None or self.model.input_kind != "labels"):
             raise ConfigError(f"label_map {self.label_map!r} applies to the label images of bags (bag, input "
                               "labels); synthetic drives are in this package's own ids")

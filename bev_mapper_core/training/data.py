@@ -87,6 +87,7 @@ class DriveSpec:
     frames: int
     stride: int
     rgb: tuple[int, int] | None = None
+    style: str | None = None
 
     def key(self) -> str:
         """Cache sub-directory name: readable prefix + hash of the full spec (fields left at
@@ -94,13 +95,16 @@ class DriveSpec:
         """
         d = {k: v for k, v in asdict(self).items() if v is not None}
         h = hashlib.sha1(json.dumps(d, sort_keys=True).encode()).hexdigest()[:10]
-        rgb = f"_rgb{self.rgb[1]}" if self.rgb else ""
+        rgb = f"_rgb{self.rgb[1]}_{self.style}" if self.rgb else ""
         return f"{self.rig}_{len(self.classes)}cls_f{self.frames}s{self.stride}{rgb}_v{CACHE_VERSION}_{h}"
 
 
 def drive_spec(rig: Rig, grid: BevGrid, classes: Sequence[str], frames: int, stride: int,
-               rgb: tuple[int, int] | None = None) -> DriveSpec:
-    """The :class:`DriveSpec` of a rig/grid/classes and sampling (``rgb``: RGB storage size ``(h, w)``)."""
+               rgb: tuple[int, int] | None = None, style: str | None = None) -> DriveSpec:
+    """The :class:`DriveSpec` of a rig/grid/classes and sampling (``rgb``: RGB storage size
+    ``(h, w)``; ``style``: the RGB images' appearance style, default ``SynthConfig.style``; label
+    images and GT do not depend on it, so drives without RGB do not record it).
+    """
     if frames < 1 or stride < 1:
         raise ConfigError(f"frames and stride must be >= 1, got {frames}, {stride}")
     resolve_classes(classes)
@@ -108,8 +112,14 @@ def drive_spec(rig: Rig, grid: BevGrid, classes: Sequence[str], frames: int, str
         if len({c.model.image_size for c in rig.cameras}) != 1:
             raise ConfigError(f"RGB training data needs cameras of one size; rig {rig.name!r} mixes sizes")
         rgb = (int(rgb[0]), int(rgb[1]))
+        from ..synth.config import SynthConfig
+        from ..synth.styles import check_style
+
+        style = check_style(SynthConfig.style if style is None else style)
+    else:
+        style = None
     g = (grid.x_min, grid.x_max, grid.y_min, grid.y_max, grid.resolution)
-    return DriveSpec(rig.name, tuple(rig.names), tuple(classes), g, int(frames), int(stride), rgb)
+    return DriveSpec(rig.name, tuple(rig.names), tuple(classes), g, int(frames), int(stride), rgb, style)
 
 
 def resize_rgb(images: np.ndarray, size: tuple[int, int]) -> np.ndarray:
@@ -129,7 +139,8 @@ def resize_rgb(images: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 
 
 def render_drive(rig: Rig, grid: BevGrid, classes: Sequence[str], seed: int, frames: int,
-                 stride: int = 3, rgb: tuple[int, int] | None = None) -> dict[str, np.ndarray]:
+                 stride: int = 3, rgb: tuple[int, int] | None = None,
+                 style: str | None = None) -> dict[str, np.ndarray]:
     """Render one drive: frames ``0, stride, 2*stride, ...`` of the world of ``seed``.
 
     Returns the arrays described in the module docstring. ``gt`` is built for ``classes`` by
@@ -140,7 +151,7 @@ def render_drive(rig: Rig, grid: BevGrid, classes: Sequence[str], seed: int, fra
     from ..synth.world import build_world
 
     cls = resolve_classes(classes)
-    cfg = SynthConfig(frames=(frames - 1) * stride + 1, seed=int(seed))
+    cfg = SynthConfig(frames=(frames - 1) * stride + 1, seed=int(seed), **({"style": style} if style else {}))
     renderer = DriveRenderer(build_world(cfg), rig, grid)
     renderer.lut = label_lut(cls)  # GT of the requested classes
     labels, gt, vis, gvis, rgbs = [], [], [], [], []
@@ -182,7 +193,7 @@ def load_or_render(rig: Rig, grid: BevGrid, spec: DriveSpec, seed: int,
                     return d
             except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError):
                 pass
-    d = render_drive(rig, grid, spec.classes, seed, spec.frames, spec.stride, spec.rgb)
+    d = render_drive(rig, grid, spec.classes, seed, spec.frames, spec.stride, spec.rgb, spec.style)
     if cache_dir is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         meta = path.parent / "spec.json"
@@ -256,14 +267,14 @@ class FrameSet:
 def synth_frameset(rig: Rig, grid: BevGrid, classes: Sequence[str], seeds: Sequence[int], frames: int,
                    stride: int = 3, cache_dir: str | os.PathLike | None = None,
                    input_size: tuple[int, int] | None = None, progress: bool = False,
-                   rgb: tuple[int, int] | None = None) -> FrameSet:
+                   rgb: tuple[int, int] | None = None, style: str | None = None) -> FrameSet:
     """Load (rendering missing drives) the drives ``seeds`` into a :class:`FrameSet`.
 
     ``input_size`` = (h, w): store labels resized as the model's preprocess would (see module
     docstring); ``None`` keeps full resolution. ``rgb`` = (h, w): also load the camera images
-    at that size.
+    at that size, in appearance ``style`` (default ``SynthConfig.style``).
     """
-    spec = drive_spec(rig, grid, classes, frames, stride, rgb)
+    spec = drive_spec(rig, grid, classes, frames, stride, rgb, style)
     it = seeds
     if progress:
         from tqdm import tqdm

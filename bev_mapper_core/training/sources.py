@@ -129,9 +129,9 @@ class SynthSource(DataSource):
             rgb = needs.image_size or (h, w)
         train = synth_frameset(rig, grid, cfg.class_names, train_seeds(cfg.seed, cfg.train_drives),
                                cfg.frames_per_drive, cfg.stride, cfg.cache, needs.image_size, progress=cfg.progress,
-                               rgb=rgb)
+                               rgb=rgb, style=cfg.style)
         val = synth_frameset(rig, grid, cfg.class_names, cfg.held_out_seeds, cfg.frames_per_drive, cfg.stride,
-                             cfg.cache, needs.image_size, progress=cfg.progress, rgb=rgb)
+                             cfg.cache, needs.image_size, progress=cfg.progress, rgb=rgb, style=cfg.style)
         log(f"data: {len(train)} training / {len(val)} held-out frames ({time.time() - t0:.1f} s)")
         return TrainData(train, val)
 
