@@ -57,6 +57,10 @@ class BiMapperTraining:
         visibility_only: train only the visibility head (with ``init_weights``): every other
             tensor, BatchNorm statistics included, stays as loaded, so the class outputs are
             exactly those of the initial file.
+        segmenter: a segmenter weights file: a label-input model then trains (and is
+            validated) on the label images this segmenter predicts from the frames' RGB images
+            instead of the true ones, i.e. for chained RGB input, where it must live with the
+            segmenter's errors. Not in the paper.
     """
 
     asl: bool = True
@@ -67,6 +71,7 @@ class BiMapperTraining:
     uncertainty_weight: float = BiMapperLossConfig.uncertainty_weight
     init_weights: str | None = None
     visibility_only: bool = False
+    segmenter: str | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.asl, bool):
@@ -136,6 +141,19 @@ def init_from(model: BiMapper, path: str) -> list[str]:
     return missing
 
 
+def segment_frames(path: str, rgb: np.ndarray, device, batch: int = 8) -> np.ndarray:
+    """Label images ``(M, N, H, W)`` uint8 a segmenter file predicts from RGB ``(M, N, H, W, 3)``."""
+    from ..models.segmenter_weights import load_segmenter
+
+    model = load_segmenter(path, device)
+    M, N, H, W, _ = rgb.shape
+    flat = rgb.reshape(M * N, H, W, 3)  # (M, N, H, W, 3) -> (M*N, H, W, 3)
+    out = np.empty((M * N, H, W), np.uint8)
+    for i in range(0, M * N, batch):
+        out[i:i + batch] = model.segment(torch.from_numpy(flat[i:i + batch]).to(device)).cpu().numpy()
+    return out.reshape(M, N, H, W)
+
+
 class BiMapperMethod(TrainMethod):
     """Bi-Mapper (Li et al., RA-L 2023) trained as in the paper, plus the documented deviations
     (``pos_weight``, ``ipm_skip``).
@@ -166,6 +184,8 @@ class BiMapperMethod(TrainMethod):
         CliFlag("--init-weights", "init_weights", help="fine-tune: start from this weights file"),
         CliFlag("--visibility-only", "visibility_only", action="store_true",
                 help="train only the visibility head; the class outputs stay the initial file's"),
+        CliFlag("--on-segmenter", "segmenter",
+                help="label model trained on this segmenter's labels of the RGB images (chained RGB input)"),
     )
 
     @classmethod
@@ -190,7 +210,8 @@ class BiMapperMethod(TrainMethod):
         # Full-resolution LV input and the IPM prior need the camera-size images in memory (else:
         # stored resized, exactly as preprocess would).
         full = self.cfg.model.lv_full_res or self.cfg.model.ipm_skip
-        return DataNeeds(image_size=None if full else self.model.input_size, rgb=self.cfg.model.input_kind == "rgb")
+        rgb = self.cfg.model.input_kind == "rgb" or self.cfg.loss.segmenter is not None
+        return DataNeeds(image_size=None if full else self.model.input_size, rgb=rgb)
 
     def _inputs(self, batch: dict) -> torch.Tensor:
         """The model's input of a batch: the RGB images on RGB input, else the label images."""
@@ -207,6 +228,12 @@ class BiMapperMethod(TrainMethod):
             log(f"initialised from {self.cfg.loss.init_weights}" + (f" (fresh: {missing})" if missing else ""))
         if pw is not None:
             log(f"BCE positive weights {dict(zip(self.cfg.class_names, pw))}")
+        if self.cfg.loss.segmenter is not None:
+            if self.cfg.model.input_kind != "labels":
+                raise ConfigError("--on-segmenter trains a label-input model (--input labels)")
+            for frames in (data.train, data.val):
+                frames.labels = segment_frames(self.cfg.loss.segmenter, frames.rgb, self.device)
+            log(f"labels: predicted by the segmenter {self.cfg.loss.segmenter} from the RGB images")
 
     @override
     def trainable_parameters(self):
