@@ -6,6 +6,7 @@ Training::
         [--config run.yaml] [--epochs E] [--frames-per-epoch F] [--batch B] [--lr 1e-3] [--seed S]
         [--val-seeds 900000000,900000001 | --val-drives N] [--cache DIR | --no-cache]
         [--device cpu|cuda] [--resume] [--bag PATH ... --val-bag PATH ... [--label-map PRESET|YAML]]
+        [--unlabeled-drives N [--unlabeled-style STYLE]]   (semi-supervised methods: s2g2)
         [method flags, Bi-Mapper's: --streams both|gv|lv|none --fusion sum|concat --no-asl
          --mutual async|sync|lv|gv|none --pos-weight auto|none --ipm-skip --lv-full-res ...]
 
@@ -174,6 +175,13 @@ def train_parser(method: str | None = None) -> argparse.ArgumentParser:
                         f"(default {DEFAULTS['label_map']}: this package's ids)")
     p.add_argument("--style", choices=STYLE_CHOICES,
                    help=style_help() + f" (default {DEFAULTS['style']})")
+    p.add_argument("--unlabeled-drives", dest="unlabeled_drives", type=_nonneg_int,
+                   help="semi-supervised methods (s2g2): synthetic drives used as unlabeled frames "
+                        f"(default {DEFAULTS['unlabeled_drives']})")
+    p.add_argument("--unlabeled-style", dest="unlabeled_style", choices=STYLE_CHOICES,
+                   help="appearance style of the unlabeled drives (default: --style)")
+    p.add_argument("--unlabeled", dest="unlabeled_bag", nargs="+", metavar="BAG_OR_DIR",
+                   help="rosbag2 paths of unlabeled frames (not supported yet: use --unlabeled-drives)")
     p.add_argument("--no-progress", dest="progress", action="store_false", default=argparse.SUPPRESS)
     g = p.add_argument_group(f"{cls.name} options")
     for f in cls.cli_flags:
