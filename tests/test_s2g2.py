@@ -317,8 +317,12 @@ def test_unlabeled_drive_settings():
     assert not set(cfg.unlabeled_seeds) & ({300_000} | set(cfg.held_out_seeds))
     with pytest.raises(ConfigError, match="unlabeled_style needs unlabeled_drives"):
         TrainConfig.from_dict({**TINY_RUN, "unlabeled_drives": 0})
-    with pytest.raises(ConfigError, match="not supported yet"):
+    with pytest.raises(ConfigError, match="not both"):
         TrainConfig.from_dict({**TINY_RUN, "unlabeled_bag": ["some.mcap"]})
+    bags = TrainConfig.from_dict({**{k: v for k, v in TINY_RUN.items() if not k.startswith("unlabeled")},
+                                  "unlabeled_bag": ["some.mcap"]})
+    with pytest.raises(ConfigError, match="unlabeled-bag data source"):  # the core alone cannot read bags
+        SynthSource().load(bags, RIG, GRID, DataNeeds(unlabeled=True), print)
     with pytest.raises(ConfigError, match="unlabeled_drives must be an integer"):
         TrainConfig.from_dict({**TINY_RUN, "unlabeled_drives": -1})
     no_unlabeled = TrainConfig.from_dict({k: v for k, v in TINY_RUN.items() if not k.startswith("unlabeled")})
@@ -326,7 +330,7 @@ def test_unlabeled_drive_settings():
         SynthSource().load(no_unlabeled, RIG, GRID, DataNeeds(unlabeled=True), print)
     with pytest.raises(ConfigError, match="does not train on unlabeled frames"):
         SynthSource().load(cfg, RIG, GRID, DataNeeds(), print)
-    # bev-train: the flags land on the configs; --unlabeled bags are refused for now
+    # bev-train: the flags land on the configs
     a = vars(cli.train_parser("s2g2").parse_args(
         ["--method", "s2g2", "--rig", "front1", "--unlabeled-drives", "4", "--unlabeled-style", "dusk",
          "--view-transform", "fc", "--no-inter-view-attention", "--optimizer", "adam", "--ema-decay", "0.99",
@@ -339,10 +343,34 @@ def test_unlabeled_drive_settings():
     assert TrainConfig.from_dict(json.loads(json.dumps(c.to_dict()))) == c
 
 
-def test_unlabeled_bags_are_refused_by_bev_train(tmp_path, capsys):
-    assert cli.main(["--method", "s2g2", "--rig", "front1", "--unlabeled", str(tmp_path), "--out",
-                     str(tmp_path / "run")]) == 1
-    assert "not supported yet" in capsys.readouterr().err
+@pytest.mark.slow
+def test_unlabeled_frames_from_a_bag(tmp_path):
+    """``bev-train --unlabeled BAG``: a front1 bag (half-size images, style dusk) gives unlabeled
+    frames at the model's input size (RGB or labels, no GT read), and a run trains on them."""
+    pytest.importorskip("rosbags")
+    import yaml
+
+    from bags.cli import main as bag_main
+    from bags.train_data import unlabeled_frameset
+    from bev_mapper_core.models.s2g2 import input_size
+
+    bag = tmp_path / "bag"
+    assert bag_main(["synth", str(bag), "--rig", "front1", "--frames", "3", "--scale", "0.5", "--style", "dusk"]) == 0
+    size = input_size(TINY, RIG)
+    fs = unlabeled_frameset([bag], RIG, DataNeeds(image_size=size, rgb=True))
+    assert len(fs) >= 2 and fs.rgb.shape == (len(fs), 1, *size, 3) and fs.rgb.any()
+    assert set(next(TrainData(fs, fs, fs).batches(1, 0, 0))["unlabeled"]) == {"images", "rgb"}
+    labels = unlabeled_frameset([bag], RIG, DataNeeds(image_size=size))
+    assert labels.rgb is None and labels.labels.shape == (len(labels), 1, *size) and labels.labels.any()
+    with pytest.raises(ConfigError, match="differ from the run's"):
+        unlabeled_frameset([bag], preset_rig("surround6"), DataNeeds(image_size=size))
+    run = {k: v for k, v in TINY_RUN.items() if not k.startswith("unlabeled")}
+    cfg_file = tmp_path / "run.yaml"
+    cfg_file.write_text(yaml.safe_dump({**run, "epochs": 1, "cache": str(tmp_path / "cache")}))
+    out = tmp_path / "run"
+    assert cli.main(["--config", str(cfg_file), "--unlabeled", str(bag), "--out", str(out)]) == 0
+    assert (out / "last.safetensors").is_file()
+    assert json.loads((out / "last.json").read_text())["config"]["unlabeled_bag"] == [str(bag)]
 
 
 @pytest.mark.slow

@@ -119,8 +119,9 @@ class TrainConfig:
         unlabeled_style: appearance style of the unlabeled drives' RGB images (None = ``style``),
             e.g. ``dusk``, the style held out of ``mixed``: unlabeled frames of a look the labeled
             ones never show.
-        unlabeled_bag: rosbag2 paths of unlabeled frames (``bev-train --unlabeled``): not
-            implemented yet (refused with a ConfigError); use ``unlabeled_drives``.
+        unlabeled_bag: rosbag2 paths of unlabeled frames (``bev-train --unlabeled``; no GT
+            needed, the cameras of ``rig``): the ``bev-train`` command reads them with
+            ``bags.train_data.UnlabeledBagSource``; instead of ``unlabeled_drives``.
         label_map: what the bags' label images hold (``native``, a preset of another segmenter
             or a YAML file, see :mod:`~bev_mapper_core.label_maps`; default: MapperConfig's);
             bags only: synthetic drives are in this package's own ids.
@@ -211,7 +212,8 @@ class TrainConfig:
         label_map(self.label_map)  # ConfigError: no preset, or a bad YAML file
         check_style(self.style)
         self._check_unlabeled()
-        if self.label_map != MapperConfig.label_map and (self.bag is None or self.model.input_kind != "labels"):
+        if self.label_map != MapperConfig.label_map and ((self.bag is None and self.unlabeled_bag is None)
+                                                         or self.model.input_kind != "labels"):
             raise ConfigError(f"label_map {self.label_map!r} applies to the label images of bags (bag, input "
                               "labels); synthetic drives are in this package's own ids")
         # The splits must be disjoint (checked here so that a bad config fails before any work).
@@ -229,9 +231,9 @@ class TrainConfig:
             check_style(self.unlabeled_style)
             if v == 0:
                 raise ConfigError("unlabeled_style needs unlabeled_drives > 0")
-        if self.unlabeled_bag is not None:
-            raise ConfigError("unlabeled bags (unlabeled_bag, bev-train --unlabeled) are not supported yet "
-                              "(issue #13); use synthetic unlabeled drives (unlabeled_drives, --unlabeled-drives N)")
+        if self.unlabeled_bag is not None and (v or self.unlabeled_style is not None):
+            raise ConfigError("unlabeled frames come from bags (unlabeled_bag) or from synthetic drives "
+                              "(unlabeled_drives, unlabeled_style), not both")
         if v and self.bag is not None:
             raise ConfigError("unlabeled_drives are synthetic drives of the preset rig; they do not mix with "
                               "training bags (bag)")

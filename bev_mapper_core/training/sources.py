@@ -147,9 +147,11 @@ class SynthSource(DataSource):
     def load(self, cfg: "TrainConfig", rig: Rig, grid: BevGrid, needs: DataNeeds,
              log: Callable[[str], None]) -> TrainData:
         self.check(needs)
+        if needs.unlabeled and cfg.unlabeled_bag:
+            raise ConfigError("unlabeled bags need the unlabeled-bag data source (the bev-train command passes it)")
         if needs.unlabeled and not cfg.unlabeled_drives:
             raise ConfigError(f"method {cfg.method!r} also trains on unlabeled frames: set unlabeled_drives "
-                              "(bev-train --unlabeled-drives N)")
+                              "(bev-train --unlabeled-drives N) or give unlabeled bags (--unlabeled BAG ...)")
         if cfg.unlabeled_drives and not needs.unlabeled:
             raise ConfigError(f"method {cfg.method!r} does not train on unlabeled frames; unlabeled_drives must be 0")
         t0 = time.time()
