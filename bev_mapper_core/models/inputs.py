@@ -52,7 +52,7 @@ def preprocess_images(images: torch.Tensor, input_kind: str, size: tuple[int, in
     if (H, W) != (h, w):
         x = F.interpolate(x, size=(h, w), mode="bilinear", align_corners=False, antialias=True)
     x = x.view(B, N, 3, h, w)  # (B*N, 3, h, w) -> (B, N, 3, h, w)
-    return (x - rgb_mean.view(1, 1, 3, 1, 1)) / rgb_std.view(1, 1, 3, 1, 1)
+    return (x - rgb_mean.view(1, 1, 3, 1, 1)) / rgb_std.view(1, 1, 3, 1, 1)  # (3,) -> (1, 1, 3, 1, 1)
 
 
 __all__ = ["preprocess_images"]
