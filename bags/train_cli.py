@@ -6,6 +6,7 @@ Training::
         [--config run.yaml] [--epochs E] [--frames-per-epoch F] [--batch B] [--lr 1e-3] [--seed S]
         [--val-seeds 900000000,900000001 | --val-drives N] [--cache DIR | --no-cache]
         [--device cpu|cuda] [--resume] [--bag PATH ... --val-bag PATH ... [--label-map PRESET|YAML]]
+        [--unlabeled-drives N [--unlabeled-style STYLE] | --unlabeled BAG ...]   (semi-supervised: s2g2)
         [method flags, Bi-Mapper's: --streams both|gv|lv|none --fusion sum|concat --no-asl
          --mutual async|sync|lv|gv|none --pos-weight auto|none --ipm-skip --lv-full-res ...]
 
@@ -174,6 +175,14 @@ def train_parser(method: str | None = None) -> argparse.ArgumentParser:
                         f"(default {DEFAULTS['label_map']}: this package's ids)")
     p.add_argument("--style", choices=STYLE_CHOICES,
                    help=style_help() + f" (default {DEFAULTS['style']})")
+    p.add_argument("--unlabeled-drives", dest="unlabeled_drives", type=_nonneg_int,
+                   help="semi-supervised methods (s2g2): synthetic drives used as unlabeled frames "
+                        f"(default {DEFAULTS['unlabeled_drives']})")
+    p.add_argument("--unlabeled-style", dest="unlabeled_style", choices=STYLE_CHOICES,
+                   help="appearance style of the unlabeled drives (default: --style)")
+    p.add_argument("--unlabeled", dest="unlabeled_bag", nargs="+", metavar="BAG",
+                   help="semi-supervised methods: rosbag2 paths of unlabeled frames (the rig's cameras; no GT "
+                        "needed), instead of --unlabeled-drives")
     p.add_argument("--no-progress", dest="progress", action="store_false", default=argparse.SUPPRESS)
     g = p.add_argument_group(f"{cls.name} options")
     for f in cls.cli_flags:
@@ -286,6 +295,12 @@ def run_train(argv: list[str]) -> int:
         from .train_data import BagSource  # rosbags only when training on bags
 
         source = BagSource()
+    if cfg.unlabeled_bag:
+        from bev_mapper_core.training.sources import SynthSource
+
+        from .train_data import UnlabeledBagSource
+
+        source = UnlabeledBagSource(source or SynthSource())
     doc = train(cfg, log=lambda m: print(m, flush=True), data=source)
     print(json.dumps({"out": cfg.out, "epoch": doc["epoch"] + 1, "step": doc["step"],
                       "best_val_miou": doc["best_val_miou"], "train_seconds": round(doc["train_seconds"], 1)}))

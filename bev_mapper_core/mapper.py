@@ -223,6 +223,7 @@ _REGISTRY: dict[str, str] = {
     "ipm": "bev_mapper_core.ipm:IpmMapper",
     "bimapper": "bev_mapper_core.models.bimapper_mapper:BiMapperMapper",
     "segipm": "bev_mapper_core.models.segipm_mapper:SegIpmMapper",
+    "s2g2": "bev_mapper_core.models.s2g2_mapper:S2G2Mapper",
 }
 
 

@@ -199,7 +199,7 @@ def test_bad_params_file_is_one_error_line(tmp_path, kind):
 
 @pytest.mark.parametrize("args, choices", [
     (["-p", "rig:=surround7"], "surround6, cam2bev4, front1"),
-    (["-p", "rig:=front1", "-p", "method:=ipn"], "['bimapper', 'ipm', 'segipm']"),
+    (["-p", "rig:=front1", "-p", "method:=ipn"], "['bimapper', 'ipm', 's2g2', 'segipm']"),
     (["-p", "rig:=front1", "-p", "input_kind:=depth"], "('labels', 'rgb')"),
     (["-p", "rig:=front1", "-p", "method:=ipm", "-p", "classes:=[roads]"], "'drivable', 'lane_divider'"),
     (["-p", "rig:=front1", "-p", "classes:=[road]"], "not among the weights' classes ['drivable'"),

@@ -348,9 +348,10 @@ def test_data_sources_refuse_needs_they_cannot_honour(tiny_data):
     for src in (SynthSource(), InMemorySource(tr, va)):
         with pytest.raises(ConfigError, match=r"\['poses', 'sequences'\]"):
             src.check(DataNeeds(sequence_length=2, poses=True))
-        with pytest.raises(ConfigError, match="unlabeled"):
-            src.check(DataNeeds(unlabeled=True))
         src.check(DataNeeds(image_size=(8, 16)))  # labeled single frames: fine
+    with pytest.raises(ConfigError, match="unlabeled"):  # no unlabeled frames given
+        InMemorySource(tr, va).check(DataNeeds(unlabeled=True))
+    SynthSource().check(DataNeeds(unlabeled=True))  # from unlabeled_drives (tests/test_s2g2.py)
     with pytest.raises(ConfigError, match="bag data source"):
         SynthSource().rig_grid(TrainConfig(bag=("some.bag",)))
 
@@ -363,7 +364,8 @@ def test_cli_choices_and_defaults_come_from_the_owning_constants():
     p = cli.train_parser()
     assert _choices(p) == {"--method": list(train_methods()), "--rig": sorted(PRESETS), "--input": list(INPUT_KINDS),
                            "--streams": list(STREAMS), "--fusion": list(FUSIONS), "--mutual": list(MUTUAL_MODES),
-                           "--pos-weight": list(POS_WEIGHTS), "--style": STYLE_CHOICES}
+                           "--pos-weight": list(POS_WEIGHTS), "--style": STYLE_CHOICES,
+                           "--unlabeled-style": STYLE_CHOICES}
     assert TrainConfig().style == SynthConfig.style
     assert vars(p.parse_args([])) == {}  # no flag has a default of its own: the dataclasses have them
     assert _choices(cli.eval_parser())["--rig"] == sorted(PRESETS)

@@ -34,6 +34,7 @@ from .config import FUSIONS, RGB_MEAN, RGB_STD, STREAMS, BiMapperConfig
 from .efficientnet import downsampled_size
 from .geometry import BiMapperGeometry
 from .gv import CamEncoder, GVTransform, conv_bn_relu
+from .inputs import preprocess_images
 from .lv import LVStream
 
 #: ``ipm_skip`` initialisation: logit ``8 p - 4`` for an averaged IPM class indicator ``p``.
@@ -236,27 +237,8 @@ class BiMapper(nn.Module):
                 in [0, 255], resized bilinearly (antialiased), scaled to [0, 1], normalised.
             resize: False keeps the images' own size (the LV stream's full-resolution input).
         """
-        h, w = self.input_size if resize else tuple(images.shape[2:4])
-        dev = self.rgb_mean.device
-        if self.config.input_kind == "labels":
-            if images.dim() != 4:
-                raise ValueError(f"label images must be (B, N, H, W), got {tuple(images.shape)}")
-            B, N, H, W = images.shape
-            ids = images.to(dev)
-            if (H, W) != (h, w):
-                ids = F.interpolate(ids.reshape(B * N, 1, H, W).float(), size=(h, w), mode="nearest-exact")  # (B*N, 1, h, w)
-                ids = ids.view(B, N, h, w)  # (B*N, 1, h, w) -> (B, N, h, w)
-            ids = ids.long()
-            ids = torch.where((ids >= 0) & (ids < NUM_LABELS), ids, torch.zeros_like(ids))
-            return F.one_hot(ids, NUM_LABELS).permute(0, 1, 4, 2, 3).float()  # (B, N, h, w, L) -> (B, N, L, h, w)
-        if images.dim() != 5 or images.shape[-1] != 3:
-            raise ValueError(f"RGB images must be (B, N, H, W, 3), got {tuple(images.shape)}")
-        B, N, H, W, _ = images.shape
-        x = images.to(dev).float().permute(0, 1, 4, 2, 3).reshape(B * N, 3, H, W) / 255.0  # -> (B*N, 3, H, W)
-        if (H, W) != (h, w):
-            x = F.interpolate(x, size=(h, w), mode="bilinear", align_corners=False, antialias=True)
-        x = x.view(B, N, 3, h, w)  # (B*N, 3, h, w) -> (B, N, 3, h, w)
-        return (x - self.rgb_mean) / self.rgb_std
+        size = self.input_size if resize else tuple(images.shape[2:4])
+        return preprocess_images(images, self.config.input_kind, size, self.rgb_mean, self.rgb_std)
 
     # ---------------------------------------------------------------- forward
     def forward(self, images: torch.Tensor, cam_mask: torch.Tensor | None = None) -> dict[str, torch.Tensor]:

@@ -111,6 +111,17 @@ class TrainConfig:
         style: appearance style of the synthetic drives' RGB images (a
             :mod:`~bev_mapper_core.synth.styles` name; default ``mixed``: one training style per
             drive, never the held-out one); label images do not depend on it.
+        unlabeled_drives: synthetic drives rendered as *unlabeled* frames for semi-supervised
+            methods (S2G2): their ground truth is never read. Seeds follow the training drives'
+            (``train_seeds(seed, train_drives + unlabeled_drives)[train_drives:]``: other worlds,
+            never held-out ones). Each training batch then holds ``batch`` labeled and ``batch``
+            unlabeled frames (the paper: 2 + 2). 0 = none (methods that need them refuse).
+        unlabeled_style: appearance style of the unlabeled drives' RGB images (None = ``style``),
+            e.g. ``dusk``, the style held out of ``mixed``: unlabeled frames of a look the labeled
+            ones never show.
+        unlabeled_bag: rosbag2 paths of unlabeled frames (``bev-train --unlabeled``; no GT
+            needed, the cameras of ``rig``): the ``bev-train`` command reads them with
+            ``bags.train_data.UnlabeledBagSource``; instead of ``unlabeled_drives``.
         label_map: what the bags' label images hold (``native``, a preset of another segmenter
             or a YAML file, see :mod:`~bev_mapper_core.label_maps`; default: MapperConfig's);
             bags only: synthetic drives are in this package's own ids.
@@ -148,13 +159,16 @@ class TrainConfig:
     val_bag: tuple[str, ...] | None = None
     label_map: str = MapperConfig.label_map
     style: str = SynthConfig.style
+    unlabeled_drives: int = 0
+    unlabeled_style: str | None = None
+    unlabeled_bag: tuple[str, ...] | None = None
     progress: bool = True
     grid: BevGrid = field(default_factory=BevGrid)
     model: Any = None
     loss: Any = None
 
     def __post_init__(self) -> None:
-        for name in ("val_seeds", "bag", "val_bag"):
+        for name in ("val_seeds", "bag", "val_bag", "unlabeled_bag"):
             v = getattr(self, name)
             if v is not None:
                 object.__setattr__(self, name, tuple(v) if not isinstance(v, str) else (v,))
@@ -197,20 +211,47 @@ class TrainConfig:
             raise ConfigError("val_bag needs bag")
         label_map(self.label_map)  # ConfigError: no preset, or a bad YAML file
         check_style(self.style)
-        if self.label_map != MapperConfig.label_map and (self.bag is None or self.model.input_kind != "labels"):
+        self._check_unlabeled()
+        if self.label_map != MapperConfig.label_map and ((self.bag is None and self.unlabeled_bag is None)
+                                                         or self.model.input_kind != "labels"):
             raise ConfigError(f"label_map {self.label_map!r} applies to the label images of bags (bag, input "
                               "labels); synthetic drives are in this package's own ids")
         # The splits must be disjoint (checked here so that a bad config fails before any work).
         from .data import check_disjoint, train_seeds
 
         if self.bag is None:
-            check_disjoint(train_seeds(self.seed, self.train_drives), self.held_out_seeds)
+            check_disjoint(train_seeds(self.seed, self.train_drives + self.unlabeled_drives), self.held_out_seeds)
+
+    def _check_unlabeled(self) -> None:
+        """``unlabeled_drives`` / ``unlabeled_style`` / ``unlabeled_bag`` (ConfigError)."""
+        v = self.unlabeled_drives
+        if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+            raise ConfigError(f"unlabeled_drives must be an integer >= 0, got {v!r}")
+        if self.unlabeled_style is not None:
+            check_style(self.unlabeled_style)
+            if v == 0:
+                raise ConfigError("unlabeled_style needs unlabeled_drives > 0")
+        if self.unlabeled_bag is not None and (v or self.unlabeled_style is not None):
+            raise ConfigError("unlabeled frames come from bags (unlabeled_bag) or from synthetic drives "
+                              "(unlabeled_drives, unlabeled_style), not both")
+        if v and self.bag is not None:
+            raise ConfigError("unlabeled_drives are synthetic drives of the preset rig; they do not mix with "
+                              "training bags (bag)")
 
     # ------------------------------------------------------------------ derived
     @property
     def class_names(self) -> tuple[str, ...]:
         """The BEV classes trained (the model config's)."""
         return tuple(self.model.classes)
+
+    @property
+    def unlabeled_seeds(self) -> tuple[int, ...]:
+        """Seeds of the unlabeled drives (after the training drives' seeds; empty if none)."""
+        from .data import train_seeds
+
+        if not self.unlabeled_drives:
+            return ()
+        return train_seeds(self.seed, self.train_drives + self.unlabeled_drives)[self.train_drives:]
 
     @property
     def held_out_seeds(self) -> tuple[int, ...]:

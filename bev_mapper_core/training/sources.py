@@ -1,7 +1,7 @@
 """Where training frames come from: a data source the entry point hands to :func:`~.trainer.train`.
 
-A method declares what it trains on as :class:`DataNeeds` (image size; later unlabeled frames,
-frame sequences, ego poses); the trainer asks the run's :class:`DataSource` for a
+A method declares what it trains on as :class:`DataNeeds` (image size, RGB, unlabeled frames;
+later frame sequences, ego poses); the trainer asks the run's :class:`DataSource` for a
 :class:`TrainData` that honours them. A source that cannot provide a need says so with a
 :class:`~bev_mapper_core.errors.ConfigError` before any training starts.
 
@@ -19,6 +19,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, ClassVar
 
+import numpy as np
 from typing_extensions import override
 
 from ..errors import ConfigError
@@ -62,24 +63,46 @@ class DataNeeds:
                                          ("poses", self.poses), ("rgb", self.rgb)) if on)
 
 
+#: Keys of an unlabeled batch: the inputs only (a FrameSet batch without ``target`` / ``mask``).
+UNLABELED_KEYS = ("images", "rgb")
+
+
 @dataclass
 class TrainData:
-    """The frames of one run: ``train`` (labeled), ``val`` (held out, scored every epoch)."""
+    """The frames of one run: ``train`` (labeled), ``val`` (held out, scored every epoch) and,
+    for semi-supervised methods, ``unlabeled`` (frames whose ground truth is never read).
+    """
 
     train: FrameSet
     val: FrameSet
+    unlabeled: FrameSet | None = None
 
     def steps(self, batch: int, limit: int | None = None) -> int:
-        """Batches in one epoch of :meth:`batches`."""
+        """Batches in one epoch of :meth:`batches` (one per ``batch`` labeled frames)."""
         return math.ceil(min(limit or len(self.train), len(self.train)) / batch)
 
     def batches(self, batch: int, seed: int, epoch: int, limit: int | None = None) -> Iterator[dict]:
         """One epoch of training batches, order a function of ``(seed, epoch)`` (see FrameSet.batches).
 
-        Labeled single frames today; a source that honours ``unlabeled`` / ``sequences`` adds its
-        frames here (e.g. ``{"labeled": ..., "unlabeled": ...}``), not in the training loop.
+        Without unlabeled frames: the labeled FrameSet's batches. With them: ``{"labeled":
+        <labeled batch>, "unlabeled": <batch of as many unlabeled frames>}`` (S2G2: 2 + 2), the
+        unlabeled frames in their own seeded order, cycled when there are fewer of them; an
+        unlabeled batch holds only the inputs (:data:`UNLABELED_KEYS`).
         """
-        return self.train.batches(batch, seed, epoch, limit=limit)
+        if self.unlabeled is None:
+            yield from self.train.batches(batch, seed, epoch, limit=limit)
+            return
+        n = len(self.unlabeled)
+        if n == 0:
+            raise ConfigError("the unlabeled frame set is empty")
+        order = np.random.default_rng([seed, epoch, 29]).permutation(n)
+        pos = 0
+        for lab in self.train.batches(batch, seed, epoch, limit=limit):
+            take = len(lab["target"])
+            idx = order[np.arange(pos, pos + take) % n]
+            pos += take
+            unl = self.unlabeled.batch(idx)
+            yield {"labeled": lab, "unlabeled": {k: unl[k] for k in UNLABELED_KEYS if k in unl}}
 
 
 class DataSource(ABC):
@@ -107,10 +130,12 @@ class DataSource(ABC):
 
 
 class SynthSource(DataSource):
-    """Seeded synthetic drives of the preset rig (``cfg.train_drives`` / held-out seeds), cached."""
+    """Seeded synthetic drives of the preset rig (``cfg.train_drives`` / held-out seeds), cached;
+    unlabeled frames from ``cfg.unlabeled_drives`` more drives (style ``cfg.unlabeled_style``).
+    """
 
     name = "synthetic"
-    supports = frozenset({"rgb"})
+    supports = frozenset({"rgb", "unlabeled"})
 
     @override
     def rig_grid(self, cfg: "TrainConfig") -> tuple[Rig, BevGrid]:
@@ -122,6 +147,13 @@ class SynthSource(DataSource):
     def load(self, cfg: "TrainConfig", rig: Rig, grid: BevGrid, needs: DataNeeds,
              log: Callable[[str], None]) -> TrainData:
         self.check(needs)
+        if needs.unlabeled and cfg.unlabeled_bag:
+            raise ConfigError("unlabeled bags need the unlabeled-bag data source (the bev-train command passes it)")
+        if needs.unlabeled and not cfg.unlabeled_drives:
+            raise ConfigError(f"method {cfg.method!r} also trains on unlabeled frames: set unlabeled_drives "
+                              "(bev-train --unlabeled-drives N) or give unlabeled bags (--unlabeled BAG ...)")
+        if cfg.unlabeled_drives and not needs.unlabeled:
+            raise ConfigError(f"method {cfg.method!r} does not train on unlabeled frames; unlabeled_drives must be 0")
         t0 = time.time()
         rgb = None
         if needs.rgb:
@@ -132,17 +164,30 @@ class SynthSource(DataSource):
                                rgb=rgb, style=cfg.style)
         val = synth_frameset(rig, grid, cfg.class_names, cfg.held_out_seeds, cfg.frames_per_drive, cfg.stride,
                              cfg.cache, needs.image_size, progress=cfg.progress, rgb=rgb, style=cfg.style)
-        log(f"data: {len(train)} training / {len(val)} held-out frames ({time.time() - t0:.1f} s)")
-        return TrainData(train, val)
+        unlabeled = None
+        if needs.unlabeled:
+            unlabeled = synth_frameset(rig, grid, cfg.class_names, cfg.unlabeled_seeds, cfg.frames_per_drive,
+                                       cfg.stride, cfg.cache, needs.image_size, progress=cfg.progress, rgb=rgb,
+                                       style=cfg.unlabeled_style or cfg.style)
+        extra = "" if unlabeled is None else f" / {len(unlabeled)} unlabeled"
+        log(f"data: {len(train)} training{extra} / {len(val)} held-out frames ({time.time() - t0:.1f} s)")
+        return TrainData(train, val, unlabeled)
 
 
 class InMemorySource(DataSource):
-    """FrameSets already in memory (stored at the size the method needs), for the preset rig."""
+    """FrameSets already in memory (stored at the size the method needs), for the preset rig;
+    ``unlabeled`` frames (their GT is never read) when given; RGB when every set holds it.
+    """
 
     name = "in-memory"
 
-    def __init__(self, train: FrameSet, val: FrameSet) -> None:
-        self.data = TrainData(train, val)
+    def __init__(self, train: FrameSet, val: FrameSet, unlabeled: FrameSet | None = None) -> None:
+        self.data = TrainData(train, val, unlabeled)
+        sets = [s for s in (train, val, unlabeled) if s is not None]
+        extras = {"unlabeled"} if unlabeled is not None else set()
+        if all(s.rgb is not None for s in sets):
+            extras.add("rgb")
+        self.supports = frozenset(type(self).supports | extras)
 
     @override
     def rig_grid(self, cfg: "TrainConfig") -> tuple[Rig, BevGrid]:
@@ -155,4 +200,4 @@ class InMemorySource(DataSource):
         return self.data
 
 
-__all__ = ["DataNeeds", "DataSource", "InMemorySource", "SynthSource", "TrainData"]
+__all__ = ["UNLABELED_KEYS", "DataNeeds", "DataSource", "InMemorySource", "SynthSource", "TrainData"]

@@ -141,12 +141,12 @@ def _resume(cfg: TrainConfig, method: TrainMethod, opt: torch.optim.Optimizer, o
 
 
 def train(cfg: TrainConfig, log: Callable[[str], None] = print,
-          data: DataSource | tuple[FrameSet, FrameSet] | None = None) -> dict:
+          data: DataSource | tuple[FrameSet, ...] | None = None) -> dict:
     """Run (or resume) training as configured; returns the final ``last.json`` document.
 
     ``data``: where the frames come from: a :class:`~.sources.DataSource` (the ``bev-train``
-    command passes the bag source for ``--bag``), ``(train, val)`` FrameSets already at the size
-    the method needs (tests), or None for the synthetic drives of ``cfg``.
+    command passes the bag source for ``--bag``), ``(train, val[, unlabeled])`` FrameSets already
+    at the size the method needs (tests), or None for the synthetic drives of ``cfg``.
     """
     torch.set_num_threads(cfg.threads)
     if cfg.device.startswith("cuda") and not torch.cuda.is_available():

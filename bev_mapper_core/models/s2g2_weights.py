@@ -1,0 +1,241 @@
+"""S2G2 weights: one safetensors file, its configuration in the metadata (never pickle).
+
+The header's ``__metadata__`` holds ``bev_mapper``, a JSON document::
+
+    {"format": "bev_mapper.s2g2", "version": 1, "method": "s2g2",
+     "rig": "front1", "cameras": ["front"], "input_kind": "rgb", "classes": [...],
+     "grid": {"x_min": ..., "x_max": ..., "y_min": ..., "y_max": ..., "resolution": ...},
+     "input_size": [h, w], "inference_branch": "active", "config": {S2G2Config fields}}
+
+Both branches are stored (the passive one is the EMA of the active one);
+``inference_branch`` says which one maps. Reading checks the document (schema, bounds, the
+stored architecture) before anything is allocated (:func:`read_s2g2_metadata`), and
+:func:`load_s2g2` checks every tensor's name, shape, dtype and finiteness against the stored
+architecture before the model is used; checked tensors are cached per file version, as
+Bi-Mapper's :class:`~.weights.WeightsFile` does. The frustum is not stored: it is rebuilt from
+the rig the weights are used with.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import threading
+from pathlib import Path
+
+import torch
+from safetensors import safe_open
+from safetensors.torch import save_file
+
+from ..classes import resolve_classes
+from ..errors import BevMapperError, ConfigError
+from ..grid import MAX_GRID_CELLS, BevGrid
+from ..rig import Rig
+from .config import MAX_WIDTH_PX
+from .s2g2 import BRANCHES, S2G2, S2G2Config, check_monocular
+from .weights import _DTYPES, META_KEY, WeightsError, _check_tensors, standin_rig
+
+FORMAT = "bev_mapper.s2g2"
+VERSION = 1
+_KEYS = ("method", "rig", "cameras", "input_kind", "classes", "grid", "input_size", "inference_branch", "config")
+
+#: file version -> checked tensors (name -> tensor)
+_STATE: dict[tuple, dict[str, torch.Tensor]] = {}
+_LOCK = threading.Lock()
+
+
+def s2g2_metadata(model: S2G2, inference_branch: str = "active") -> dict:
+    """The metadata document of ``model`` (see the module docstring)."""
+    if inference_branch not in BRANCHES:
+        raise ConfigError(f"inference_branch must be one of {BRANCHES}, got {inference_branch!r}")
+    cfg = model.config
+    return {"format": FORMAT, "version": VERSION, "method": "s2g2", "rig": model.rig.name,
+            "cameras": list(model.rig.names), "input_kind": cfg.input_kind, "classes": list(cfg.classes),
+            "grid": model.grid.to_dict(), "input_size": list(model.input_size),
+            "inference_branch": inference_branch, "config": cfg.to_dict()}
+
+
+def save_s2g2(model: S2G2, path: str | os.PathLike, inference_branch: str = "active") -> Path:
+    """Write ``model``'s parameters and buffers (both branches) and its metadata (atomically)."""
+    path = Path(path)
+    meta = s2g2_metadata(model, inference_branch)
+    tensors = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
+    tmp = path.with_name(path.name + ".tmp")
+    save_file(tensors, str(tmp), metadata={META_KEY: json.dumps(meta, sort_keys=True)})
+    os.replace(tmp, path)
+    return path
+
+
+def _check_document(meta: dict, path: Path) -> None:
+    """Schema and bounds of a metadata document (raises WeightsError)."""
+    def bad(what: str) -> WeightsError:
+        return WeightsError(f"{path}: metadata {what}")
+
+    missing = sorted(set(_KEYS) - set(meta))
+    if missing:
+        raise bad(f"lacks {missing}")
+    if meta["method"] != "s2g2":
+        raise bad(f"is for method {meta['method']!r}, not 's2g2'")
+    cams = meta["cameras"]
+    if not isinstance(meta["rig"], str) or not isinstance(cams, list) or len(cams) != 1 \
+            or not isinstance(cams[0], str) or not cams[0]:
+        raise bad(f"must name a rig and exactly one camera, got rig {meta['rig']!r}, cameras {cams!r}")
+    if meta["inference_branch"] not in BRANCHES:
+        raise bad(f"'inference_branch' must be one of {BRANCHES}, got {meta['inference_branch']!r}")
+    classes = meta["classes"]
+    if not isinstance(classes, list) or not classes or any(not isinstance(c, str) for c in classes):
+        raise bad(f"'classes' must be a list of class names, got {classes!r}")
+    size = meta["input_size"]
+    if (not isinstance(size, list) or len(size) != 2
+            or any(isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= MAX_WIDTH_PX for v in size)):
+        raise bad(f"'input_size' must be [height, width] in 1..{MAX_WIDTH_PX}, got {size!r}")
+    try:
+        resolve_classes(tuple(classes))
+        cfg, grid = S2G2Config.from_dict(meta["config"]), BevGrid.from_dict(meta["grid"])
+    except (BevMapperError, TypeError, KeyError, ValueError, OverflowError) as e:
+        raise bad(f"holds an invalid class list, config or grid ({e})") from None
+    if grid.width * grid.height > MAX_GRID_CELLS:
+        raise bad(f"grid has {grid.width} x {grid.height} cells, more than {MAX_GRID_CELLS}")
+    if cfg.input_kind != meta["input_kind"] or list(cfg.classes) != list(classes):
+        raise bad("'input_kind' / 'classes' differ from the stored architecture's")
+    if size[1] != cfg.input_width:
+        raise bad(f"'input_size' width {size[1]} differs from the architecture's input_width {cfg.input_width}")
+
+
+def read_s2g2_metadata(path: str | os.PathLike) -> dict:
+    """The checked metadata document of an S2G2 weights file (header only).
+
+    Raises:
+        WeightsError: missing file, not safetensors (e.g. a pickle), truncated or corrupt
+            header, no or malformed S2G2 metadata.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise WeightsError(f"S2G2 weights {path} do not exist")
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            raw = (f.metadata() or {}).get(META_KEY)
+    except Exception as e:  # SafetensorError is not exported as a stable type
+        raise WeightsError(f"{path} is not a valid safetensors file ({e})") from None
+    if raw is None:
+        raise WeightsError(f"{path} has no '{META_KEY}' metadata: not a bev_mapper weights file")
+    try:
+        meta = json.loads(raw)
+    except json.JSONDecodeError as e:
+        raise WeightsError(f"{path}: metadata is not valid JSON ({e})") from None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        got = meta.get("format") if isinstance(meta, dict) else None
+        raise WeightsError(f"{path}: not S2G2 weights (format {got!r}, expected {FORMAT!r})")
+    if meta.get("version") != VERSION:
+        raise WeightsError(f"{path}: metadata version {meta.get('version')!r}, this code reads {VERSION}")
+    _check_document(meta, path)
+    return meta
+
+
+def _file_key(path: Path) -> tuple:
+    try:
+        st = path.stat()
+    except OSError as e:
+        raise WeightsError(f"S2G2 weights {path}: {e.strerror or e}") from None
+    return (str(path.resolve()), st.st_ino, st.st_size, st.st_mtime_ns)
+
+
+def _read_tensors(path: Path, expected: dict) -> dict[str, torch.Tensor]:
+    """Every tensor of ``path`` after its header matched ``expected`` (nothing is read for a
+    file that does not fit), each checked for non-finite values; cached per file version.
+    """
+    key = _file_key(path)
+    with _LOCK:
+        state = _STATE.get(key)
+    if state is not None:
+        _check_tensors(path, {k: (tuple(t.shape), t.dtype) for k, t in state.items()}, expected)
+        return state
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            header = {k: (tuple(f.get_slice(k).get_shape()), _DTYPES.get(f.get_slice(k).get_dtype())) for k in f.keys()}
+            _check_tensors(path, header, expected)
+            state = {}
+            for k in expected:
+                t = f.get_tensor(k)
+                if t.is_floating_point() and not torch.isfinite(t).all():
+                    raise WeightsError(f"{path}: tensor {k!r} has non-finite values")
+                state[k] = t
+    except WeightsError:
+        raise
+    except Exception as e:
+        raise WeightsError(f"{path}: cannot read tensors ({e})") from None
+    with _LOCK:
+        _STATE.clear()  # one file at a time is plenty (a node loads one)
+        _STATE[key] = state
+    return state
+
+
+def validate_s2g2(path: str | os.PathLike) -> dict:
+    """The full start-up check: the document, then the stored architecture built for a stand-in
+    camera of the stored input size (tensor shapes do not depend on calibration) and every
+    tensor checked against it. Returns the metadata document.
+
+    Raises:
+        WeightsError: the first problem found.
+    """
+    path = Path(path)
+    meta = read_s2g2_metadata(path)
+    h, w = meta["input_size"]
+    try:
+        model = S2G2(S2G2Config.from_dict(meta["config"]), standin_rig(meta["rig"], tuple(meta["cameras"]), (w, h)),
+                     BevGrid.from_dict(meta["grid"]))
+    except (BevMapperError, ValueError, RuntimeError) as e:
+        raise WeightsError(f"{path}: cannot build the stored S2G2 model ({e})") from None
+    load_state_s2g2(model, path, meta)
+    return meta
+
+
+def load_state_s2g2(model: S2G2, path: str | os.PathLike, meta: dict | None = None) -> None:
+    """Load an S2G2 file into ``model`` after checking that it fits it exactly.
+
+    Raises:
+        WeightsError: another architecture, camera, input kind, classes, grid or input size;
+            a missing, extra, misshapen or non-finite tensor; a corrupt file.
+    """
+    path = Path(path)
+    meta = read_s2g2_metadata(path) if meta is None else meta
+    if S2G2Config.from_dict(meta["config"]) != model.config:
+        stored = meta["config"]
+        diff = [k for k, v in model.config.to_dict().items() if stored.get(k) != v]
+        raise WeightsError(f"{path}: architecture differs from the model's in {diff}")
+    if list(meta["cameras"]) != list(model.rig.names):
+        raise WeightsError(f"{path}: weights were trained for camera {meta['cameras']}, the rig has {list(model.rig.names)}")
+    if not BevGrid.from_dict(meta["grid"]).isclose(model.grid):
+        raise WeightsError(f"{path}: weights were trained for grid {BevGrid.from_dict(meta['grid']).describe()}, "
+                           f"the model maps {model.grid.describe()}")
+    if list(meta["input_size"]) != list(model.input_size):
+        raise WeightsError(f"{path}: weights expect input size {meta['input_size']}, the model has {list(model.input_size)}")
+    model.load_state_dict(_read_tensors(path, model.state_dict()), strict=True)
+
+
+def load_s2g2(path: str | os.PathLike, rig: Rig, grid: BevGrid | None = None,
+              device: str | torch.device = "cpu") -> tuple[S2G2, dict]:
+    """Build the model an S2G2 file describes for ``rig`` (one camera, the stored one; its
+    calibration may differ as long as the input size stays) and ``grid`` (default: the stored
+    grid; another one is refused), load it; returns ``(model in eval mode, metadata)``.
+
+    Raises:
+        ConfigError: a rig with more than one camera.
+        WeightsError: see :func:`load_state_s2g2`.
+    """
+    check_monocular(rig)
+    path = Path(path)
+    meta = read_s2g2_metadata(path)
+    cfg, stored_grid = S2G2Config.from_dict(meta["config"]), BevGrid.from_dict(meta["grid"])
+    if list(meta["cameras"]) != list(rig.names):
+        raise WeightsError(f"{path}: weights were trained for camera {meta['cameras']}, the rig has {list(rig.names)}")
+    try:
+        model = S2G2(cfg, rig, grid or stored_grid)
+    except ConfigError as e:
+        raise WeightsError(f"{path}: cannot build the stored model for rig {rig.name!r} ({e})") from None
+    load_state_s2g2(model, path, meta)
+    return model.to(device).eval(), meta
+
+
+__all__ = ["FORMAT", "load_s2g2", "load_state_s2g2", "read_s2g2_metadata", "s2g2_metadata", "save_s2g2",
+           "validate_s2g2"]
