@@ -99,6 +99,7 @@ def run(args: argparse.Namespace, config: MapperConfig, json_path: Path | None) 
     if json_path:
         json_path.write_text(json.dumps({"method": config.method, "ipm_occlusion": config.ipm_occlusion,
                                          "input": config.input_kind, "segmenter": config.segmenter,
+                                         "ms_per_frame": 1000 * t_map / max(n, 1),
                                          "weights": config.weights, "unknown_below": config.unknown_below,
                                          "bags": [str(b) for b in args.bags], **result}, indent=2))
 
