@@ -289,22 +289,22 @@ def test_node_process_exits_2_on_bad_parameters(tmp_path, overrides, message, ro
     assert "error: " in text and message in text and "Traceback" not in text
 
 
-def test_node_default_is_the_shipped_bimapper(tmp_path, ros_domain):
-    """Started with only its rig's parameter file, the node runs Bi-Mapper with the shipped
-    weights (the default method) on the default grid, and publishes exactly the core's maps."""
-    domain = ros_domain
+def _run_shipped_node(tmp_path, domain, kind: str, seed: int, n_frames: int) -> tuple:
+    """A mapper_node process started with its rig's parameter file (plus ``input_kind`` for RGB)
+    fed ``n_frames`` synthetic frames of ``kind`` images: (core mapper, frames, driver)."""
     log = tmp_path / "node.log"
+    extra = [] if kind == "labels" else ["-p", f"input_kind:={kind}"]
     # The node boots (torch, weights) while this process renders the drive and loads the weights.
-    proc = start_process(["bev_mapper_ros.mapper_node", "--ros-args", "--params-file", str(PARAMS_FILE),
+    proc = start_process(["bev_mapper_ros.mapper_node", "--ros-args", "--params-file", str(PARAMS_FILE), *extra,
                           "-p", "threads:=1", "-p", "sync_timeout_s:=5.0"], domain, log)  # no partial sets under load
     node = None
     try:
         rig, grid = preset_rig("surround6"), BevGrid()
-        frames = list(generate_drive(rig, grid, SynthConfig(frames=2, seed=12)))
-        expected = create_mapper(node_view_of_rig(rig), grid, MapperConfig(classes=CLASSES, threads=1))
+        frames = list(generate_drive(rig, grid, SynthConfig(frames=n_frames, seed=seed)))
+        expected = create_mapper(node_view_of_rig(rig), grid, MapperConfig(input_kind=kind, classes=CLASSES, threads=1))
         rclpy.init(domain_id=domain)
-        node = rclpy.create_node("bev_test_default")
-        d = Driver(node, rig, log)
+        node = rclpy.create_node(f"bev_test_{kind}")
+        d = Driver(node, rig, log, kind=kind)
         for f in frames:
             assert d.calibrate(f.stamp_ns, 60.0), f"the node never reported its calibration:\n{log.read_text()}"
             d.send_frame(f)
@@ -314,12 +314,11 @@ def test_node_default_is_the_shipped_bimapper(tmp_path, ros_domain):
             node.destroy_node()
         rclpy.try_shutdown()
         assert stop_process(proc) in (0, -2), log.read_text()
-    assert expected.name == "bimapper"
     complete = 0
     for f in frames:
         # (a camera's image lost by best-effort DDS under load is mapped as missing, by both)
-        pred, lost = core_map_as_received(expected, grid, {n: c.labels for n, c in f.cameras.items()},
-                                          d.grids[CLASSES[0]][f.stamp_ns].data)
+        images = {n: (c.labels if kind == "labels" else c.rgb) for n, c in f.cameras.items()}
+        pred, lost = core_map_as_received(expected, grid, images, d.grids[CLASSES[0]][f.stamp_ns].data)
         complete += not lost
         for ci, c in enumerate(CLASSES):
             got = np.asarray(d.grids[c][f.stamp_ns].data, dtype=np.int16)
@@ -327,37 +326,20 @@ def test_node_default_is_the_shipped_bimapper(tmp_path, ros_domain):
             # same weights, same float32 ops: at most a rounding step at a few cells
             assert np.abs(got - want).max() <= 1 and (got == want).mean() > 0.999, c
     assert complete >= 1, "every set lost a camera"
+    return expected, frames, d
+
+
+def test_node_default_is_the_shipped_bimapper(tmp_path, ros_domain):
+    """Started with only its rig's parameter file, the node runs Bi-Mapper with the shipped
+    weights (the default method) on the default grid, and publishes exactly the core's maps."""
+    expected, frames, d = _run_shipped_node(tmp_path, ros_domain, "labels", 12, 2)
+    assert expected.name == "bimapper"
     assert (np.asarray(d.grids["vehicle"][frames[0].stamp_ns].data) == 100).sum() > 50
 
 
 def test_node_maps_rgb_cameras_with_the_shipped_weights(tmp_path, ros_domain):
     """``input_kind:=rgb`` and nothing else: the shipped segmenter feeds the shipped label
     Bi-Mapper (chained), and the node publishes exactly the core's maps of the RGB images."""
-    log = tmp_path / "node.log"
-    proc = start_process(["bev_mapper_ros.mapper_node", "--ros-args", "--params-file", str(PARAMS_FILE),
-                          "-p", "input_kind:=rgb", "-p", "threads:=1", "-p", "sync_timeout_s:=5.0"], ros_domain, log)
-    node = None
-    try:
-        rig, grid = preset_rig("surround6"), BevGrid()
-        frames = list(generate_drive(rig, grid, SynthConfig(frames=1, seed=13)))
-        expected = create_mapper(node_view_of_rig(rig), grid, MapperConfig(input_kind="rgb", classes=CLASSES, threads=1))
-        rclpy.init(domain_id=ros_domain)
-        node = rclpy.create_node("bev_test_rgb")
-        d = Driver(node, rig, log, kind="rgb")
-        f = frames[0]
-        assert d.calibrate(f.stamp_ns, 60.0), f"the node never reported its calibration:\n{log.read_text()}"
-        d.send_frame(f)
-        assert d.wait_for(f.stamp_ns, 60.0), f"no grids:\n{log.read_text()}"
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-        assert stop_process(proc) in (0, -2), log.read_text()
+    expected, frames, d = _run_shipped_node(tmp_path, ros_domain, "rgb", 13, 1)
     assert expected.stage is not None  # chained: segmenter, then the label weights
-    pred, lost = core_map_as_received(expected, grid, {n: c.rgb for n, c in f.cameras.items()},
-                                      d.grids[CLASSES[0]][f.stamp_ns].data)
-    for ci, c in enumerate(CLASSES):
-        got = np.asarray(d.grids[c][f.stamp_ns].data, dtype=np.int16)
-        want = grid.to_occupancy(pred.probs[ci], pred.known).astype(np.int16)
-        assert np.abs(got - want).max() <= 1 and (got == want).mean() > 0.999, c
-    assert (np.asarray(d.grids["drivable"][f.stamp_ns].data) == 100).sum() > 500
+    assert (np.asarray(d.grids["drivable"][frames[0].stamp_ns].data) == 100).sum() > 500

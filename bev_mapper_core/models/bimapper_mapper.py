@@ -54,6 +54,24 @@ def inference_threads() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+def inference_device(config: MapperConfig) -> torch.device:
+    """The torch device of ``config.device`` for inference; on the CPU, also sets torch's thread
+    count (``config.threads``, else :func:`inference_threads`).
+
+    Raises:
+        ConfigError: not a torch device, or CUDA requested but not available.
+    """
+    try:
+        device = torch.device(config.device)
+    except (RuntimeError, TypeError) as e:
+        raise ConfigError(f"invalid torch device {config.device!r} ({e})") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"device {config.device!r} requested but CUDA is not available")
+    if device.type == "cpu":
+        torch.set_num_threads(config.threads or inference_threads())
+    return device
+
+
 class BiMapperMapper(Mapper):
     """Learned Bi-Mapper inference: batch 1, ``torch.inference_mode``, sigmoid probabilities.
 
@@ -153,14 +171,7 @@ class BiMapperMapper(Mapper):
         #: output layers of the model to return, in the configured order (a subset is allowed)
         self._layers = [weight_classes.index(c) for c in config.classes]
         self._weight_classes = weight_classes
-        try:
-            self.device = torch.device(config.device)
-        except (RuntimeError, TypeError) as e:
-            raise ConfigError(f"invalid torch device {config.device!r} ({e})") from None
-        if self.device.type == "cuda" and not torch.cuda.is_available():
-            raise ConfigError(f"device {config.device!r} requested but CUDA is not available")
-        if self.device.type == "cpu":
-            torch.set_num_threads(config.threads or inference_threads())
+        self.device = inference_device(config)
         self.weights_path = path
         #: the chained first stage (RGB -> labels), None when the model reads the input itself
         self.stage = None if seg is None else SegmenterStage(seg, config.device)
@@ -215,4 +226,4 @@ class BiMapperMapper(Mapper):
         return BevPrediction(self.class_names, np.ascontiguousarray(probs, dtype=np.float32), known.astype(bool))
 
 
-__all__ = ["BiMapperMapper", "WeightsError", "default_weights_path", "inference_threads"]
+__all__ = ["BiMapperMapper", "WeightsError", "default_weights_path", "inference_device", "inference_threads"]

@@ -21,7 +21,7 @@ from ..errors import ConfigError
 from ..grid import BevGrid
 from ..mapper import BevPrediction, Mapper, MapperConfig
 from ..rig import Rig
-from .bimapper_mapper import inference_threads
+from .bimapper_mapper import inference_device
 from .s2g2 import S2G2, check_monocular
 from .s2g2_weights import WeightsError, load_s2g2, read_s2g2_metadata, validate_s2g2
 
@@ -100,14 +100,7 @@ class S2G2Mapper(Mapper):
         self._layers = [weight_classes.index(c) for c in config.classes]
         #: the branch that maps (the weights' ``inference_branch``)
         self.branch = meta["inference_branch"]
-        try:
-            self.device = torch.device(config.device)
-        except (RuntimeError, TypeError) as e:
-            raise ConfigError(f"invalid torch device {config.device!r} ({e})") from None
-        if self.device.type == "cuda" and not torch.cuda.is_available():
-            raise ConfigError(f"device {config.device!r} requested but CUDA is not available")
-        if self.device.type == "cpu":
-            torch.set_num_threads(config.threads or inference_threads())
+        self.device = inference_device(config)
         self.model: S2G2 | None = None
         super().__init__(rig, grid, config)
 

@@ -24,7 +24,6 @@ import threading
 from pathlib import Path
 
 import torch
-from safetensors import safe_open
 from safetensors.torch import save_file
 
 from ..classes import resolve_classes
@@ -33,7 +32,7 @@ from ..grid import MAX_GRID_CELLS, BevGrid
 from ..rig import Rig
 from .config import MAX_WIDTH_PX
 from .s2g2 import BRANCHES, S2G2, S2G2Config, check_monocular
-from .weights import _DTYPES, META_KEY, WeightsError, _check_tensors, standin_rig
+from .weights import META_KEY, WeightsError, _check_tensors, read_checked_tensors, read_document, standin_rig
 
 FORMAT = "bev_mapper.s2g2"
 VERSION = 1
@@ -110,24 +109,7 @@ def read_s2g2_metadata(path: str | os.PathLike) -> dict:
             header, no or malformed S2G2 metadata.
     """
     path = Path(path)
-    if not path.is_file():
-        raise WeightsError(f"S2G2 weights {path} do not exist")
-    try:
-        with safe_open(str(path), framework="pt") as f:
-            raw = (f.metadata() or {}).get(META_KEY)
-    except Exception as e:  # SafetensorError is not exported as a stable type
-        raise WeightsError(f"{path} is not a valid safetensors file ({e})") from None
-    if raw is None:
-        raise WeightsError(f"{path} has no '{META_KEY}' metadata: not a bev_mapper weights file")
-    try:
-        meta = json.loads(raw)
-    except json.JSONDecodeError as e:
-        raise WeightsError(f"{path}: metadata is not valid JSON ({e})") from None
-    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-        got = meta.get("format") if isinstance(meta, dict) else None
-        raise WeightsError(f"{path}: not S2G2 weights (format {got!r}, expected {FORMAT!r})")
-    if meta.get("version") != VERSION:
-        raise WeightsError(f"{path}: metadata version {meta.get('version')!r}, this code reads {VERSION}")
+    meta = read_document(path, FORMAT, VERSION, "S2G2")
     _check_document(meta, path)
     return meta
 
@@ -150,20 +132,7 @@ def _read_tensors(path: Path, expected: dict) -> dict[str, torch.Tensor]:
     if state is not None:
         _check_tensors(path, {k: (tuple(t.shape), t.dtype) for k, t in state.items()}, expected)
         return state
-    try:
-        with safe_open(str(path), framework="pt") as f:
-            header = {k: (tuple(f.get_slice(k).get_shape()), _DTYPES.get(f.get_slice(k).get_dtype())) for k in f.keys()}
-            _check_tensors(path, header, expected)
-            state = {}
-            for k in expected:
-                t = f.get_tensor(k)
-                if t.is_floating_point() and not torch.isfinite(t).all():
-                    raise WeightsError(f"{path}: tensor {k!r} has non-finite values")
-                state[k] = t
-    except WeightsError:
-        raise
-    except Exception as e:
-        raise WeightsError(f"{path}: cannot read tensors ({e})") from None
+    state = read_checked_tensors(path, expected)
     with _LOCK:
         _STATE.clear()  # one file at a time is plenty (a node loads one)
         _STATE[key] = state

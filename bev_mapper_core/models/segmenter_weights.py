@@ -20,12 +20,11 @@ import threading
 from pathlib import Path
 
 import torch
-from safetensors import safe_open
 from safetensors.torch import save_file
 
 from ..errors import BevMapperError, ConfigError
 from .segmenter import Segmenter, SegmenterConfig
-from .weights import _DTYPES, META_KEY, WeightsError, _check_tensors
+from .weights import META_KEY, WeightsError, read_checked_tensors, read_document
 
 FORMAT = "bev_mapper.segmenter"
 VERSION = 1
@@ -52,25 +51,7 @@ def read_segmenter_metadata(path: str | os.PathLike) -> dict:
     Raises:
         WeightsError: missing file, not safetensors, no or malformed segmenter metadata.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise WeightsError(f"segmenter weights {path} do not exist")
-    try:
-        with safe_open(str(path), framework="pt") as f:
-            raw = (f.metadata() or {}).get(META_KEY)
-    except Exception as e:  # SafetensorError is not exported as a stable type
-        raise WeightsError(f"{path} is not a valid safetensors file ({e})") from None
-    if raw is None:
-        raise WeightsError(f"{path} has no '{META_KEY}' metadata: not a bev_mapper weights file")
-    try:
-        meta = json.loads(raw)
-    except json.JSONDecodeError as e:
-        raise WeightsError(f"{path}: metadata is not valid JSON ({e})") from None
-    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-        got = meta.get("format") if isinstance(meta, dict) else None
-        raise WeightsError(f"{path}: not segmenter weights (format {got!r}, expected {FORMAT!r})")
-    if meta.get("version") != VERSION:
-        raise WeightsError(f"{path}: metadata version {meta.get('version')!r}, this code reads {VERSION}")
+    meta = read_document(path, FORMAT, VERSION, "segmenter")
     if not isinstance(meta.get("config"), dict) or not isinstance(meta.get("rig", ""), str):
         raise WeightsError(f"{path}: metadata lacks a config")
     try:
@@ -106,21 +87,7 @@ def load_segmenter(path: str | os.PathLike, device: str | torch.device = "cpu") 
         model = Segmenter(SegmenterConfig.from_dict(meta["config"]))
     except (BevMapperError, ValueError, RuntimeError) as e:
         raise WeightsError(f"{path}: cannot build the stored segmenter ({e})") from None
-    expected = model.state_dict()
-    try:
-        with safe_open(str(path), framework="pt") as f:
-            header = {k: (tuple(f.get_slice(k).get_shape()), _DTYPES.get(f.get_slice(k).get_dtype())) for k in f.keys()}
-            _check_tensors(path, header, expected)
-            state = {}
-            for k in expected:
-                t = f.get_tensor(k)
-                if t.is_floating_point() and not torch.isfinite(t).all():
-                    raise WeightsError(f"{path}: tensor {k!r} has non-finite values")
-                state[k] = t
-    except WeightsError:
-        raise
-    except Exception as e:
-        raise WeightsError(f"{path}: cannot read tensors ({e})") from None
+    state = read_checked_tensors(path, model.state_dict())
     model.load_state_dict(state, strict=True)
     model = model.to(device).eval()
     with _LOCK:

@@ -116,8 +116,21 @@ def save_weights(model: BiMapper, path: str | os.PathLike) -> Path:
     return path
 
 
-def _parse_metadata(path: Path) -> dict:
-    """Open ``path`` with safetensors (header only), parse and sanity-check its metadata document."""
+def read_document(path: str | os.PathLike, fmt: str, version: int, what: str) -> dict:
+    """The ``bev_mapper`` metadata document of a safetensors weights file (header only), with
+    its ``format`` and ``version`` checked; the shared first step of every weights reader.
+
+    Args:
+        fmt, version: the document's expected ``format`` / ``version``.
+        what: the kind of weights, for messages (``Bi-Mapper``, ``segmenter``, ...).
+
+    Raises:
+        WeightsError: missing file, not safetensors (e.g. a pickle), truncated or corrupt
+            header, no metadata, not JSON, another format or version.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise WeightsError(f"{what} weights {path} do not exist")
     try:
         with safe_open(str(path), framework="pt") as f:
             raw = (f.metadata() or {}).get(META_KEY)
@@ -129,10 +142,49 @@ def _parse_metadata(path: Path) -> dict:
         meta = json.loads(raw)
     except json.JSONDecodeError as e:
         raise WeightsError(f"{path}: metadata is not valid JSON ({e})") from None
-    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-        raise WeightsError(f"{path}: metadata format is not {FORMAT!r}")
-    if meta.get("version") != VERSION:
-        raise WeightsError(f"{path}: metadata version {meta.get('version')!r}, this code reads {VERSION}")
+    if not isinstance(meta, dict) or meta.get("format") != fmt:
+        got = meta.get("format") if isinstance(meta, dict) else None
+        raise WeightsError(f"{path}: not {what} weights (format {got!r}, expected {fmt!r})")
+    if meta.get("version") != version:
+        raise WeightsError(f"{path}: metadata version {meta.get('version')!r}, this code reads {version}")
+    return meta
+
+
+def read_checked_tensors(path: str | os.PathLike, expected: dict) -> dict:
+    """Every tensor of ``path`` after its header matched ``expected`` (a model's state dict:
+    names, shapes, dtypes; nothing is read for a file that does not fit), each checked for
+    non-finite values.
+
+    Raises:
+        WeightsError: the first mismatch, a non-finite value, or an unreadable file.
+    """
+    path = Path(path)
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            header = {k: (tuple(f.get_slice(k).get_shape()), _DTYPES.get(f.get_slice(k).get_dtype()))
+                      for k in f.keys()}
+            _check_tensors(path, header, expected)
+            state = {}
+            for k in expected:
+                t = f.get_tensor(k)
+                if t.is_floating_point() and not torch.isfinite(t).all():
+                    raise WeightsError(f"{path}: tensor {k!r} has non-finite values")
+                state[k] = t
+    except WeightsError:
+        raise
+    except Exception as e:
+        raise WeightsError(f"{path}: cannot read tensors ({e})") from None
+    return state
+
+
+def _parse_metadata(path: Path) -> dict:
+    """Open ``path`` with safetensors (header only), parse and sanity-check its Bi-Mapper document."""
+    try:
+        meta = read_document(path, FORMAT, VERSION, "Bi-Mapper")
+    except WeightsError as e:
+        if "not Bi-Mapper weights" in str(e):  # the message older callers and tests know
+            raise WeightsError(f"{path}: metadata format is not {FORMAT!r}") from None
+        raise
     missing = {"method", "rig", "cameras", "input_kind", "classes", "grid", "input_size", "config"} - set(meta)
     if missing:
         raise WeightsError(f"{path}: metadata lacks {sorted(missing)}")
@@ -332,26 +384,8 @@ class WeightsFile:
         model.load_state_dict(state, strict=True)
 
     def _read_tensors(self, expected: dict) -> dict:
-        """Every tensor of the file, after its header matched ``expected`` (names, shapes, dtypes:
-        nothing is read for a file that does not fit), each checked for non-finite values.
-        """
-        path = self.path
-        try:
-            with safe_open(str(path), framework="pt") as f:
-                header = {k: (tuple(f.get_slice(k).get_shape()), _DTYPES.get(f.get_slice(k).get_dtype()))
-                          for k in f.keys()}
-                _check_tensors(path, header, expected)
-                state = {}
-                for k in expected:
-                    t = f.get_tensor(k)
-                    if t.is_floating_point() and not torch.isfinite(t).all():
-                        raise WeightsError(f"{path}: tensor {k!r} has non-finite values")
-                    state[k] = t
-        except WeightsError:
-            raise
-        except Exception as e:
-            raise WeightsError(f"{path}: cannot read tensors ({e})") from None
-        return state
+        """Every tensor of the file, checked against ``expected`` (:func:`read_checked_tensors`)."""
+        return read_checked_tensors(self.path, expected)
 
     def validate(self) -> None:
         """The full check a node needs before it starts: build the stored architecture for a
