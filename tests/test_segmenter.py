@@ -187,3 +187,26 @@ def test_label_bimapper_runs_chained_on_rgb(tmp_path):
         BiMapperMapper(RIG, GRID, MapperConfig(input_kind="rgb", weights=str(w_rgb), segmenter=str(seg_path)))
     with pytest.raises(WeightsError, match="input"):
         BiMapperMapper(RIG, GRID, MapperConfig(input_kind="labels", weights=str(w_rgb)))
+
+
+def test_preflight_checks_every_segmenter_tensor(tmp_path):
+    """A node's start-up check (``preflight``) loads the segmenter: a file with a non-finite
+    tensor is refused before any frame, for segipm and for chained Bi-Mapper."""
+    from safetensors import safe_open
+
+    from bev_mapper_core.mapper import preflight
+
+    path = save_segmenter(Segmenter(SMALL), tmp_path / "seg.safetensors")
+    with safe_open(str(path), framework="pt") as f:
+        meta = f.metadata()
+    tensors = load_file(str(path))
+    key = next(k for k, v in tensors.items() if v.is_floating_point())
+    tensors[key] = torch.full_like(tensors[key], float("inf"))
+    save_file(tensors, str(tmp_path / "inf.safetensors"), metadata=meta)
+    bad = str(tmp_path / "inf.safetensors")
+    preflight(MapperConfig(method="segipm", input_kind="rgb", segmenter=str(path)), RIG.name)  # the good one passes
+    with pytest.raises(WeightsError, match="non-finite"):
+        preflight(MapperConfig(method="segipm", input_kind="rgb", segmenter=bad), RIG.name)
+    w = save_weights(BiMapper(replace(TINY, ipm_skip=True), RIG, GRID), tmp_path / "bm.safetensors")
+    with pytest.raises(WeightsError, match="non-finite"):
+        preflight(MapperConfig(input_kind="rgb", weights=str(w), segmenter=bad), RIG.name)

@@ -27,7 +27,7 @@ from ..mapper import BevPrediction, Mapper, MapperConfig
 from ..rig import Rig
 from .bimapper import BiMapper
 from .segipm_mapper import SegmenterStage, segmenter_path
-from .segmenter_weights import read_segmenter_metadata
+from .segmenter_weights import load_segmenter
 from .weights import WeightsError, WeightsFile
 
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
@@ -152,7 +152,7 @@ class BiMapperMapper(Mapper):
                       classes=config.classes)
         weights.validate()
         if seg is not None:
-            read_segmenter_metadata(seg)
+            load_segmenter(seg)  # every tensor checked (cached for the constructor)
 
     @classmethod
     def output_classes(cls, config: MapperConfig, rig_name: str) -> tuple[str, ...]:

@@ -25,7 +25,7 @@ from ..ipm import IpmMapper
 from ..mapper import BevPrediction, Mapper, MapperConfig
 from ..rig import Rig
 from .segmenter import Segmenter
-from .segmenter_weights import load_segmenter, read_segmenter_metadata
+from .segmenter_weights import load_segmenter
 
 #: Directory of the shipped weights (shared with Bi-Mapper's).
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
@@ -98,10 +98,10 @@ class SegIpmMapper(Mapper):
     @classmethod
     def preflight(cls, config: MapperConfig, rig_name: str, grid: BevGrid | None = None,
                   cameras: tuple[str, ...] | None = None) -> None:
-        """RGB input and a readable segmenter file."""
+        """RGB input and a segmenter file whose every tensor fits (a node never starts with one it cannot run)."""
         if config.input_kind != "rgb":
             raise ConfigError("segipm maps RGB images (input_kind 'rgb'); for label images use method 'ipm'")
-        read_segmenter_metadata(segmenter_path(config, rig_name))
+        load_segmenter(segmenter_path(config, rig_name))  # every tensor checked (cached for the constructor)
 
     def __init__(self, rig: Rig, grid: BevGrid, config: MapperConfig) -> None:
         self.preflight(config, rig.name)
