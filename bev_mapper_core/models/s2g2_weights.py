@@ -26,13 +26,11 @@ from pathlib import Path
 import torch
 from safetensors.torch import save_file
 
-from ..classes import resolve_classes
 from ..errors import BevMapperError, ConfigError
-from ..grid import MAX_GRID_CELLS, BevGrid
+from ..grid import BevGrid
 from ..rig import Rig
-from .config import MAX_WIDTH_PX
 from .s2g2 import BRANCHES, S2G2, S2G2Config, check_monocular
-from .weights import META_KEY, WeightsError, _check_tensors, read_checked_tensors, read_document, standin_rig
+from .weights import META_KEY, WeightsError, _check_tensors, check_model_document, read_checked_tensors, read_document, standin_rig
 
 FORMAT = "bev_mapper.s2g2"
 VERSION = 1
@@ -81,24 +79,7 @@ def _check_document(meta: dict, path: Path) -> None:
         raise bad(f"must name a rig and exactly one camera, got rig {meta['rig']!r}, cameras {cams!r}")
     if meta["inference_branch"] not in BRANCHES:
         raise bad(f"'inference_branch' must be one of {BRANCHES}, got {meta['inference_branch']!r}")
-    classes = meta["classes"]
-    if not isinstance(classes, list) or not classes or any(not isinstance(c, str) for c in classes):
-        raise bad(f"'classes' must be a list of class names, got {classes!r}")
-    size = meta["input_size"]
-    if (not isinstance(size, list) or len(size) != 2
-            or any(isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= MAX_WIDTH_PX for v in size)):
-        raise bad(f"'input_size' must be [height, width] in 1..{MAX_WIDTH_PX}, got {size!r}")
-    try:
-        resolve_classes(tuple(classes))
-        cfg, grid = S2G2Config.from_dict(meta["config"]), BevGrid.from_dict(meta["grid"])
-    except (BevMapperError, TypeError, KeyError, ValueError, OverflowError) as e:
-        raise bad(f"holds an invalid class list, config or grid ({e})") from None
-    if grid.width * grid.height > MAX_GRID_CELLS:
-        raise bad(f"grid has {grid.width} x {grid.height} cells, more than {MAX_GRID_CELLS}")
-    if cfg.input_kind != meta["input_kind"] or list(cfg.classes) != list(classes):
-        raise bad("'input_kind' / 'classes' differ from the stored architecture's")
-    if size[1] != cfg.input_width:
-        raise bad(f"'input_size' width {size[1]} differs from the architecture's input_width {cfg.input_width}")
+    check_model_document(meta, path, S2G2Config)
 
 
 def read_s2g2_metadata(path: str | os.PathLike) -> dict:

@@ -59,17 +59,18 @@ class WeightsError(BevMapperError, ValueError):
     """A weights file is unreadable, corrupt, or does not fit the requested model."""
 
 
-def _check_schema(meta: dict, path: Path) -> None:
-    """Types and bounds of a metadata document (see the module docstring)."""
+def check_model_document(meta: dict, path: Path, config_type: type) -> tuple:
+    """The part of a model weights document every method shares: ``input_kind``, ``classes``,
+    ``input_size``, ``config`` (built as ``config_type``, whose own bounds apply) and ``grid``
+    (at most :data:`~bev_mapper_core.grid.MAX_GRID_CELLS` cells), and their agreement.
+    Returns ``(config, grid)``.
+
+    Raises:
+        WeightsError: the first problem found.
+    """
     def bad(what: str) -> WeightsError:
         return WeightsError(f"{path}: metadata {what}")
 
-    if not isinstance(meta["rig"], str):
-        raise bad(f"'rig' must be a string, got {meta['rig']!r}")
-    cams = meta["cameras"]
-    if (not isinstance(cams, list) or not cams or any(not isinstance(c, str) or not c for c in cams)
-            or len(set(cams)) != len(cams)):
-        raise bad(f"'cameras' must be a list of distinct camera names, got {cams!r}")
     if meta["input_kind"] not in ("labels", "rgb"):
         raise bad(f"'input_kind' must be 'labels' or 'rgb', got {meta['input_kind']!r}")
     classes = meta["classes"]
@@ -85,13 +86,28 @@ def _check_schema(meta: dict, path: Path) -> None:
         raise bad(f"'input_size' must be [height, width] in 1..{MAX_WIDTH_PX}, got {size!r}")
     if not isinstance(meta["config"], dict) or not isinstance(meta["grid"], dict):
         raise bad("'config' and 'grid' must be mappings")
-    cfg, grid = config_from_metadata(meta, path)  # bounded by BiMapperConfig / BevGrid checks
+    try:  # bounded by the config's and BevGrid's own checks
+        cfg, grid = config_type.from_dict(meta["config"]), BevGrid.from_dict(meta["grid"])
+    except (BevMapperError, TypeError, KeyError, ValueError, OverflowError) as e:
+        raise WeightsError(f"{path}: stored config/grid is invalid ({e})") from None
     if grid.width * grid.height > MAX_GRID_CELLS:
         raise bad(f"grid has {grid.width} x {grid.height} cells, more than {MAX_GRID_CELLS}")
     if cfg.input_kind != meta["input_kind"] or list(cfg.classes) != list(classes):
         raise bad("'input_kind' / 'classes' differ from the stored architecture's")
     if size[1] != cfg.input_width:
         raise bad(f"'input_size' width {size[1]} differs from the architecture's input_width {cfg.input_width}")
+    return cfg, grid
+
+
+def _check_schema(meta: dict, path: Path) -> None:
+    """Types and bounds of a Bi-Mapper metadata document (see the module docstring)."""
+    if not isinstance(meta["rig"], str):
+        raise WeightsError(f"{path}: metadata 'rig' must be a string, got {meta['rig']!r}")
+    cams = meta["cameras"]
+    if (not isinstance(cams, list) or not cams or any(not isinstance(c, str) or not c for c in cams)
+            or len(set(cams)) != len(cams)):
+        raise WeightsError(f"{path}: metadata 'cameras' must be a list of distinct camera names, got {cams!r}")
+    check_model_document(meta, path, BiMapperConfig)
 
 
 def model_metadata(model: BiMapper) -> dict:
