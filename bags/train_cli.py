@@ -224,7 +224,7 @@ def run_eval(argv: list[str]) -> int:
 
     from bev_mapper_core.grid import BevGrid
     from bev_mapper_core.metrics import format_table
-    from bev_mapper_core.models.bimapper_mapper import THREADS_ENV
+    from bev_mapper_core.models.runtime import THREADS_ENV
     from bev_mapper_core.rig import preset_rig
     from bev_mapper_core.training.config import class_set
     from bev_mapper_core.training.data import val_seeds

@@ -11,7 +11,6 @@ classes (a subset, in any order: only those layers are returned).
 
 from __future__ import annotations
 
-import os
 from collections.abc import Mapping
 from dataclasses import replace
 from pathlib import Path
@@ -26,50 +25,15 @@ from ..ipm_occlusion import OcclusionModel, learned_footprints
 from ..mapper import BevPrediction, Mapper, MapperConfig
 from ..rig import Rig
 from .bimapper import BiMapper
+from .runtime import inference_device, inference_threads
 from .segipm_mapper import SegmenterStage, segmenter_path
 from .segmenter_weights import load_segmenter
 from .weights import WeightsError, WeightsFile
 
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
-#: Environment variable overriding the number of torch CPU threads used for inference.
-THREADS_ENV = "BEV_MAPPER_TORCH_THREADS"
-
-
 def default_weights_path(rig_name: str, input_kind: str) -> Path:
     """Where the shipped weights of a rig and input kind live."""
     return WEIGHTS_DIR / f"bimapper_{rig_name}_{input_kind}.safetensors"
-
-
-def inference_threads() -> int:
-    """Torch CPU threads for inference: ``$BEV_MAPPER_TORCH_THREADS`` or the CPUs we may use."""
-    env = os.environ.get(THREADS_ENV)
-    if env:
-        try:
-            return max(1, int(env))
-        except ValueError:
-            raise ConfigError(f"{THREADS_ENV} must be an integer, got {env!r}") from None
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # not Linux
-        return max(1, os.cpu_count() or 1)
-
-
-def inference_device(config: MapperConfig) -> torch.device:
-    """The torch device of ``config.device`` for inference; on the CPU, also sets torch's thread
-    count (``config.threads``, else :func:`inference_threads`).
-
-    Raises:
-        ConfigError: not a torch device, or CUDA requested but not available.
-    """
-    try:
-        device = torch.device(config.device)
-    except (RuntimeError, TypeError) as e:
-        raise ConfigError(f"invalid torch device {config.device!r} ({e})") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ConfigError(f"device {config.device!r} requested but CUDA is not available")
-    if device.type == "cpu":
-        torch.set_num_threads(config.threads or inference_threads())
-    return device
 
 
 class BiMapperMapper(Mapper):
@@ -174,7 +138,7 @@ class BiMapperMapper(Mapper):
         self.device = inference_device(config)
         self.weights_path = path
         #: the chained first stage (RGB -> labels), None when the model reads the input itself
-        self.stage = None if seg is None else SegmenterStage(seg, config.device)
+        self.stage = None if seg is None else SegmenterStage(seg, self.device)
         self.model: BiMapper | None = None
         super().__init__(rig, grid, config)
 

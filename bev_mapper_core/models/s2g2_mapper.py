@@ -21,7 +21,7 @@ from ..errors import ConfigError
 from ..grid import BevGrid
 from ..mapper import BevPrediction, Mapper, MapperConfig
 from ..rig import Rig
-from .bimapper_mapper import inference_device
+from .runtime import inference_device
 from .s2g2 import S2G2, check_monocular
 from .s2g2_weights import WeightsError, load_s2g2, read_s2g2_metadata, validate_s2g2
 

@@ -24,6 +24,7 @@ from ..grid import BevGrid
 from ..ipm import IpmMapper
 from ..mapper import BevPrediction, Mapper, MapperConfig
 from ..rig import Rig
+from .runtime import inference_device
 from .segmenter import Segmenter
 from .segmenter_weights import load_segmenter
 
@@ -64,14 +65,10 @@ class SegmenterStage:
 
     Raises (constructor):
         WeightsError: the file is not valid segmenter weights.
-        ConfigError: a bad device.
     """
 
-    def __init__(self, path: Path, device: str = "cpu") -> None:
-        try:
-            self.device = torch.device(device)
-        except (RuntimeError, TypeError) as e:
-            raise ConfigError(f"invalid torch device {device!r} ({e})") from None
+    def __init__(self, path: Path, device: torch.device | str = "cpu") -> None:
+        self.device = torch.device(device)
         self.path = path
         self.model: Segmenter = load_segmenter(path, self.device)
 
@@ -105,7 +102,7 @@ class SegIpmMapper(Mapper):
 
     def __init__(self, rig: Rig, grid: BevGrid, config: MapperConfig) -> None:
         self.preflight(config, rig.name)
-        self.stage = SegmenterStage(segmenter_path(config, rig.name), config.device)
+        self.stage = SegmenterStage(segmenter_path(config, rig.name), inference_device(config))
         self.ipm = IpmMapper(rig, grid, replace(config, method="ipm", input_kind="labels"))
         super().__init__(rig, grid, config)
 
