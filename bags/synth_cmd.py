@@ -13,7 +13,7 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from bev_mapper_core.classes import BEV_CLASSES, CAM2BEV_CLASSES, class_cover
+from bev_mapper_core.classes import BEV_CLASSES, CAM2BEV_CLASSES, S2G2_CLASSES, class_cover
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.grid import BevGrid
 from bev_mapper_core.rig import PRESETS, Rig, preset_rig
@@ -91,14 +91,16 @@ def synth_bag(options: SynthBagOptions) -> DriveSummary:
 
 
 def gt_classes(rig_name: str) -> tuple:
-    """GT layers of a synthetic bag: the standard classes, plus, for the Cam2BEV rig, the layers
-    of Cam2BEV's class set that the standard ones cannot express (``static``: curbs, sidewalks,
-    obstacles, buildings, terrain), so that models of either class set are scored on it.
+    """GT layers of a synthetic bag: the standard classes, plus the layers that the standard
+    ones cannot express of the rig's other class set, so that models of either set are scored on
+    it: Cam2BEV's (``static``: curbs, sidewalks, obstacles, buildings, terrain) for ``cam2bev4``,
+    S2G2's (``terrain``, ``obstacle``) for the monocular ``front1``.
     """
-    if rig_name != "cam2bev4":
+    other = {"cam2bev4": CAM2BEV_CLASSES, "front1": S2G2_CLASSES}.get(rig_name)
+    if other is None:
         return BEV_CLASSES
     names = {c.name for c in BEV_CLASSES}
-    extra = tuple(c for c in CAM2BEV_CLASSES if c.name not in names
+    extra = tuple(c for c in other if c.name not in names
                   and class_cover(c.name, tuple(names)) is None)
     return BEV_CLASSES + extra
 

@@ -105,6 +105,21 @@ def _nonneg_float(s: str) -> float:
     return v
 
 
+def _grid_name(s: str):
+    """Argparse type: a named grid (:data:`~bev_mapper_core.grid.GRID_PRESETS`) -> its BevGrid."""
+    from bev_mapper_core.grid import GRID_PRESETS
+
+    if s not in GRID_PRESETS:
+        raise argparse.ArgumentTypeError(f"unknown grid {s!r}; named grids: {', '.join(sorted(GRID_PRESETS))}")
+    return GRID_PRESETS[s]
+
+
+def _grid_help() -> str:
+    from bev_mapper_core.grid import GRID_PRESETS
+
+    return "named BEV grid: " + "; ".join(f"{n}: {g.describe()}" for n, g in GRID_PRESETS.items())
+
+
 def _add_flag(p, f: CliFlag) -> None:
     """Add a method's :class:`CliFlag` (default suppressed: the config dataclass has it)."""
     kw = {"dest": f.dest, "help": f.help, "default": argparse.SUPPRESS}
@@ -148,7 +163,8 @@ def train_parser(method: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--method", choices=list(train_methods()))
     p.add_argument("--rig", choices=sorted(PRESETS))
     p.add_argument("--input", choices=list(INPUT_KINDS), help="the model's input kind")
-    p.add_argument("--classes", help=f"{AUTO_CLASSES} | standard | cam2bev | comma list ({AUTO_CLASSES}: cam2bev for cam2bev4)")
+    p.add_argument("--classes", help=f"{AUTO_CLASSES} | standard | cam2bev | s2g2 | comma list ({AUTO_CLASSES}: cam2bev for cam2bev4)")
+    p.add_argument("--grid", type=_grid_name, metavar="NAME", help=_grid_help() + " (default surround)")
     p.add_argument("--out", help="run directory")
     p.add_argument("--epochs", type=_pos_int)
     p.add_argument("--frames-per-epoch", dest="frames_per_epoch", type=_pos_int)
@@ -195,7 +211,11 @@ def eval_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="bev-train eval", description="Score a mapper on held-out synthetic drives.")
     p.add_argument("--rig", default=DEFAULTS["rig"], choices=sorted(PRESETS))
     p.add_argument("--method", default=MapperConfig.method, help="a registered mapper (ipm, bimapper, ...)")
-    p.add_argument("--weights", default=None, help="Bi-Mapper weights (default: the shipped file)")
+    p.add_argument("--weights", default=None, help="the learned method's weights (default: the shipped file)")
+    p.add_argument("--input", dest="input_kind", default=MapperConfig.input_kind, choices=list(INPUT_KINDS),
+                   help="what the mapper reads: label images or the RGB camera images (default: %(default)s)")
+    p.add_argument("--style", default=None, choices=STYLE_CHOICES,
+                   help="appearance style of the held-out drives' RGB images (--input rgb; default: the synthesizer's)")
     p.add_argument("--ipm-occlusion", action=argparse.BooleanOptionalAction,
                    default=MapperConfig.ipm_occlusion,
                    help="IPM's occlusion reasoning (default: %(default)s; --no-ipm-occlusion = the "
@@ -203,6 +223,7 @@ def eval_parser() -> argparse.ArgumentParser:
     p.add_argument("--unknown-below", type=float, default=MapperConfig.unknown_below,
                    help="Bi-Mapper with a visibility head: p_visible threshold of known cells (default: %(default)s)")
     p.add_argument("--classes", default=AUTO_CLASSES)
+    p.add_argument("--grid", type=_grid_name, default=None, metavar="NAME", help=_grid_help() + " (default surround)")
     p.add_argument("--val-drives", type=_pos_int, default=DEFAULTS["val_drives"])
     p.add_argument("--val-seeds", type=_int_list, default=None)
     p.add_argument("--frames-per-drive", type=_pos_int, default=DEFAULTS["frames_per_drive"])
@@ -234,8 +255,9 @@ def run_eval(argv: list[str]) -> int:
     torch.set_num_threads(a.threads)
     classes = class_set(a.classes, a.rig)
     seeds = a.val_seeds or val_seeds(a.val_drives)
-    res = evaluate(preset_rig(a.rig), BevGrid(), classes, a.method, a.weights, seeds, a.frames_per_drive, a.stride,
-                   a.cache, a.device, progress=True, ipm_occlusion=a.ipm_occlusion, unknown_below=a.unknown_below)
+    res = evaluate(preset_rig(a.rig), a.grid or BevGrid(), classes, a.method, a.weights, seeds, a.frames_per_drive, a.stride,
+                   a.cache, a.device, progress=True, ipm_occlusion=a.ipm_occlusion, unknown_below=a.unknown_below,
+                   input_kind=a.input_kind, style=a.style)
     print(format_table(res))
     print(f"{res['ms_per_frame']:.1f} ms/frame (mapper.map, {torch.get_num_threads()} threads)")
     print(summary_header(classes, list(res["iou_by_range"])))

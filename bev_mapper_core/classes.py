@@ -69,7 +69,7 @@ def _rgb(hex_code: str) -> tuple[int, int, int]:
 
 #: Display colour (RGB) of every BEV class name, the one source of BEV colours.
 #:
-#: The nine colours are Paul Tol's *muted* qualitative scheme (https://personal.sron.nl/~pault/,
+#: The first nine colours are Paul Tol's *muted* qualitative scheme (https://personal.sron.nl/~pault/,
 #: "Colour schemes and templates", 2021), designed to stay distinct for colour-blind viewers.
 #: Each class name gets its own colour, so the standard set and Cam2BEV's set (``road``,
 #: ``vehicle``, ``static``; vehicle shares the standard vehicle's colour) never repeat a colour,
@@ -78,7 +78,10 @@ def _rgb(hex_code: str) -> tuple[int, int, int]:
 #: CIELAB distances): light cyan road surface, dark wine lane dividers and sand crossings on it,
 #: rose curbs, olive sidewalks, green vehicles and indigo pedestrians (pedestrians and curbs
 #: were both red before). Neutral greys never mean a class: :data:`EMPTY_COLOR` is a known cell
-#: with no class, :data:`UNKNOWN_COLORS` the hatch of unknown cells.
+#: with no class, :data:`UNKNOWN_COLORS` the hatch of unknown cells. No further colour keeps those
+#: margins against all nine, so S2G2's two own classes (``terrain`` brown, ``obstacle`` Tol's
+#: blue) are distinct within their set (road, sidewalk, terrain, obstacle) and from the greys, and
+#: at least dE 24 from every other class colour.
 CLASS_COLORS: dict[str, tuple[int, int, int]] = {
     "drivable": _rgb("#88CCEE"),  # cyan
     "lane_divider": _rgb("#882255"),  # wine
@@ -89,6 +92,8 @@ CLASS_COLORS: dict[str, tuple[int, int, int]] = {
     "pedestrian": _rgb("#332288"),  # indigo
     "road": _rgb("#44AA99"),  # teal (Cam2BEV)
     "static": _rgb("#AA4499"),  # purple (Cam2BEV)
+    "terrain": _rgb("#996633"),  # brown (S2G2)
+    "obstacle": _rgb("#4477AA"),  # blue (S2G2)
 }
 #: Known cells where no class is present: near-white.
 EMPTY_COLOR: tuple[int, int, int] = (240, 240, 240)
@@ -125,13 +130,28 @@ CAM2BEV_CLASSES: tuple[BevClass, ...] = (
 )
 
 
+#: S2G2's four classes (the MonoOccupancy ground truth of the paper: road, sidewalk, terrain,
+#: obstacle), built from the same labels; ``road`` and ``sidewalk`` are the classes of those
+#: names above, ``obstacle`` is everything standing on the ground.
+S2G2_CLASSES: tuple[BevClass, ...] = (
+    CAM2BEV_CLASSES[0],
+    BEV_CLASSES[4],
+    BevClass("terrain", (Label.TERRAIN,), True, CLASS_COLORS["terrain"]),
+    BevClass("obstacle", (Label.VEHICLE, Label.PEDESTRIAN, Label.OBSTACLE, Label.BUILDING), False,
+             CLASS_COLORS["obstacle"]),
+)
+#: Every class set by name (``--classes standard|cam2bev|s2g2``).
+CLASS_SETS: dict[str, tuple[BevClass, ...]] = {"standard": BEV_CLASSES, "cam2bev": CAM2BEV_CLASSES,
+                                               "s2g2": S2G2_CLASSES}
+
+
 def bev_class(name: str) -> BevClass:
-    """Look up a BEV class by name (the standard set first, then the Cam2BEV set)."""
-    for c in BEV_CLASSES + CAM2BEV_CLASSES:
+    """Look up a BEV class by name (the standard set first, then Cam2BEV's, then S2G2's)."""
+    for c in BEV_CLASSES + CAM2BEV_CLASSES + S2G2_CLASSES:
         if c.name == name:
             return c
-    raise ConfigError(f"unknown BEV class {name!r}; known: {list(BEV_CLASS_NAMES)} "
-                      f"and Cam2BEV's {[c.name for c in CAM2BEV_CLASSES]}")
+    raise ConfigError(f"unknown BEV class {name!r}; known: {list(BEV_CLASS_NAMES)}, "
+                      f"Cam2BEV's {[c.name for c in CAM2BEV_CLASSES]} and S2G2's {[c.name for c in S2G2_CLASSES]}")
 
 
 def resolve_classes(names) -> tuple[BevClass, ...]:

@@ -261,3 +261,30 @@ class BevGrid:
             f"{self.width}x{self.height} cells at {self.resolution} m, "
             f"x [{self.x_min}, {self.x_max}] m, y [{self.y_min}, {self.y_max}] m"
         )
+
+
+#: Named grids (``bev-train --grid``, ``bev-train eval --grid``, ``bev-bag replay --grid``):
+#:
+#: * ``surround``: the default :class:`BevGrid` (60 m x 30 m around the car at 0.15 m), the
+#:   Bi-Mapper / HDMapNet grid of every surround rig.
+#: * ``ahead``: 32 m x 32 m ahead of ``base_link`` at 0.25 m (128 x 128 cells), the monocular
+#:   grid of S2G2 on ``front1``. The paper predicts 64 x 64 cells ahead of one front camera;
+#:   this keeps its field at twice its resolution, so that lane dividers and curbs (0.15-0.3 m
+#:   wide) still fill cells.
+GRID_PRESETS: dict[str, BevGrid] = {
+    "surround": BevGrid(),
+    "ahead": BevGrid(x_min=0.0, x_max=32.0, y_min=-16.0, y_max=16.0, resolution=0.25),
+}
+
+
+def grid_preset(name: str) -> BevGrid:
+    """The named grid of :data:`GRID_PRESETS`.
+
+    Raises:
+        GridError: an unknown name.
+    """
+    try:
+        return GRID_PRESETS[name]
+    except KeyError:
+        raise GridError(f"unknown grid {name!r}; named grids: {sorted(GRID_PRESETS)}") from None
+

@@ -20,7 +20,16 @@ from bags.cli import main
 from bags.frame_scores import FrameScores
 from bags.pictures import comparison_picture, panel_boxes, panel_scale
 from bags.replay import FRAMES_DIR, REPORT_FILE, ReplayOptions
-from bev_mapper_core.classes import BEV_CLASSES, CAM2BEV_CLASSES, CLASS_COLORS, EMPTY_COLOR, UNKNOWN_COLORS, bev_class, bev_picture
+from bev_mapper_core.classes import (
+    BEV_CLASSES,
+    CAM2BEV_CLASSES,
+    CLASS_COLORS,
+    EMPTY_COLOR,
+    S2G2_CLASSES,
+    UNKNOWN_COLORS,
+    bev_class,
+    bev_picture,
+)
 from bev_mapper_core.display import EGO_CENTER_X_M, EGO_LENGTH_M, EGO_WIDTH_M, STRIP_FG, BevPainter, painter
 from bev_mapper_core.grid import BevGrid
 from bev_mapper_core.metrics import MetricAccumulator, scope_masks
@@ -111,12 +120,17 @@ def test_delta_e_2000_reference_pairs():  # Sharma et al.'s test data, pairs 1 a
 
 
 def test_class_colours_are_distinct_also_for_colour_blind_viewers():
-    names = [c.name for c in BEV_CLASSES + CAM2BEV_CLASSES]
-    assert set(names) == set(CLASS_COLORS) and len(CLASS_COLORS) == 9
-    for c in BEV_CLASSES + CAM2BEV_CLASSES:  # one source: every class takes its name's colour
+    names = [c.name for c in BEV_CLASSES + CAM2BEV_CLASSES + S2G2_CLASSES]
+    assert set(names) == set(CLASS_COLORS) and len(CLASS_COLORS) == 11
+    for c in BEV_CLASSES + CAM2BEV_CLASSES + S2G2_CLASSES:  # one source: every class takes its name's colour
         assert c.color == CLASS_COLORS[c.name]
     neutral = {"empty": EMPTY_COLOR, "unknown": UNKNOWN_COLORS[0], "hatch": UNKNOWN_COLORS[1]}
-    assert _too_close(dict(CLASS_COLORS), neutral) == []
+    # the standard and Cam2BEV sets together (mixed by --classes on cam2bev4), and S2G2's set
+    first_nine = {c.name: c.color for c in BEV_CLASSES + CAM2BEV_CLASSES}
+    assert len(first_nine) == 9 and _too_close(first_nine, neutral) == []
+    assert _too_close({c.name: c.color for c in S2G2_CLASSES}, neutral) == []
+    for own in ("terrain", "obstacle"):  # S2G2's own colours stay well away from every other one
+        assert min(_delta_e(CLASS_COLORS[own], CLASS_COLORS[n]) for n in first_nine) > 24
     # the reported pair, by a wide margin in every vision
     assert min(_delta_e(CLASS_COLORS["pedestrian"], CLASS_COLORS["road_boundary"], v)
                for v, _ in _VISION_MARGINS) > 30

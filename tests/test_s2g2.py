@@ -11,8 +11,9 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from bags import train_cli as cli
-from bev_mapper_core.errors import ConfigError
-from bev_mapper_core.grid import BevGrid
+from bev_mapper_core.classes import NUM_LABELS, S2G2_CLASSES, Label, label_lut
+from bev_mapper_core.errors import ConfigError, GridError
+from bev_mapper_core.grid import BevGrid, grid_preset
 from bev_mapper_core.mapper import MapperConfig, available_methods, create_mapper
 from bev_mapper_core.models import BiMapper, BiMapperConfig, save_weights
 from bev_mapper_core.models.s2g2 import S2G2, S2G2Config
@@ -34,11 +35,13 @@ from bev_mapper_core.models.s2g2_losses import (
     sigmoid_rampup,
 )
 from bev_mapper_core.models.s2g2_weights import load_s2g2, read_s2g2_metadata, save_s2g2
+from bev_mapper_core.models.segipm_mapper import shipped_segmenter
+from bev_mapper_core.models.segmenter_weights import load_segmenter
 from bev_mapper_core.models.weights import WeightsError
 from bev_mapper_core.rig import preset_rig
 from bev_mapper_core.training.config import TrainConfig
 from bev_mapper_core.training.data import FrameSet
-from bev_mapper_core.training.method import train_methods
+from bev_mapper_core.training.method import method_class, train_methods
 from bev_mapper_core.training.s2g2_method import S2G2Training
 from bev_mapper_core.training.sources import DataNeeds, InMemorySource, SynthSource, TrainData
 from bev_mapper_core.training.trainer import train
@@ -54,7 +57,7 @@ TINY_RUN = dict(method="s2g2", rig="front1", classes=",".join(CLASSES), epochs=5
                 train_drives=1, val_drives=1, unlabeled_drives=1, unlabeled_style="dusk", frames_per_drive=4,
                 stride=2, threads=1, input_width=32, width_mult=0.25, depth_mult=0.25, encoder_stages=3,
                 bev_downsample=4, decoder_channels=8, consistency_ramp_steps=4, grid=[0.0, 16.0, -8.0, 8.0, 0.5],
-                progress=False)
+                encoder_init="none", progress=False)
 
 
 def _rgb(n: int = 2, seed: int = 0) -> torch.Tensor:
@@ -371,6 +374,49 @@ def test_unlabeled_frames_from_a_bag(tmp_path):
     assert cli.main(["--config", str(cfg_file), "--unlabeled", str(bag), "--out", str(out)]) == 0
     assert (out / "last.safetensors").is_file()
     assert json.loads((out / "last.json").read_text())["config"]["unlabeled_bag"] == [str(bag)]
+
+
+def test_encoder_starts_from_the_shipped_segmenters_trunk(tmp_path):
+    """The default S2G2 config has the segmenter's trunk sizes: on RGB input its encoder starts as
+    the shipped segmenter's encoder, tensor for tensor; from scratch with ``none`` or on labels."""
+    seg = load_segmenter(shipped_segmenter("front1")).state_dict()
+    base = dict(method="s2g2", rig="front1", input="rgb", classes=",".join(CLASSES), grid="ahead")
+
+    def encoder(**over):
+        cfg = TrainConfig.from_dict({**base, **over})
+        torch.manual_seed(0)
+        return method_class("s2g2")(cfg, RIG, cfg.grid).model.encoder.state_dict()
+
+    pre = encoder()
+    assert pre and all(torch.equal(v, seg["encoder." + k]) for k, v in pre.items())
+    scratch = encoder(encoder_init="none")
+    assert not all(torch.equal(v, scratch[k]) for k, v in pre.items() if v.is_floating_point())
+    labels = encoder(input="labels")  # auto: no RGB trunk for one-hot label input
+    assert next(iter(labels.values())).shape[1] == NUM_LABELS
+    with pytest.raises(ConfigError, match="reads RGB images"):
+        encoder(input="labels", encoder_init="segmenter")
+    with pytest.raises(ConfigError, match="do not exist"):
+        encoder(encoder_init=str(tmp_path / "nope.safetensors"))
+    with pytest.raises(WeightsError, match="does not fit this encoder"):
+        encoder(width_mult=0.5)
+    assert cli.train_parser("s2g2").parse_args(["--encoder-init", "none"]).encoder_init == "none"
+
+
+def test_named_grids_and_the_paper_class_set():
+    ahead = grid_preset("ahead")
+    assert ahead.shape == (128, 128) and ahead.x_min == 0.0 and grid_preset("surround") == BevGrid()
+    with pytest.raises(GridError, match="named grids"):
+        grid_preset("behind")
+    a = cli.train_parser("s2g2").parse_args(["--grid", "ahead", "--classes", "s2g2"])
+    cfg = TrainConfig.from_dict({"method": "s2g2", "rig": "front1", **vars(a)})
+    assert cfg.grid == ahead and cfg.class_names == ("road", "sidewalk", "terrain", "obstacle")
+    assert TrainConfig.from_dict(cfg.to_dict()).grid == ahead  # saved with the checkpoint
+    with pytest.raises(SystemExit):
+        cli.train_parser("s2g2").parse_args(["--grid", "behind"])
+    # the paper's obstacle layer is everything standing on the ground, terrain the verges
+    lut = label_lut(S2G2_CLASSES)
+    assert lut[Label.BUILDING, 3] and lut[Label.VEHICLE, 3] and not lut[Label.ROAD, 3] and lut[Label.TERRAIN, 2]
+    assert lut[Label.LANE_DIVIDER, 0] and not lut[Label.TERRAIN, 0]
 
 
 @pytest.mark.slow

@@ -4,8 +4,10 @@
 weights file keeps both branches):
 
 * **Feature extractor**: the project's :class:`~.efficientnet.EfficientNet` trunk, shared by
-  labeled and unlabeled frames (the paper: a pretrained B4, 448 channels at 1/32; here trained
-  from scratch), its last endpoint ``F_front`` ``(B, C, hf, wf)``.
+  labeled and unlabeled frames (the paper: a pretrained B4, 448 channels at 1/32; here by default
+  the trunk of the project's segmenter, width 0.75, depth 0.5, 5 stages, 84 channels at 1/16,
+  from which training starts: see :mod:`~bev_mapper_core.training.s2g2_method`), its last
+  endpoint ``F_front`` ``(B, C, hf, wf)``.
 * **Dual-attention view transformation** (:mod:`.s2g2_blocks`): ``F_BEV = H_B^F(F_front)``, the
   cycled ``F~_front = H_F^B(F_BEV)`` (cycle loss), the cross-view attention giving ``F_C`` and
   the inter-view attention giving ``F_I`` (tied by ``L_BEV``). An ablated attention
@@ -80,7 +82,7 @@ class S2G2Config:
     classes: tuple[str, ...] = BEV_CLASS_NAMES
     input_width: int = 192
     encoder_variant: str = "b0"
-    width_mult: float | None = 0.5
+    width_mult: float | None = 0.75
     depth_mult: float | None = 0.5
     encoder_stages: int = 5
     drop_connect_rate: float = 0.2

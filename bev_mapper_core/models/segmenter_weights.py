@@ -95,4 +95,26 @@ def load_segmenter(path: str | os.PathLike, device: str | torch.device = "cpu") 
     return model
 
 
-__all__ = ["FORMAT", "load_segmenter", "read_segmenter_metadata", "save_segmenter"]
+def load_segmenter_trunk(encoder: torch.nn.Module, path: str | os.PathLike) -> None:
+    """Copy the EfficientNet trunk of the segmenter in ``path`` into ``encoder`` (another model's
+    :class:`~.efficientnet.EfficientNet`, e.g. S2G2's feature extractor: a pretrained start).
+
+    Raises:
+        WeightsError: a bad segmenter file (see :func:`load_segmenter`), or a trunk whose tensors
+            differ in name or shape from ``encoder``'s (another width, depth or stage count).
+    """
+    trunk = {k[len("encoder."):]: v for k, v in load_segmenter(path).state_dict().items() if k.startswith("encoder.")}
+    own = encoder.state_dict()
+    missing, extra = sorted(set(own) - set(trunk)), sorted(set(trunk) - set(own))
+    wrong = [k for k in own if k in trunk and tuple(own[k].shape) != tuple(trunk[k].shape)]
+    if missing or extra or wrong:
+        first = (missing or extra or wrong)[0]
+        raise WeightsError(f"{path}: the segmenter's encoder does not fit this encoder ({len(missing)} missing, "
+                           f"{len(extra)} extra, {len(wrong)} misshapen tensors, e.g. {first!r}); the trunk sizes "
+                           "(width, depth, stages) must be the segmenter's")
+    with torch.no_grad():
+        for k, v in own.items():
+            v.copy_(trunk[k])
+
+
+__all__ = ["FORMAT", "load_segmenter", "load_segmenter_trunk", "read_segmenter_metadata", "save_segmenter"]

@@ -19,9 +19,9 @@ from dataclasses import MISSING, asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-from ..classes import BEV_CLASS_NAMES, CAM2BEV_CLASSES, resolve_classes
+from ..classes import BEV_CLASS_NAMES, CAM2BEV_CLASSES, CLASS_SETS, resolve_classes
 from ..errors import BevMapperError, ConfigError
-from ..grid import BevGrid
+from ..grid import BevGrid, grid_preset
 from ..label_maps import label_map
 from ..mapper import MapperConfig
 from ..rig import PRESETS
@@ -39,16 +39,15 @@ MODEL_ALIASES = {"input": "input_kind"}
 
 
 def class_set(name_or_list, rig: str) -> tuple[str, ...]:
-    """``auto`` (Cam2BEV's road / vehicle / static for ``cam2bev4``, else the standard set),
-    ``standard``, ``cam2bev``, or a comma-separated list / sequence of class names.
+    """``auto`` (Cam2BEV's road / vehicle / static for ``cam2bev4``, else the standard set), a
+    class set's name (``standard``, ``cam2bev``, ``s2g2``: :data:`~bev_mapper_core.classes.CLASS_SETS`),
+    or a comma-separated list / sequence of class names.
     """
     if isinstance(name_or_list, str):
         if name_or_list == AUTO_CLASSES:
             return CAM2BEV_CLASS_NAMES if rig == "cam2bev4" else BEV_CLASS_NAMES
-        if name_or_list == "standard":
-            return BEV_CLASS_NAMES
-        if name_or_list == "cam2bev":
-            return CAM2BEV_CLASS_NAMES
+        if name_or_list in CLASS_SETS:
+            return tuple(c.name for c in CLASS_SETS[name_or_list])
         names = tuple(n.strip() for n in name_or_list.split(",") if n.strip())
     else:
         names = tuple(name_or_list)
@@ -77,9 +76,12 @@ def _build(cls: type, d: dict, what: str):
 
 
 def _grid(v) -> BevGrid:
-    """A BevGrid from a BevGrid, a mapping, the old 5-sequence, or None (the default grid)."""
+    """A BevGrid from a BevGrid, a grid's name (:data:`~bev_mapper_core.grid.GRID_PRESETS`), a
+    mapping, the old 5-sequence, or None (the default grid)."""
     if v is None:
         return BevGrid()
+    if isinstance(v, str):
+        return grid_preset(v)
     if isinstance(v, BevGrid):
         return v
     if isinstance(v, dict):

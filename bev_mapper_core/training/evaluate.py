@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import ConfigError
 from ..grid import BevGrid
 from ..mapper import MapperConfig, create_mapper
 from ..metrics import MetricAccumulator, scope_masks
@@ -68,13 +69,17 @@ def score_frameset(predict: Callable[[dict], tuple[np.ndarray, np.ndarray]], fra
 def evaluate_mapper(mapper, frames: FrameSet, grid: BevGrid, scope: str = "visible",
                     progress: bool = False) -> dict:
     """:func:`score_frameset` of a :class:`~bev_mapper_core.mapper.Mapper` over full-resolution
-    ``frames``, one frame at a time through ``mapper.map`` (as the node and replay call it).
+    ``frames``, one frame at a time through ``mapper.map`` (as the node and replay call it). A
+    mapper on RGB input (``mapper.config.input_kind == "rgb"``) gets the frames' camera images.
     """
     names = frames.camera_names
+    rgb = mapper.config.input_kind == "rgb"
+    if rgb and frames.rgb is None:
+        raise ConfigError("an RGB mapper needs frames with camera images (load them with rgb=...)")
 
-    def predict(batch: dict):  # images (1, N, H, W) -> (1, C, H, W), (1, H, W)
-        labels = batch["images"].numpy()
-        pred = mapper.map({n: labels[0, c] for c, n in enumerate(names)})
+    def predict(batch: dict):  # images (1, N, H, W[, 3]) -> (1, C, H, W), (1, H, W)
+        images = (batch["rgb"] if rgb else batch["images"]).numpy()
+        pred = mapper.map({n: images[0, c] for c, n in enumerate(names)})
         return pred.probs[None], pred.known[None]
 
     return score_frameset(predict, frames, grid, mapper.class_names, scope=scope,
@@ -82,24 +87,36 @@ def evaluate_mapper(mapper, frames: FrameSet, grid: BevGrid, scope: str = "visib
 
 
 def held_out_frames(rig: Rig, grid: BevGrid, classes: Sequence[str], seeds: Sequence[int], frames: int = 20,
-                    stride: int = 3, cache: str | None = "data/cache", progress: bool = False) -> FrameSet:
-    """The held-out drives at full resolution (from the cache when present)."""
-    return synth_frameset(rig, grid, classes, seeds, frames, stride, cache, None, progress=progress)
+                    stride: int = 3, cache: str | None = "data/cache", progress: bool = False,
+                    rgb: bool = False, style: str | None = None) -> FrameSet:
+    """The held-out drives at full resolution (from the cache when present); ``rgb``: with the
+    camera images (full size) in appearance ``style`` (default ``SynthConfig.style``).
+    """
+    size = None
+    if rgb:
+        w, h = rig.cameras[0].model.image_size
+        size = (h, w)
+    return synth_frameset(rig, grid, classes, seeds, frames, stride, cache, None, progress=progress,
+                          rgb=size, style=style)
 
 
 def evaluate(rig: Rig, grid: BevGrid, classes: Sequence[str], method: str, weights: str | None, seeds: Sequence[int],
              frames: int = 20, stride: int = 3, cache: str | None = "data/cache", device: str = "cpu",
              progress: bool = False, ipm_occlusion: bool = MapperConfig.ipm_occlusion,
-             unknown_below: float = MapperConfig.unknown_below) -> dict:
+             unknown_below: float = MapperConfig.unknown_below, input_kind: str = "labels",
+             style: str | None = None) -> dict:
     """Build the mapper and score it on the held-out drives ``seeds`` (``ipm_occlusion``, ``unknown_below``: see
-    :class:`~bev_mapper_core.mapper.MapperConfig`; False = the classical IPM).
+    :class:`~bev_mapper_core.mapper.MapperConfig`; False = the classical IPM). ``input_kind``
+    ``rgb``: the mapper reads the drives' camera images, rendered in ``style``.
     """
-    fs = held_out_frames(rig, grid, classes, seeds, frames, stride, cache, progress)
-    mapper = create_mapper(rig, grid, MapperConfig(method=method, input_kind="labels", classes=tuple(classes),
+    fs = held_out_frames(rig, grid, classes, seeds, frames, stride, cache, progress, rgb=input_kind == "rgb",
+                         style=style)
+    mapper = create_mapper(rig, grid, MapperConfig(method=method, input_kind=input_kind, classes=tuple(classes),
                                                    weights=weights, device=device,
                                                    ipm_occlusion=ipm_occlusion, unknown_below=unknown_below))
     res = evaluate_mapper(mapper, fs, grid, progress=progress)
-    res.update(method=method, weights=weights, rig=rig.name, seeds=list(seeds), frames_per_drive=frames, stride=stride)
+    res.update(method=method, weights=weights, rig=rig.name, seeds=list(seeds), frames_per_drive=frames, stride=stride,
+               input_kind=input_kind, style=style if input_kind == "rgb" else None, grid=grid.to_dict())
     return res
 
 

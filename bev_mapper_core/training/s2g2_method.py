@@ -17,6 +17,16 @@ behind ``--optimizer adam``. On the tiny CPU runs of the tests both lower the lo
 (``tests/test_s2g2.py``), so the paper's optimizer stays the default; which one trains better
 over a full CPU run is left to the results of issue #13.
 
+**Pretrained feature extractor.** The paper starts from an ImageNet-pretrained EfficientNet-B4.
+Nothing can be downloaded here, so the project's equivalent is its own pretrained image encoder:
+the EfficientNet trunk of the shipped 2-D segmenter (``weights/segmenter.safetensors``, trained
+on labeled drives in the training styles, never on the held-out ``dusk`` style or the test
+seeds). ``encoder_init`` ``auto`` (default) copies it into S2G2's encoder on RGB input (the
+default :class:`~bev_mapper_core.models.s2g2.S2G2Config` has the segmenter's trunk sizes);
+``none`` trains from scratch; a path names another segmenter file. Supervised-only and
+semi-supervised runs start from the same encoder, so comparisons between them stay fair.
+A resumed run then loads its own checkpoint over it.
+
 Validation scores the branch the weights will map with (``inference_branch``, saved in the
 weights' metadata).
 """
@@ -26,6 +36,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -36,6 +47,8 @@ from ..models.s2g2 import BRANCHES, S2G2, S2G2Config
 from ..models.s2g2_blocks import VIEW_TRANSFORMS
 from ..models.s2g2_losses import BEV_TIES, S2G2LossConfig, ema_decay_at, ema_update, s2g2_loss
 from ..models.s2g2_weights import load_state_s2g2, save_s2g2
+from ..models.segipm_mapper import shipped_segmenter
+from ..models.segmenter_weights import load_segmenter_trunk
 from .bimapper_method import POS_WEIGHTS, class_pos_weight
 from .method import CliFlag, TrainMethod
 from .sources import DataNeeds, TrainData
@@ -64,6 +77,9 @@ class S2G2Training:
             ``passive``: its EMA); scored in validation and saved with the weights.
         supervised_only: train without unlabeled frames (ablation: the consistency loss then
             sees the labeled frames only).
+        encoder_init: ``auto`` (the shipped segmenter's trunk on RGB input, none on label
+            input), ``none`` (from scratch), ``segmenter`` (the shipped one), or a segmenter
+            weights path (see the module docstring).
     """
 
     cycle_weight: float = S2G2LossConfig.cycle_weight
@@ -77,8 +93,11 @@ class S2G2Training:
     optimizer: str = "sgd"
     inference_branch: str = "active"
     supervised_only: bool = False
+    encoder_init: str = "auto"
 
     def __post_init__(self) -> None:
+        if not isinstance(self.encoder_init, str) or not self.encoder_init:
+            raise ConfigError(f"encoder_init must be auto, none, segmenter or a file path, got {self.encoder_init!r}")
         v = self.ema_decay
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not 0 <= v <= 1:
             raise ConfigError(f"ema_decay must be a number in [0, 1], got {v!r}")
@@ -96,6 +115,29 @@ class S2G2Training:
         return S2G2LossConfig(cycle_weight=self.cycle_weight, bev_weight=self.bev_weight, bev_tie=self.bev_tie,
                               consistency_weight=self.consistency_weight,
                               consistency_ramp_steps=self.consistency_ramp_steps, pos_weight=pos_weight)
+
+
+def encoder_source(spec: str, input_kind: str) -> Path | None:
+    """The segmenter file whose trunk initializes S2G2's encoder (``None``: from scratch).
+
+    Raises:
+        ConfigError: a segmenter asked for on label input (its first layer reads RGB), no shipped
+            segmenter, or a path that is not a file.
+    """
+    if spec == "none" or (spec == "auto" and input_kind != "rgb"):
+        return None
+    if input_kind != "rgb":
+        raise ConfigError(f"encoder_init {spec!r}: a segmenter's trunk reads RGB images, the model's input is "
+                          f"{input_kind!r} (use auto or none)")
+    if spec in ("auto", "segmenter"):
+        path = shipped_segmenter("front1")
+        if path is None:
+            raise ConfigError("encoder_init: no segmenter ships with the package; use --encoder-init none or a path")
+        return path
+    path = Path(spec)
+    if not path.is_file():
+        raise ConfigError(f"encoder_init: segmenter weights {spec} do not exist")
+    return path
 
 
 class S2G2Method(TrainMethod):
@@ -125,11 +167,18 @@ class S2G2Method(TrainMethod):
         CliFlag("--optimizer", "optimizer", choices=OPTIMIZERS, help="sgd: the paper's (momentum 0.9, wd 1e-4)"),
         CliFlag("--inference-branch", "inference_branch", choices=BRANCHES, help="the branch that maps"),
         CliFlag("--supervised-only", "supervised_only", action="store_true", help="no unlabeled frames (ablation)"),
+        CliFlag("--encoder-init", "encoder_init",
+                help="auto | none | segmenter | PATH: pretrained feature extractor, a segmenter's EfficientNet "
+                     "trunk (auto: the shipped segmenter's on RGB input)"),
     )
 
     @override
     def build_model(self) -> S2G2:
-        return S2G2(self.cfg.model, self.rig, self.grid)
+        model = S2G2(self.cfg.model, self.rig, self.grid)
+        self.encoder_source = encoder_source(self.cfg.loss.encoder_init, self.cfg.model.input_kind)
+        if self.encoder_source is not None:
+            load_segmenter_trunk(model.encoder, self.encoder_source)
+        return model
 
     @override
     def trainable_parameters(self):
@@ -146,8 +195,9 @@ class S2G2Method(TrainMethod):
     def describe(self) -> str:
         m, c = self.model, self.cfg.model
         att = [n for n, on in (("cross-view", c.cross_view_attention), ("inter-view", c.inter_view_attention)) if on]
-        return (f"input {m.input_size}, front features {m.front_hw} -> BEV features {m.bev_hw} ({c.view_transform}), "
-                f"attention {' + '.join(att) or 'none'}, classes {list(self.cfg.class_names)}")
+        init = f"encoder from {self.encoder_source}" if self.encoder_source else "encoder from scratch"
+        return (f"input {m.input_size}, {init}, front features {m.front_hw} -> BEV features {m.bev_hw} "
+                f"({c.view_transform}), attention {' + '.join(att) or 'none'}, classes {list(self.cfg.class_names)}")
 
     @override
     def schedule(self) -> str:
@@ -205,4 +255,4 @@ class S2G2Method(TrainMethod):
         load_state_s2g2(self.model, path)
 
 
-__all__ = ["OPTIMIZERS", "S2G2Method", "S2G2Training"]
+__all__ = ["OPTIMIZERS", "S2G2Method", "S2G2Training", "encoder_source"]
