@@ -1,12 +1,14 @@
 """Benchmark: the mapper node's end-to-end rate and latency with a real method, over DDS.
 
-Starts ``mapper_node`` in its own process (surround6 parameters, loopback-only discovery, a
-private domain), publishes full-size surround6 label images at ``--hz`` with stamps = now,
+Starts ``mapper_node`` in its own process (a shipped parameter file, default ``surround6``;
+loopback-only discovery, a private domain), publishes the file's rig's full-size synthetic images
+(label images, or RGB where the file sets ``input_kind: rgb``) at ``--hz`` with stamps = now,
 and measures on ``/bev/drivable``: grids per second and latency (receive time - image stamp).
 When the method is slower than the input, the node drops stale sets (that is the design), so
 the output rate is the method's sustainable rate.
 
     .venv/bin/python bench/bench_node_rate.py --method bimapper [--hz 20] [--seconds 20]
+    .venv/bin/python bench/bench_node_rate.py --params front1_s2g2      # S2G2 on one RGB camera
 """
 
 from __future__ import annotations
@@ -24,7 +26,8 @@ REPO = pathlib.Path(__file__).resolve().parents[1]
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--method", default="bimapper", help="bimapper (the node default) or ipm")
+    ap.add_argument("--params", default="surround6", help="config/<NAME>.yaml (default: %(default)s)")
+    ap.add_argument("--method", default=None, help="override the file's method (bimapper, ipm, s2g2, ...)")
     ap.add_argument("--hz", type=float, default=20.0, help="input rate of synchronized sets")
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--domain-id", type=int, default=150 + os.getpid() % 50)
@@ -33,6 +36,7 @@ def main() -> None:
     os.environ["ROS_DOMAIN_ID"] = str(args.domain_id)
 
     import rclpy  # noqa: PLC0415 - after the environment is set
+    import yaml  # noqa: PLC0415
     from diagnostic_msgs.msg import DiagnosticArray  # noqa: PLC0415
     from nav_msgs.msg import OccupancyGrid  # noqa: PLC0415
     from rclpy.qos import qos_profile_sensor_data  # noqa: PLC0415
@@ -43,17 +47,23 @@ def main() -> None:
     from bev_mapper_core.synth import SynthConfig, generate_drive  # noqa: PLC0415
     from msg_adapters import RclpyFactory, make_camera_info, make_image  # noqa: PLC0415
 
-    rig = preset_rig("surround6")
-    frames = [{n: c.labels for n, c in f.cameras.items()}
-              for f in generate_drive(rig, BevGrid(), SynthConfig(frames=10, seed=950_000_008))]
+    params_file = REPO / "config" / f"{args.params}.yaml"
+    params = yaml.safe_load(params_file.read_text())["/**"]["ros__parameters"]
+    rig, kind = preset_rig(params["rig"]), params.get("input_kind", "labels")
+    method = args.method or params["method"]
+    grid = BevGrid.from_dict(params["grid"])
+    frames = [{n: (c.labels if kind == "labels" else c.rgb) for n, c in f.cameras.items()}
+              for f in generate_drive(rig, grid, SynthConfig(frames=10, seed=950_000_008))]
     node_proc = subprocess.Popen(
         [sys.executable, "-m", "bev_mapper_ros.mapper_node", "--ros-args", "--params-file",
-         str(REPO / "config" / "surround6.yaml"), "-p", f"method:={args.method}"],
+         str(params_file), "-p", f"method:={method}"],
         cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT, env=dict(os.environ))
     rclpy.init()
     node = rclpy.create_node("bench_node_rate")
     factory = RclpyFactory()
-    pubs = {c: node.create_publisher(Image, f"/cameras/{c}/labels", qos_profile_sensor_data) for c in rig.names}
+    topic = "labels" if kind == "labels" else "image_raw"
+    encoding = "mono8" if kind == "labels" else "rgb8"
+    pubs = {c: node.create_publisher(Image, f"/cameras/{c}/{topic}", qos_profile_sensor_data) for c in rig.names}
     infos = {c: node.create_publisher(CameraInfo, f"/cameras/{c}/camera_info", 10) for c in rig.names}
     received: list[tuple[float, int]] = []
 
@@ -79,7 +89,7 @@ def main() -> None:
             stamp = time.time_ns()
             for cam in rig.cameras:
                 infos[cam.name].publish(make_camera_info(factory, cam.model, stamp, cam.frame_id))
-                pubs[cam.name].publish(make_image(factory, frames[k % len(frames)][cam.name], "mono8",
+                pubs[cam.name].publish(make_image(factory, frames[k % len(frames)][cam.name], encoding,
                                                   stamp, cam.frame_id))
             k += 1
             if warm is None and received:
@@ -93,7 +103,9 @@ def main() -> None:
         steady = [r for r in received if r[0] >= warm[1]]
         rate = (len(steady) - 1) / (steady[-1][0] - steady[0][0]) if len(steady) > 1 else 0.0
         lat = [(t - s / 1e9) * 1000.0 for t, s in steady]
-        print(f"method {args.method}: input {args.hz:.1f} sets/s of 6 x 400x225 labels for {args.seconds:.0f} s")
+        w, h = rig.cameras[0].model.image_size
+        print(f"{args.params}.yaml, method {method}: input {args.hz:.1f} sets/s of {len(rig.cameras)} x {w}x{h} "
+              f"{kind} for {args.seconds:.0f} s")
         print(f"output rate      : {rate:.1f} grids/s on /bev/drivable ({len(steady)} after warm-up)")
         print(f"latency (recv - stamp): p50 {statistics.median(lat):.1f} ms, "
               f"p95 {sorted(lat)[int(0.95 * (len(lat) - 1))]:.1f} ms")

@@ -8,11 +8,12 @@ import pytest
 import yaml
 
 from bev_mapper_core.errors import ConfigError, GridError
+from bev_mapper_core.grid import grid_preset
 from bev_mapper_core.rig import PRESETS, preset_rig
 from bev_mapper_core.transforms import quat_to_rot
 from bev_mapper_ros.calibration import LiveCalibration
 from bev_mapper_ros.config import NodeConfigError, node_config_from_params
-from bev_mapper_ros.rig_params import CONFIG_DIR, write_configs
+from bev_mapper_ros.rig_params import CONFIG_DIR, METHOD_CONFIGS, write_configs
 from bev_mapper_ros.worker import LatestSlot, Worker
 
 
@@ -52,9 +53,14 @@ def test_bad_params_are_rejected_with_a_clear_message(params, error, message):
 def test_shipped_configs_match_the_rig_presets(tmp_path):
     """config/*.yaml are generated from the presets; a stale file would map with wrong extrinsics."""
     written = write_configs(tmp_path)
-    assert sorted(p.name for p in written) == sorted(f"{n}.yaml" for n in PRESETS)
+    assert sorted(p.name for p in written) == sorted(f"{n}.yaml" for n in (*PRESETS, *METHOD_CONFIGS))
     for path in written:
         assert (CONFIG_DIR / path.name).read_text() == path.read_text(), f"regenerate {path.name}"
+    doc = yaml.safe_load((CONFIG_DIR / "front1_s2g2.yaml").read_text())["/**"]["ros__parameters"]
+    flat = {k: v for k, v in doc.items() if k not in ("grid", "extrinsics")}
+    flat.update({f"grid.{k}": v for k, v in doc["grid"].items()})
+    s2g2 = node_config_from_params(flat)
+    assert s2g2.mapper.method == "s2g2" and s2g2.mapper.input_kind == "rgb" and s2g2.grid == grid_preset("ahead")
     # And the parameters really describe the preset's extrinsics.
     params = yaml.safe_load((CONFIG_DIR / "surround6.yaml").read_text())["/**"]["ros__parameters"]
     rig = preset_rig("surround6")

@@ -283,8 +283,8 @@ def test_mapper_maps_a_frame_and_refuses_multi_camera_rigs(tmp_path):
     np.testing.assert_allclose(sub.probs[0], pred.probs[1], atol=1e-6)
     with pytest.raises(ConfigError, match="S2G2 is monocular"):
         create_mapper(preset_rig("surround6"), GRID, cfg)
-    with pytest.raises(ConfigError, match="no S2G2 weights ship"):
-        create_mapper(RIG, GRID, replace(cfg, weights=None))
+    with pytest.raises(ConfigError, match="no S2G2 weights given and none shipped for rig 'front1' / input 'labels'"):
+        create_mapper(RIG, GRID, replace(cfg, weights=None, input_kind="labels"))
     with pytest.raises(WeightsError, match="configured input is 'labels'"):
         create_mapper(RIG, GRID, replace(cfg, input_kind="labels"))
     with pytest.raises(WeightsError, match="grid"):

@@ -2,9 +2,10 @@
 
 Registered as ``"s2g2": "bev_mapper_core.models.s2g2_mapper:S2G2Mapper"``. Built from
 ``MapperConfig(method="s2g2", weights=path, input_kind=..., device=...)`` for a rig of one
-camera. No S2G2 weights ship yet: ``weights`` is required (train them with ``bev-train --method
-s2g2 --rig front1``). The weights' metadata names the branch that maps (``inference_branch``:
-``active`` or ``passive``). With ``classes=None`` the weights' classes are used; otherwise they
+camera. Without ``weights`` the shipped file of the rig and input kind is used,
+``weights/s2g2_<rig>_<input>.safetensors`` (``s2g2_front1_rgb``, trained on the ``ahead`` grid:
+the node's ``config/front1_s2g2.yaml`` sets that grid). The weights' metadata names the branch
+that maps (``inference_branch``: ``active`` or ``passive``). With ``classes=None`` the weights' classes are used; otherwise they
 must be among them (a subset, any order).
 """
 
@@ -25,29 +26,43 @@ from .runtime import inference_device
 from .s2g2 import S2G2, check_monocular
 from .s2g2_weights import WeightsError, load_s2g2, read_s2g2_metadata, validate_s2g2
 
+WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
+
+
+def shipped_s2g2(rig_name: str, input_kind: str) -> Path:
+    """Where the shipped S2G2 weights of a rig and input kind live (the file may not exist)."""
+    return WEIGHTS_DIR / f"s2g2_{rig_name}_{input_kind}.safetensors"
+
 
 class S2G2Mapper(Mapper):
     """Learned S2G2 inference: batch 1, ``torch.inference_mode``, sigmoid probabilities of the
     weights' ``inference_branch``; ``known`` = ground cells inside the camera's image.
 
     Raises (constructor):
-        ConfigError: no weights file given, a rig of more than one camera, or a bad device.
+        ConfigError: no weights file given and none shipped, a rig of more than one camera, or a
+            bad device.
         WeightsError: the weights do not fit this rig, grid, input kind or classes.
     """
 
     name = "s2g2"
 
     @classmethod
-    def weights_path(cls, config: MapperConfig) -> Path:
-        """``config.weights``.
+    def weights_path(cls, config: MapperConfig, rig_name: str) -> Path:
+        """``config.weights``, or the shipped file of the rig and input kind.
 
         Raises:
-            ConfigError: none given (no S2G2 weights ship with the package).
+            ConfigError: none given and none shipped for this rig and input kind.
         """
-        if not config.weights:
-            raise ConfigError("no S2G2 weights ship with the package: train them (bev-train --method s2g2 --rig "
-                              "front1 --unlabeled-drives N ...) and pass weights=<file>, or use method 'ipm'")
-        return Path(config.weights)
+        if config.weights:
+            return Path(config.weights)
+        path = shipped_s2g2(rig_name, config.input_kind)
+        if not path.is_file():
+            shipped = sorted(p.name for p in WEIGHTS_DIR.glob("s2g2_*.safetensors"))
+            raise ConfigError(f"no S2G2 weights given and none shipped for rig {rig_name!r} / input "
+                              f"{config.input_kind!r} (shipped: {', '.join(shipped) or 'none'}): train them "
+                              "(bev-train --method s2g2 --rig front1 --grid ahead --unlabeled-drives N ...) and pass "
+                              "weights=<file>, or use method 'ipm'")
+        return path
 
     @classmethod
     def preflight(cls, config: MapperConfig, rig_name: str, grid: BevGrid | None = None,
@@ -63,7 +78,7 @@ class S2G2Mapper(Mapper):
         if cameras is not None and len(cameras) != 1:
             raise ConfigError(f"S2G2 is monocular: rig {rig_name!r} has {len(cameras)} cameras {list(cameras)}; "
                               "use a one-camera rig (e.g. front1), or method bimapper / ipm")
-        path = cls.weights_path(config)
+        path = cls.weights_path(config, rig_name)
         meta = read_s2g2_metadata(path)
         if meta["input_kind"] != config.input_kind:
             raise WeightsError(f"{path} is for input {meta['input_kind']!r}, configured input is {config.input_kind!r}")
@@ -86,12 +101,12 @@ class S2G2Mapper(Mapper):
         """``config.classes``, or the classes the weights were trained for (header only)."""
         if config.classes is not None:
             return tuple(config.classes)
-        return tuple(read_s2g2_metadata(cls.weights_path(config))["classes"])
+        return tuple(read_s2g2_metadata(cls.weights_path(config, rig_name))["classes"])
 
     def __init__(self, rig: Rig, grid: BevGrid, config: MapperConfig) -> None:
         check_monocular(rig)
         self.preflight(config, rig.name, grid, rig.names)
-        self.weights_file = self.weights_path(config)
+        self.weights_file = self.weights_path(config, rig.name)
         meta = read_s2g2_metadata(self.weights_file)
         weight_classes = tuple(meta["classes"])
         if config.classes is None:
@@ -125,4 +140,4 @@ class S2G2Mapper(Mapper):
         return BevPrediction(self.class_names, np.ascontiguousarray(probs, dtype=np.float32), known.astype(bool))
 
 
-__all__ = ["S2G2Mapper"]
+__all__ = ["S2G2Mapper", "shipped_s2g2"]

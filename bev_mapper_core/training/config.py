@@ -77,7 +77,8 @@ def _build(cls: type, d: dict, what: str):
 
 def _grid(v) -> BevGrid:
     """A BevGrid from a BevGrid, a grid's name (:data:`~bev_mapper_core.grid.GRID_PRESETS`), a
-    mapping, the old 5-sequence, or None (the default grid)."""
+    mapping, the old 5-sequence, or None (the default grid).
+    """
     if v is None:
         return BevGrid()
     if isinstance(v, str):
