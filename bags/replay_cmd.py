@@ -9,11 +9,11 @@ import sys
 import time
 from pathlib import Path
 
-from bev_mapper_core.grid import BevGrid
 from bev_mapper_core.label_maps import PRESET_NAMES
 from bev_mapper_core.mapper import INPUT_KINDS, MapperConfig, available_methods
 from bev_mapper_core.metrics import format_table, format_whole_grid_table
 
+from .grid_args import add_grid_args, grid_from_args
 from .replay import SCOPES, ReplayOptions, replay
 from .writer import STORAGES
 
@@ -105,23 +105,13 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--storage", choices=STORAGES, default=ReplayOptions.storage, help="storage of bev_bag/")
     p.add_argument("--force", action="store_true", help="replace existing outputs in DIR")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    g = BevGrid()
-    grid = p.add_argument_group("grid of bags without GT layers (default: the standard grid)")
-    grid.add_argument("--grid-x-min", type=float, default=None, help=f"default {g.x_min}")
-    grid.add_argument("--grid-x-max", type=float, default=None, help=f"default {g.x_max}")
-    grid.add_argument("--grid-y-min", type=float, default=None, help=f"default {g.y_min}")
-    grid.add_argument("--grid-y-max", type=float, default=None, help=f"default {g.y_max}")
-    grid.add_argument("--grid-res", type=float, default=None, help=f"default {g.resolution}")
+    grid = p.add_argument_group("grid of bags without GT layers (default: the surround grid)")
+    add_grid_args(grid, "the grid to map onto")
 
 
 def options_from_args(args: argparse.Namespace) -> ReplayOptions:
     """Validate parsed arguments into :class:`ReplayOptions`."""
-    values = (args.grid_x_min, args.grid_x_max, args.grid_y_min, args.grid_y_max, args.grid_res)
-    grid = None
-    if any(v is not None for v in values):
-        d = BevGrid()
-        grid = BevGrid(*(d_v if v is None else v for v, d_v in
-                         zip(values, (d.x_min, d.x_max, d.y_min, d.y_max, d.resolution))))
+    grid = grid_from_args(args, default=None)
     mapper = MapperConfig(method=args.method, input_kind=args.input_kind,
                           classes=tuple(args.classes) if args.classes else None,
                           weights=args.weights, device=args.device,

@@ -21,6 +21,7 @@ from bev_mapper_core.synth.config import SynthConfig
 from bev_mapper_core.synth.styles import STYLE_CHOICES, resolve_style, style_help
 
 from .errors import BagError
+from .grid_args import add_grid_args, grid_from_args
 from .writer import STORAGES, DriveSummary, check_output, write_drive
 
 HELP = "write a synthetic drive (images, labels, CameraInfo, TF, odometry, BEV GT) as a bag"
@@ -107,7 +108,7 @@ def gt_classes(rig_name: str) -> tuple:
 
 def configure(p: argparse.ArgumentParser) -> None:
     """Arguments of ``bev-bag synth``."""
-    g, o, sc = BevGrid(), SynthBagOptions, SynthConfig  # the defaults live there
+    o, sc = SynthBagOptions, SynthConfig  # the defaults live there
     p.add_argument("out", type=Path, help="output rosbag2 directory")
     p.add_argument("--rig", default=o.rig, choices=sorted(PRESETS), help="rig preset")
     p.add_argument("--scale", type=float, default=o.scale,
@@ -120,17 +121,12 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--style", default=sc.style, choices=STYLE_CHOICES, help=style_help())
     p.add_argument("--storage", choices=STORAGES, default=o.storage, help="rosbag2 storage plugin")
     p.add_argument("--force", action="store_true", help="overwrite an existing bag at OUT")
-    p.add_argument("--grid-x-min", type=float, default=g.x_min, help="BEV grid x min (m)")
-    p.add_argument("--grid-x-max", type=float, default=g.x_max, help="BEV grid x max (m)")
-    p.add_argument("--grid-y-min", type=float, default=g.y_min, help="BEV grid y min (m)")
-    p.add_argument("--grid-y-max", type=float, default=g.y_max, help="BEV grid y max (m)")
-    p.add_argument("--grid-res", type=float, default=g.resolution, help="BEV cell size (m)")
+    add_grid_args(p, "BEV grid of the GT layers (default surround)")
 
 
 def options_from_args(args: argparse.Namespace) -> SynthBagOptions:
     """Validate parsed arguments into :class:`SynthBagOptions` (raises ConfigError/GridError)."""
-    grid = BevGrid(args.grid_x_min, args.grid_x_max, args.grid_y_min, args.grid_y_max,
-                   args.grid_res)
+    grid = grid_from_args(args)
     synth = SynthConfig(frames=args.frames, seed=args.seed, rate_hz=args.rate_hz,
                         jitter_ms=args.jitter_ms, style=args.style)
     return SynthBagOptions(out=args.out, rig=args.rig, scale=args.scale, storage=args.storage,

@@ -16,7 +16,7 @@ from rclpy.signals import uninstall_signal_handlers
 from ros_helpers import REPO, core_map_as_received, rclpy, spin_until, start_process, stop_process
 from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 
-from bev_mapper_core.grid import BevGrid
+from bev_mapper_core.grid import BevGrid, grid_preset
 from bev_mapper_core.ipm import IpmMapper
 from bev_mapper_core.mapper import MapperConfig, create_mapper
 from bev_mapper_core.rig import Rig, RigCamera, preset_rig
@@ -32,9 +32,9 @@ CLASSES = ("drivable", "ped_crossing", "vehicle")
 PARAMS_FILE = REPO / "config" / "surround6.yaml"
 
 
-def node_view_of_rig(rig: Rig) -> Rig:
+def node_view_of_rig(rig: Rig, params_file: pathlib.Path = PARAMS_FILE) -> Rig:
     """The rig exactly as the node sees it: intrinsics via CameraInfo, extrinsics via the YAML."""
-    params = yaml.safe_load(PARAMS_FILE.read_text())["/**"]["ros__parameters"]
+    params = yaml.safe_load(params_file.read_text())["/**"]["ros__parameters"]
     flat = {"cameras": params["cameras"]}
     flat.update({f"extrinsics.{k}": v for k, v in params["extrinsics"].items()})
     cfg = node_config_from_params(flat)
@@ -86,16 +86,16 @@ class Driver:
     ``log``: the node process's log, where it reports each camera's calibration (readiness).
     """
 
-    def __init__(self, node, rig: Rig, log: pathlib.Path, kind: str = "labels"):
+    def __init__(self, node, rig: Rig, log: pathlib.Path, kind: str = "labels", classes: tuple[str, ...] = CLASSES):
         self.node, self.rig, self.log, self.factory, self.kind = node, rig, log, RclpyFactory(), kind
         topic = "labels" if kind == "labels" else "image_raw"
         self.labels = {c: node.create_publisher(Image, f"/cameras/{c}/{topic}", qos_profile_sensor_data)
                        for c in rig.names}
         self.infos = {c: node.create_publisher(CameraInfo, f"/cameras/{c}/camera_info", 10)
                       for c in rig.names}
-        self.grids: dict[str, dict[int, OccupancyGrid]] = {c: {} for c in CLASSES}
+        self.grids: dict[str, dict[int, OccupancyGrid]] = {c: {} for c in classes}
         self.diags: list[DiagnosticArray] = []
-        for c in CLASSES:
+        for c in classes:
             node.create_subscription(OccupancyGrid, f"/bev/{c}", self._grid_cb(c), 10)
         node.create_subscription(DiagnosticArray, "/diagnostics", self.diags.append, 10)
         assert spin_until(node, lambda: all(p.get_subscription_count() > 0 for p in self.labels.values()), 30.0), \
@@ -137,7 +137,7 @@ class Driver:
             spin_until(self.node, lambda: False, 0.01)  # paced like separate drivers: less loss under load
 
     def wait_for(self, stamp_ns, timeout=20.0):
-        return spin_until(self.node, lambda: all(stamp_ns in self.grids[c] for c in CLASSES), timeout)
+        return spin_until(self.node, lambda: all(stamp_ns in self.grids[c] for c in self.grids), timeout)
 
     def diag_values(self):
         if not self.diags:
@@ -289,22 +289,26 @@ def test_node_process_exits_2_on_bad_parameters(tmp_path, overrides, message, ro
     assert "error: " in text and message in text and "Traceback" not in text
 
 
-def _run_shipped_node(tmp_path, domain, kind: str, seed: int, n_frames: int) -> tuple:
-    """A mapper_node process started with its rig's parameter file (plus ``input_kind`` for RGB)
-    fed ``n_frames`` synthetic frames of ``kind`` images: (core mapper, frames, driver)."""
+def _run_shipped_node(tmp_path, domain, kind: str, seed: int, n_frames: int, params_file: pathlib.Path = PARAMS_FILE,
+                      classes: tuple[str, ...] = CLASSES) -> tuple:
+    """A mapper_node process started with a shipped parameter file (plus ``input_kind`` for RGB)
+    fed ``n_frames`` synthetic frames of ``kind`` images of the file's rig, on the file's grid:
+    (core mapper, frames, driver)."""
     log = tmp_path / "node.log"
-    extra = [] if kind == "labels" else ["-p", f"input_kind:={kind}"]
+    params = yaml.safe_load(params_file.read_text())["/**"]["ros__parameters"]
+    extra = [] if kind == params["input_kind"] else ["-p", f"input_kind:={kind}"]
     # The node boots (torch, weights) while this process renders the drive and loads the weights.
-    proc = start_process(["bev_mapper_ros.mapper_node", "--ros-args", "--params-file", str(PARAMS_FILE), *extra,
+    proc = start_process(["bev_mapper_ros.mapper_node", "--ros-args", "--params-file", str(params_file), *extra,
                           "-p", "threads:=1", "-p", "sync_timeout_s:=5.0"], domain, log)  # no partial sets under load
     node = None
     try:
-        rig, grid = preset_rig("surround6"), BevGrid()
+        rig, grid = preset_rig(params["rig"]), BevGrid.from_dict(params["grid"])
         frames = list(generate_drive(rig, grid, SynthConfig(frames=n_frames, seed=seed)))
-        expected = create_mapper(node_view_of_rig(rig), grid, MapperConfig(input_kind=kind, classes=CLASSES, threads=1))
+        expected = create_mapper(node_view_of_rig(rig, params_file), grid,
+                                 MapperConfig(method=params["method"], input_kind=kind, classes=classes, threads=1))
         rclpy.init(domain_id=domain)
         node = rclpy.create_node(f"bev_test_{kind}")
-        d = Driver(node, rig, log, kind=kind)
+        d = Driver(node, rig, log, kind=kind, classes=classes)
         for f in frames:
             assert d.calibrate(f.stamp_ns, 60.0), f"the node never reported its calibration:\n{log.read_text()}"
             d.send_frame(f)
@@ -318,10 +322,11 @@ def _run_shipped_node(tmp_path, domain, kind: str, seed: int, n_frames: int) -> 
     for f in frames:
         # (a camera's image lost by best-effort DDS under load is mapped as missing, by both)
         images = {n: (c.labels if kind == "labels" else c.rgb) for n, c in f.cameras.items()}
-        pred, lost = core_map_as_received(expected, grid, images, d.grids[CLASSES[0]][f.stamp_ns].data)
+        pred, lost = core_map_as_received(expected, grid, images, d.grids[classes[0]][f.stamp_ns].data)
         complete += not lost
-        for ci, c in enumerate(CLASSES):
+        for ci, c in enumerate(classes):
             got = np.asarray(d.grids[c][f.stamp_ns].data, dtype=np.int16)
+            assert len(got) == grid.width * grid.height
             want = grid.to_occupancy(pred.probs[ci], pred.known).astype(np.int16)
             # same weights, same float32 ops: at most a rounding step at a few cells
             assert np.abs(got - want).max() <= 1 and (got == want).mean() > 0.999, c
@@ -343,3 +348,15 @@ def test_node_maps_rgb_cameras_with_the_shipped_weights(tmp_path, ros_domain):
     expected, frames, d = _run_shipped_node(tmp_path, ros_domain, "rgb", 13, 1)
     assert expected.stage is not None  # chained: segmenter, then the label weights
     assert (np.asarray(d.grids["drivable"][frames[0].stamp_ns].data) == 100).sum() > 500
+
+
+def test_node_runs_s2g2_on_its_own_grid(tmp_path, ros_domain):
+    """``--params-file config/front1_s2g2.yaml`` and nothing else: the node maps the front camera's
+    RGB images with the shipped S2G2 weights onto the 32 m x 32 m grid ahead, exactly as the core."""
+    expected, frames, d = _run_shipped_node(tmp_path, ros_domain, "rgb", 14, 2, REPO / "config" / "front1_s2g2.yaml",
+                                            classes=("drivable", "sidewalk"))
+    assert expected.name == "s2g2" and expected.grid == grid_preset("ahead")
+    info = d.grids["drivable"][frames[0].stamp_ns].info
+    assert (info.width, info.height) == (128, 128) and info.origin.position.x == 0.0
+    assert (np.asarray(d.grids["drivable"][frames[0].stamp_ns].data) >= 50).sum() > 1000
+

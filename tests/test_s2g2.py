@@ -34,6 +34,7 @@ from bev_mapper_core.models.s2g2_losses import (
     s2g2_loss,
     sigmoid_rampup,
 )
+from bev_mapper_core.models.s2g2_mapper import shipped_s2g2
 from bev_mapper_core.models.s2g2_weights import load_s2g2, read_s2g2_metadata, save_s2g2
 from bev_mapper_core.models.segipm_mapper import shipped_segmenter
 from bev_mapper_core.models.segmenter_weights import load_segmenter
@@ -441,3 +442,35 @@ def test_semi_supervised_run_through_the_trainer(tmp_path):
     # resuming continues with the EMA and the SGD momentum
     more = train(replace(cfg, epochs=6, resume=True), log=lambda m: None)
     assert more["step"] == 12 and len(more["history"]) == 6
+
+
+# ------------------------------------------------------------------------- the bag tool
+@pytest.mark.slow
+def test_replay_maps_a_front1_bag_with_the_shipped_s2g2_weights(tmp_path):
+    """``bev-bag synth --rig front1 --grid ahead`` then ``bev-bag replay --method s2g2 --input rgb``:
+    the shipped weights are found from the bag's rig, the bag's GT grid is the weights' grid, and
+    the output grids are the core mapper's on the bag's RGB images, scored against the bag's GT."""
+    from bags.cli import main
+    from bags.reader import BagReader
+    from bags.replay import BAG_DIR, METRICS_FILE
+
+    bag, out = tmp_path / "bag", tmp_path / "out"
+    assert main(["synth", str(bag), "--rig", "front1", "--grid", "ahead", "--frames", "3", "--seed", "950000013",
+                 "--style", "dusk"]) == 0
+    assert main(["replay", str(bag), "--out", str(out), "--method", "s2g2", "--input", "rgb", "--no-pictures",
+                 "--no-report", "--quiet"]) == 0
+    m = json.loads((out / METRICS_FILE).read_text())
+    assert m["method"] == "s2g2" and m["input"] == "rgb" and 0.0 < m["miou"] <= 1.0
+    assert set(m["classes"]) == set(read_s2g2_metadata(shipped_s2g2("front1", "rgb"))["classes"])
+    with BagReader(bag) as r:
+        assert r.grid() == grid_preset("ahead")
+        mapper = create_mapper(r.rig(), r.grid(), MapperConfig(method="s2g2", input_kind="rgb"))
+        expected = {f.stamp_ns: mapper.map(f.rgb) for f in r.frames(labels=False)}
+    with BagReader(out / BAG_DIR) as r:
+        got = {}
+        for msg in r.messages(["/bev/drivable"]):
+            got[msg.msg.header.stamp.sec * 1_000_000_000 + msg.msg.header.stamp.nanosec] = np.asarray(msg.msg.data)
+    assert sorted(got) == sorted(expected)
+    ci = mapper.class_names.index("drivable")
+    for stamp, pred in expected.items():
+        np.testing.assert_array_equal(got[stamp], grid_preset("ahead").to_occupancy(pred.probs[ci], pred.known))
