@@ -474,3 +474,29 @@ def test_replay_maps_a_front1_bag_with_the_shipped_s2g2_weights(tmp_path):
     ci = mapper.class_names.index("drivable")
     for stamp, pred in expected.items():
         np.testing.assert_array_equal(got[stamp], grid_preset("ahead").to_occupancy(pred.probs[ci], pred.known))
+
+
+@pytest.mark.slow
+def test_eval_scores_rgb_mappers_on_the_named_grid(tmp_path, capsys):
+    """``bev-train eval --input rgb --style dusk --grid ahead``: the held-out drives are rendered on
+    that grid with their camera images in that style, and the mapper reads the RGB images."""
+    torch.manual_seed(0)
+    weights = save_s2g2(S2G2(replace(TINY, classes=("drivable", "sidewalk")), RIG, grid_preset("ahead")),
+                        tmp_path / "w.safetensors")
+    args = ["eval", "--rig", "front1", "--grid", "ahead", "--input", "rgb", "--style", "dusk", "--val-seeds",
+            "950000013", "--frames-per-drive", "2", "--cache", str(tmp_path / "cache"), "--threads", "1"]
+    assert cli.main([*args, "--method", "s2g2", "--weights", str(weights), "--classes", "drivable,sidewalk",
+                     "--json", str(tmp_path / "s2g2.json")]) == 0
+    res = json.loads((tmp_path / "s2g2.json").read_text())
+    assert res["input_kind"] == "rgb" and res["style"] == "dusk" and res["grid"] == grid_preset("ahead").to_dict()
+    assert set(res["classes"]) == {"drivable", "sidewalk"} and res["frames"] == 2
+    cache = list((tmp_path / "cache").iterdir())
+    assert len(cache) == 1 and "rgb400_dusk" in cache[0].name  # full-size camera images, the asked style
+    # the same drives through segipm (the segmenter on the RGB images) and IPM (the true labels)
+    assert cli.main([*args, "--method", "segipm", "--classes", "drivable,sidewalk",
+                     "--json", str(tmp_path / "segipm.json")]) == 0
+    assert cli.main([*args[:5], *args[9:], "--input", "labels", "--method", "ipm", "--classes", "drivable,sidewalk",
+                     "--json", str(tmp_path / "ipm.json")]) == 0
+    seg, ipm = (json.loads((tmp_path / f"{n}.json").read_text()) for n in ("segipm", "ipm"))
+    assert ipm["input_kind"] == "labels" and seg["input_kind"] == "rgb"
+    assert ipm["miou"] > 0.5 and seg["miou"] > 0.5 and ipm["miou"] != seg["miou"]
