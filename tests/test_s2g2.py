@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 from safetensors.torch import load_file, save_file
+from torch.nn import functional as F
 
 from bags import train_cli as cli
 from bev_mapper_core.classes import NUM_LABELS, S2G2_CLASSES, Label, label_lut
@@ -16,7 +17,7 @@ from bev_mapper_core.errors import ConfigError, GridError
 from bev_mapper_core.grid import BevGrid, grid_preset
 from bev_mapper_core.mapper import MapperConfig, available_methods, create_mapper
 from bev_mapper_core.models import BiMapper, BiMapperConfig, save_weights
-from bev_mapper_core.models.s2g2 import S2G2, S2G2Config
+from bev_mapper_core.models.s2g2 import S2G2, S2G2Config, input_size
 from bev_mapper_core.models.s2g2_blocks import (
     CrossViewAttention,
     InterViewAttention,
@@ -313,6 +314,50 @@ def test_unlabeled_batches_pair_each_labeled_batch():
     src.check(DataNeeds(unlabeled=True))
     with pytest.raises(ConfigError, match="rgb"):
         src.check(DataNeeds(unlabeled=True, rgb=True))
+
+
+def test_unlabeled_frames_leave_batchnorm_statistics_alone():
+    """``unlabeled_bn`` ``running`` (default): the unlabeled frames are normalized with the running
+    statistics and do not move them (dropout stays on), and the losses are those of a model that
+    sees them alone in eval-mode BatchNorm; ``batch`` normalizes both kinds together (the paper)."""
+    rng = np.random.default_rng(4)
+    cfg = TrainConfig.from_dict({**TINY_RUN, "input": "rgb", "drop_connect_rate": 0.0})
+    h, w = input_size(TINY, RIG)
+
+    def batch(n, bright):
+        return {"rgb": torch.from_numpy(rng.integers(*bright, (n, 1, h, w, 3), dtype=np.uint8)),
+                "target": torch.from_numpy(rng.random((n, 3, *GRID.shape)) > 0.5), "mask": None}
+
+    labeled, unlabeled = batch(2, (100, 256)), batch(2, (0, 60))  # a bright and a dark "style"
+
+    def step(**over):
+        torch.manual_seed(0)
+        m = method_class("s2g2")(replace(cfg, loss=replace(cfg.loss, **over)), RIG, GRID)
+        m.loss_cfg = m.cfg.loss.loss_config()
+        m.model.train()
+        _, parts = m.loss({"labeled": labeled, "unlabeled": unlabeled}, 0, 50)
+        bn = [b for b in m.model.encoder.modules() if isinstance(b, torch.nn.BatchNorm2d)][0]
+        return m, parts, bn.running_mean.clone()
+
+    running, parts, mean = step()
+    assert running.model.training and all(b.training for b in running.model.modules())  # modes restored
+    _, _, mean_labeled_only = step(supervised_only=True)
+    torch.testing.assert_close(mean, mean_labeled_only)  # only the labeled frames moved the statistics
+    _, parts_batch, mean_batch = step(unlabeled_bn="batch")
+    assert not torch.allclose(mean_batch, mean) and parts_batch["cycle"] != parts["cycle"]
+    # the unlabeled half of the loss is what the model computes for those frames in eval-mode BN
+    model = running.model
+    with torch.no_grad():
+        x = model.preprocess(unlabeled["rgb"])
+        out_u = model.eval()(x)
+        want = F.l1_loss(out_u["front_cycled"], out_u["front"])
+        model.train()
+        out_l = model(model.preprocess(labeled["rgb"]))
+    both = (F.l1_loss(out_l["front_cycled"], out_l["front"], reduction="sum")
+            + want * out_u["front"].numel()) / (out_l["front"].numel() + out_u["front"].numel())
+    assert parts["cycle"] == pytest.approx(float(both), rel=1e-4)
+    with pytest.raises(ConfigError, match="unlabeled_bn"):
+        S2G2Training(unlabeled_bn="target")
 
 
 def test_unlabeled_drive_settings():
