@@ -360,6 +360,37 @@ def test_unlabeled_frames_leave_batchnorm_statistics_alone():
         S2G2Training(unlabeled_bn="target")
 
 
+def test_cycle_loss_trains_the_view_transforms_not_the_encoder():
+    """By default the cycle loss adds nothing to the encoder's gradient, and a gradient to both
+    view-transform blocks; with ``cycle_into_encoder`` it reaches the encoder too."""
+    rng = np.random.default_rng(5)
+    cfg = TrainConfig.from_dict({**TINY_RUN, "input": "rgb", "drop_connect_rate": 0.0, "supervised_only": True,
+                                 "bev_weight": 0.0, "consistency_weight": 0.0})
+    h, w = input_size(TINY, RIG)
+    batch = {"rgb": torch.from_numpy(rng.integers(0, 256, (2, 1, h, w, 3), dtype=np.uint8)),
+             "target": torch.from_numpy(rng.random((2, 3, *GRID.shape)) > 0.5), "mask": None}
+
+    def grads(**over):
+        torch.manual_seed(0)
+        m = method_class("s2g2")(replace(cfg, loss=replace(cfg.loss, **over)), RIG, GRID)
+        m.loss_cfg = m.cfg.loss.loss_config()
+        m.model.train()
+        total, parts = m.loss(batch, 0, 0)
+        total.backward()
+        g = {k: p.grad.clone() for k, p in m.model.named_parameters() if p.grad is not None}
+        return g, parts
+
+    detached, parts = grads()
+    without, _ = grads(cycle_weight=0.0)
+    into, parts_into = grads(cycle_into_encoder=True)
+    assert parts["cycle"] > 0 and parts["cycle"] == pytest.approx(parts_into["cycle"], rel=1e-5)
+    enc = [k for k in without if k.startswith("encoder.")]
+    assert enc and all(torch.allclose(detached[k], without[k]) for k in enc)
+    assert not all(torch.allclose(into[k], without[k]) for k in enc)
+    for block in ("to_bev.", "to_front."):  # (to_front also learns through the cross-view attention)
+        assert not all(torch.allclose(detached[k], without[k]) for k in without if k.startswith(block))
+
+
 def test_unlabeled_drive_settings():
     cfg = TrainConfig.from_dict(TINY_RUN)
     assert cfg.unlabeled_seeds == (300_001,) and cfg.unlabeled_style == "dusk"
