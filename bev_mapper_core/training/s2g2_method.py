@@ -284,18 +284,25 @@ class S2G2Method(TrainMethod):
         x = self._inputs(labeled)  # (B_l, C_in, h, w)
         n = x.shape[0]
         if unlabeled is None:
-            out = self.model(x)
+            out = self._forward(x)
         elif self.cfg.loss.unlabeled_bn == "batch":
-            out = self.model(torch.cat([x, self._inputs(unlabeled)]))  # (B_l + B_u, ...): one pass, shared BN statistics
+            out = self._forward(torch.cat([x, self._inputs(unlabeled)]))  # (B_l + B_u, ...): one pass, shared BN
         else:
-            out = self.model(x)
+            out = self._forward(x)
             with running_batchnorm(self.model):
-                out_u = self.model(self._inputs(unlabeled))
+                out_u = self._forward(self._inputs(unlabeled))
             out = {k: torch.cat([out[k], out_u[k]]) for k in out}  # (B_l + B_u, ...) each
+        return s2g2_loss(out, n, labeled["target"], labeled["mask"], step, self.loss_cfg)
+
+    def _forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The model's outputs on inputs ``x``; unless ``cycle_into_encoder``, the cycle's input
+        and target are the encoder's features detached (computed once more for the loss).
+        """
+        out = self.model(x)
         if not self.cfg.loss.cycle_into_encoder and self.loss_cfg.cycle_weight > 0:
             front = out["front"].detach()  # (B, C, hf, wf): the cycle's input and target, fixed
             out = {**out, "front": front, "front_cycled": self.model.to_front(self.model.to_bev(front))}
-        return s2g2_loss(out, n, labeled["target"], labeled["mask"], step, self.loss_cfg)
+        return out
 
     @override
     def after_step(self, step: int) -> None:
