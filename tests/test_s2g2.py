@@ -343,7 +343,7 @@ def test_unlabeled_frames_leave_batchnorm_statistics_alone():
     assert running.model.training and all(b.training for b in running.model.modules())  # modes restored
     _, _, mean_labeled_only = step(supervised_only=True)
     torch.testing.assert_close(mean, mean_labeled_only)  # only the labeled frames moved the statistics
-    _, parts_batch, mean_batch = step(unlabeled_bn="batch")
+    _, parts_batch, mean_batch = step(unlabeled_bn="batch", unlabeled_into_encoder=True)
     assert not torch.allclose(mean_batch, mean) and parts_batch["cycle"] != parts["cycle"]
     # the unlabeled half of the loss is what the model computes for those frames in eval-mode BN
     model = running.model
@@ -358,6 +358,8 @@ def test_unlabeled_frames_leave_batchnorm_statistics_alone():
     assert parts["cycle"] == pytest.approx(float(both), rel=1e-4)
     with pytest.raises(ConfigError, match="unlabeled_bn"):
         S2G2Training(unlabeled_bn="target")
+    with pytest.raises(ConfigError, match="needs unlabeled_into_encoder"):
+        S2G2Training(unlabeled_bn="batch")
 
 
 def test_cycle_loss_trains_the_view_transforms_not_the_encoder():
@@ -389,6 +391,37 @@ def test_cycle_loss_trains_the_view_transforms_not_the_encoder():
     assert not all(torch.allclose(into[k], without[k]) for k in enc)
     for block in ("to_bev.", "to_front."):  # (to_front also learns through the cross-view attention)
         assert not all(torch.allclose(detached[k], without[k]) for k in without if k.startswith(block))
+
+
+def test_unlabeled_frames_train_what_follows_the_encoder():
+    """By default the encoder's gradient does not depend on the unlabeled frames (their losses
+    train the view transforms, attentions and the active branch); ``unlabeled_into_encoder``: it does."""
+    rng = np.random.default_rng(6)
+    cfg = TrainConfig.from_dict({**TINY_RUN, "input": "rgb", "drop_connect_rate": 0.0, "consistency_ramp_steps": 0})
+    h, w = input_size(TINY, RIG)
+
+    def frames(n):
+        return {"rgb": torch.from_numpy(rng.integers(0, 256, (n, 1, h, w, 3), dtype=np.uint8)),
+                "target": torch.from_numpy(rng.random((n, 3, *GRID.shape)) > 0.5), "mask": None}
+
+    labeled, u1, u2 = frames(2), frames(2), frames(2)
+
+    def grads(unlabeled, **over):
+        torch.manual_seed(0)
+        m = method_class("s2g2")(replace(cfg, loss=replace(cfg.loss, **over)), RIG, GRID)
+        m.loss_cfg = m.cfg.loss.loss_config()
+        m.model.train()
+        m.model.passive.load_state_dict({k: v + 0.05 for k, v in m.model.active.state_dict().items()
+                                         if v.is_floating_point()}, strict=False)  # the branches disagree
+        m.loss({"labeled": labeled, "unlabeled": unlabeled}, 0, 10)[0].backward()
+        return {k: p.grad.clone() for k, p in m.model.named_parameters() if p.grad is not None}
+
+    a, b = grads(u1), grads(u2)
+    enc = [k for k in a if k.startswith("encoder.")]
+    assert enc and all(torch.allclose(a[k], b[k]) for k in enc)
+    assert not all(torch.allclose(a[k], b[k]) for k in a if k.startswith("active."))
+    a, b = grads(u1, unlabeled_into_encoder=True), grads(u2, unlabeled_into_encoder=True)
+    assert not all(torch.allclose(a[k], b[k]) for k in enc)
 
 
 def test_unlabeled_drive_settings():

@@ -233,27 +233,29 @@ class S2G2(nn.Module):
         return x[:, 0]  # (B, 1, C_in, h, w) -> (B, C_in, h, w)
 
     # ---------------------------------------------------------------- forward
-    def features(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
-        """The DVT module on model inputs ``x`` ``(B, C_in, h, w)``.
+    def features(self, x: torch.Tensor, frozen_encoder: bool = False) -> dict[str, torch.Tensor]:
+        """The DVT module on model inputs ``x`` ``(B, C_in, h, w)`` (``frozen_encoder``: the
+        encoder runs without gradient, so losses on these outputs train only what follows it).
 
         Returns dict: ``front`` ``F_front`` and ``front_cycled`` ``H_F^B(H_B^F(F_front))``
         ``(B, C, hf, wf)``; ``bev`` ``F_BEV``, ``f_c`` ``F_C`` and ``f_i`` ``F_I`` ``(B, C, hb, wb)``.
         """
         if tuple(x.shape[-2:]) != tuple(self.input_size):
             raise ValueError(f"input {tuple(x.shape)} does not match the model input size {self.input_size}")
-        front = self.encoder(x)[-1]  # (B, C, hf, wf)
+        with torch.set_grad_enabled(torch.is_grad_enabled() and not frozen_encoder):
+            front = self.encoder(x)[-1]  # (B, C, hf, wf)
         bev = self.to_bev(front)  # (B, C, hb, wb)
         front_cycled = self.to_front(bev)  # (B, C, hf, wf)
         f_c = bev if self.cross_view is None else self.cross_view(front, bev, front_cycled)
         f_i = bev if self.inter_view is None else self.inter_view(bev)
         return {"front": front, "front_cycled": front_cycled, "bev": bev, "f_c": f_c, "f_i": f_i}
 
-    def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Model inputs ``(B, C_in, h, w)`` -> :meth:`features` plus ``active_logits`` (B, K, H, W)
+    def forward(self, x: torch.Tensor, frozen_encoder: bool = False) -> dict[str, torch.Tensor]:
+        """Model inputs ``(B, C_in, h, w)`` -> :meth:`features` (``frozen_encoder``: see there) plus ``active_logits`` (B, K, H, W)
         of the active branch on ``F_C`` and ``passive_logits`` (B, K, H, W) of the passive branch
         on ``F_I``, computed without gradient (the consistency target).
         """
-        out = self.features(x)
+        out = self.features(x, frozen_encoder)
         out["active_logits"] = self.active(out["f_c"])[0]
         with torch.no_grad():
             out["passive_logits"] = self.passive(out["f_i"])[0]
