@@ -464,11 +464,22 @@ def test_unlabeled_frames_from_a_bag(tmp_path):
     import yaml
 
     from bags.cli import main as bag_main
+    from bags.reader import BagReader
     from bags.train_data import unlabeled_frameset
+    from bags.writer import BagWriter
     from bev_mapper_core.models.s2g2 import input_size
 
-    bag = tmp_path / "bag"
-    assert bag_main(["synth", str(bag), "--rig", "front1", "--frames", "3", "--scale", "0.5", "--style", "dusk"]) == 0
+    synth = tmp_path / "synth"
+    assert bag_main(["synth", str(synth), "--rig", "front1", "--frames", "3", "--scale", "0.5", "--style", "dusk"]) == 0
+    bag = tmp_path / "bag"  # the camera, calibration and pose topics only: a recorded drive without any GT
+    with BagReader(synth) as r, BagWriter(bag) as w:
+        keep = {t: s.msgtype for t, s in r.topics.items() if not t.startswith("/bev/")}
+        for t, ty in keep.items():
+            w.add_topic(t, ty, latched=t in r.latched_topics)
+        for m in r.messages(list(keep)):
+            w.write(m.topic, m.msg, m.log_ns)
+    with BagReader(bag) as r:
+        assert not any(t.startswith("/bev/") for t in r.topics) and "/cameras/front/image_raw" in r.topics
     size = input_size(TINY, RIG)
     fs = unlabeled_frameset([bag], RIG, DataNeeds(image_size=size, rgb=True))
     assert len(fs) >= 2 and fs.rgb.shape == (len(fs), 1, *size, 3) and fs.rgb.any()
