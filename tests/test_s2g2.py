@@ -59,7 +59,7 @@ TINY_RUN = dict(method="s2g2", rig="front1", classes=",".join(CLASSES), epochs=5
                 train_drives=1, val_drives=1, unlabeled_drives=1, unlabeled_style="dusk", frames_per_drive=4,
                 stride=2, threads=1, input_width=32, width_mult=0.25, depth_mult=0.25, encoder_stages=3,
                 bev_downsample=4, decoder_channels=8, consistency_ramp_steps=4, grid=[0.0, 16.0, -8.0, 8.0, 0.5],
-                encoder_init="none", progress=False)
+                encoder_init="none", optimizer="sgd", progress=False)
 
 
 def _rgb(n: int = 2, seed: int = 0) -> torch.Tensor:
