@@ -1,0 +1,77 @@
+"""Moving BEV layers between ego poses: the geometry of temporal fusion (issue #14).
+
+A layer computed at an earlier ego pose shows the world in that pose's ``base_link`` frame. To
+combine it with the current frame, each *current* cell centre is carried into the earlier frame
+(``prev_from_cur``, a 4x4 rigid transform, e.g. ``inv(odom_from_prev) @ odom_from_cur``) and
+the earlier layer is sampled there, bilinearly. The ground is taken as the plane ``z = 0`` of
+both frames, so only the planar part of the motion matters (x, y and yaw; roll, pitch and z move
+the sample point only through their effect on ``(x, y)``).
+
+Everything goes through the one :class:`~bev_mapper_core.grid.BevGrid`: cell ``(row, col)`` is
+the point :meth:`~bev_mapper_core.grid.BevGrid.cell_to_metric` names, in both frames.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch.nn import functional as F
+
+from .errors import ConfigError
+from .grid import BevGrid
+
+
+def _check_transform(T) -> np.ndarray:
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise ConfigError(f"prev_from_cur must be a finite 4x4 transform, got shape {T.shape}")
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or not np.isclose(np.linalg.det(R), 1.0, atol=1e-6):
+        raise ConfigError("prev_from_cur has no rotation part (R R^T != I or det != 1)")
+    return T
+
+
+def source_points(grid: BevGrid, prev_from_cur) -> tuple[np.ndarray, np.ndarray]:
+    """Where each current cell centre lies in the earlier frame: ``(xs, ys)``, each ``(H, W)``.
+
+    Raises:
+        ConfigError: ``prev_from_cur`` is not a finite rigid 4x4 transform.
+    """
+    T = _check_transform(prev_from_cur)
+    pts = grid.points()  # (H*W, 3) current-frame cell centres on the ground
+    src = pts @ T[:3, :3].T + T[:3, 3]  # (H*W, 3) in the earlier frame
+    return src[:, 0].reshape(grid.shape), src[:, 1].reshape(grid.shape)
+
+
+def sampling_grid(grid: BevGrid, prev_from_cur) -> torch.Tensor:
+    """``torch.nn.functional.grid_sample`` coordinates ``(1, H, W, 2)`` (``align_corners=False``)
+    of the earlier layer's points that the current cells show.
+    """
+    xs, ys = source_points(grid, prev_from_cur)
+    u = 2.0 * (xs - grid.x_min) / (grid.x_max - grid.x_min) - 1.0  # along columns (x)
+    v = 2.0 * (ys - grid.y_min) / (grid.y_max - grid.y_min) - 1.0  # along rows (y)
+    return torch.from_numpy(np.stack([u, v], axis=-1)[None].astype(np.float32))  # (1, H, W, 2)
+
+
+def warp_layers(layers: torch.Tensor, grid: BevGrid, prev_from_cur) -> tuple[torch.Tensor, torch.Tensor]:
+    """Earlier layers ``(B, C, H, W)`` (or ``(C, H, W)``) on ``grid`` -> the same layers seen from the
+    current pose, and ``valid`` ``(H, W)`` bool: current cells whose earlier point lies inside the
+    grid (elsewhere the warped layers are 0).
+
+    Raises:
+        ConfigError: ``prev_from_cur`` is not a finite rigid 4x4 transform.
+        ValueError: layers not of ``grid``'s shape.
+    """
+    squeeze = layers.dim() == 3
+    x = layers[None] if squeeze else layers  # (B, C, H, W)
+    if x.dim() != 4 or tuple(x.shape[-2:]) != grid.shape:
+        raise ValueError(f"layers must be (B, C, {grid.height}, {grid.width}), got {tuple(layers.shape)}")
+    g = sampling_grid(grid, prev_from_cur).to(device=x.device, dtype=x.dtype)
+    g = g.expand(x.shape[0], -1, -1, -1)  # (B, H, W, 2)
+    out = F.grid_sample(x, g, mode="bilinear", padding_mode="zeros", align_corners=False)  # (B, C, H, W)
+    xs, ys = source_points(grid, prev_from_cur)
+    valid = torch.from_numpy(grid.contains(xs, ys)).to(x.device)
+    return (out[0] if squeeze else out), valid
+
+
+__all__ = ["sampling_grid", "source_points", "warp_layers"]
