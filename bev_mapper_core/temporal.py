@@ -1,0 +1,151 @@
+"""Method-independent temporal fusion of published BEV maps (issue #14, part 2).
+
+:class:`TemporalFusion` keeps the last ``window`` predictions of any mapper with the ego pose of
+each, carries them into the current pose (:func:`~bev_mapper_core.bev_warp.warp_layers`) and
+averages, per cell and class, the **log-odds** of every frame that knows the cell there. A cell
+is known when the current frame or one of the kept frames knows it (a cell hidden now but seen a
+moment ago keeps its last evidence). Averaging, rather than summing, log-odds keeps the
+probabilities' scale: consecutive frames are far from independent observations.
+
+The memory is dropped (and the frame mapped alone) when:
+
+* the frame has no ego pose (``odom_from_base`` None): the result says why in
+  :attr:`FusionResult.note`, for a log line and ``/diagnostics``;
+* its stamp is not after the previous one (a bag loop, a clock jump back);
+* the gap to the previous frame exceeds ``max_gap_s``;
+* the pose moved more than ``max_jump_m`` since the previous frame (a relocalization).
+
+``window`` 1 is no fusion at all. Moving objects smear by their own motion over the window
+(only the ego motion is undone), which is why the window stays short.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from .bev_warp import warp_layers
+from .errors import ConfigError
+from .grid import BevGrid
+from .mapper import BevPrediction
+
+#: Probabilities are clipped to [EPS, 1 - EPS] before the log-odds (|logit| <= 9.2).
+EPS = 1e-4
+
+
+@dataclass(frozen=True)
+class TemporalConfig:
+    """Temporal fusion settings.
+
+    Args:
+        window: frames fused, the current one included (1 = off).
+        max_gap_s: a longer gap between frames drops the memory.
+        max_jump_m: a larger ego translation between consecutive frames drops the memory.
+    """
+
+    window: int = 1
+    max_gap_s: float = 0.5
+    max_jump_m: float = 5.0
+
+    def __post_init__(self) -> None:
+        if isinstance(self.window, bool) or not isinstance(self.window, int) or not 1 <= self.window <= 16:
+            raise ConfigError(f"temporal window must be an integer in 1..16, got {self.window!r}")
+        for name in ("max_gap_s", "max_jump_m"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+                raise ConfigError(f"{name} must be a finite number > 0, got {v!r}")
+
+
+@dataclass(frozen=True)
+class FusionResult:
+    """One fused frame: ``prediction``, the number of ``frames`` fused into it (1 = alone), and
+    a ``note`` saying why the memory was dropped ('' when it was not).
+    """
+
+    prediction: BevPrediction
+    frames: int
+    note: str = ""
+
+
+@dataclass
+class _Entry:
+    logits: torch.Tensor  # (C, H, W) float32 log-odds, 0 where unknown
+    known: torch.Tensor  # (H, W) bool
+    odom_from_base: np.ndarray  # (4, 4)
+    stamp_ns: int
+
+
+class TemporalFusion:
+    """Fuse a mapper's predictions over the last frames (see the module docstring)."""
+
+    def __init__(self, grid: BevGrid, config: TemporalConfig = TemporalConfig()) -> None:
+        self.grid, self.config = grid, config
+        self._memory: deque[_Entry] = deque(maxlen=max(config.window - 1, 0))
+        self._classes: tuple[str, ...] | None = None
+
+    def reset(self) -> None:
+        """Forget every kept frame."""
+        self._memory.clear()
+
+    def _drop_reason(self, odom_from_base, stamp_ns: int) -> str:
+        if odom_from_base is None:
+            return "no ego pose for this frame: mapped without temporal fusion"
+        if not self._memory:
+            return ""
+        last = self._memory[-1]
+        if stamp_ns <= last.stamp_ns:
+            return f"stamp went back by {(last.stamp_ns - stamp_ns) / 1e9:.3f} s: temporal memory reset"
+        gap = (stamp_ns - last.stamp_ns) / 1e9
+        if gap > self.config.max_gap_s:
+            return f"{gap:.3f} s since the previous frame (> {self.config.max_gap_s} s): temporal memory reset"
+        jump = float(np.linalg.norm(np.asarray(odom_from_base)[:3, 3] - last.odom_from_base[:3, 3]))
+        if jump > self.config.max_jump_m:
+            return f"ego pose jumped {jump:.2f} m (> {self.config.max_jump_m} m): temporal memory reset"
+        return ""
+
+    def update(self, pred: BevPrediction, stamp_ns: int, odom_from_base: np.ndarray | None) -> FusionResult:
+        """Fuse ``pred`` (this frame, on :attr:`grid`) with the kept frames and keep it.
+
+        Raises:
+            ConfigError: a prediction of another shape or other classes than the kept ones (the
+                memory is dropped first, so the next frame starts afresh).
+        """
+        if pred.probs.shape[-2:] != self.grid.shape:
+            raise ConfigError(f"prediction of shape {pred.probs.shape} is not on the grid {self.grid.shape}")
+        if self._classes is not None and pred.classes != self._classes:
+            self.reset()
+        self._classes = pred.classes
+        note = self._drop_reason(odom_from_base, int(stamp_ns))
+        if note:
+            self.reset()
+        p = torch.from_numpy(np.clip(pred.probs, EPS, 1.0 - EPS).astype(np.float32))  # (C, H, W)
+        known = torch.from_numpy(np.asarray(pred.known, dtype=bool))  # (H, W)
+        logits = torch.log(p) - torch.log1p(-p)
+        if odom_from_base is None or self.config.window == 1:
+            return FusionResult(pred, 1, note)
+        T_cur = np.asarray(odom_from_base, dtype=np.float64)
+        total = torch.where(known, logits, torch.zeros_like(logits))  # (C, H, W)
+        count = known.to(torch.float32)  # (H, W)
+        frames = 1 + len(self._memory)
+        for e in self._memory:
+            prev_from_cur = np.linalg.inv(e.odom_from_base) @ T_cur
+            both = torch.cat([e.logits, e.known[None].to(torch.float32)])  # (C + 1, H, W)
+            moved, valid = warp_layers(both, self.grid, prev_from_cur)
+            # a cell counts only where every bilinear neighbour was known in that frame
+            k = valid & (moved[-1] > 1.0 - 1e-4)
+            total += torch.where(k, moved[:-1], torch.zeros_like(moved[:-1]))
+            count += k.to(torch.float32)
+        self._memory.append(_Entry(torch.where(known, logits, torch.zeros_like(logits)), known, T_cur,
+                                   int(stamp_ns)))
+        fused_known = count > 0
+        fused = torch.sigmoid(total / count.clamp(min=1.0))  # (C, H, W) mean log-odds
+        probs = torch.where(fused_known, fused, torch.from_numpy(pred.probs.astype(np.float32)))
+        return FusionResult(BevPrediction(pred.classes, probs.numpy().astype(np.float32), fused_known.numpy()),
+                            frames, note)
+
+
+__all__ = ["EPS", "FusionResult", "TemporalConfig", "TemporalFusion"]
