@@ -51,6 +51,7 @@ from bev_mapper_core.grid import BevGrid
 from bev_mapper_core.label_maps import label_map
 from bev_mapper_core.mapper import BevPrediction, MapperConfig, create_mapper
 from bev_mapper_core.metrics import SCOPES, MetricAccumulator, WholeGridAccumulator, scope_masks
+from bev_mapper_core.temporal import TemporalConfig, TemporalFusion
 from msg_adapters import make_image, make_occupancy_grid
 
 from . import topics as T
@@ -92,6 +93,9 @@ class ReplayOptions:
         storage: storage of the output bag.
         force: replace existing outputs in ``out``.
         progress: show a tqdm progress bar on stderr.
+        temporal: method-independent temporal fusion of the mapper's output over the last
+            frames, aligned by the bag's odometry (:mod:`bev_mapper_core.temporal`; window 1 =
+            off). Frames without odometry are mapped alone and counted.
     """
 
     bag: Path
@@ -107,6 +111,7 @@ class ReplayOptions:
     storage: str = "mcap"
     force: bool = False
     progress: bool = False
+    temporal: TemporalConfig = field(default_factory=TemporalConfig)
 
     def __post_init__(self) -> None:
         if self.scope not in SCOPES:
@@ -284,6 +289,8 @@ def _run(options, reader, rig, grid, mapper, out, tmp_frames, notes) -> ReplayRe
             bw.set_custom_data(k, v)
         frames = reader.frames(rgb=kind == "rgb", labels=kind == "labels",
                                label_map=label_map(options.mapper.label_map))
+        fusion = TemporalFusion(grid, options.temporal) if options.temporal.window > 1 else None
+        temporal = {"window": options.temporal.window, "fused_frames": 0, "resets": 0, "frames_without_pose": 0}
         try:
             for frame in frames:
                 images = frame.labels if kind == "labels" else frame.rgb
@@ -294,6 +301,13 @@ def _run(options, reader, rig, grid, mapper, out, tmp_frames, notes) -> ReplayRe
                 t0 = time.perf_counter()
                 try:
                     pred = mapper.map(images, ego_pose=pose, stamp_ns=frame.stamp_ns)
+                    if fusion is not None:
+                        fused = fusion.update(pred, frame.stamp_ns, pose)
+                        pred = fused.prediction
+                        temporal["fused_frames"] += fused.frames
+                        if fused.note:
+                            key = "frames_without_pose" if pose is None else "resets"
+                            temporal[key] += 1
                 except BevMapperError as exc:  # this frame's input: keep the outputs so far
                     damage = f"frame {frame.index} could not be mapped: {exc}"
                     break
@@ -342,6 +356,7 @@ def _run(options, reader, rig, grid, mapper, out, tmp_frames, notes) -> ReplayRe
         (out / GIF_FILE).unlink()
     metrics = _metrics(options, scorer, grid, mapped, skipped, latencies, damage, bag_counts)
     metrics.update(reader.issues.to_metrics())
+    metrics["temporal"] = temporal
     result = ReplayResult(metrics, out, out / BAG_DIR, pictures, gif_path, gif_note, damage, notes,
                           latencies, scores)
     if metrics["frames_scored"]:

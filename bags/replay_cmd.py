@@ -12,6 +12,7 @@ from pathlib import Path
 from bev_mapper_core.label_maps import PRESET_NAMES
 from bev_mapper_core.mapper import INPUT_KINDS, MapperConfig, available_methods
 from bev_mapper_core.metrics import format_table, format_whole_grid_table
+from bev_mapper_core.temporal import TemporalConfig
 
 from .grid_args import add_grid_args, grid_from_args
 from .replay import SCOPES, ReplayOptions, replay
@@ -89,6 +90,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--segmenter", default=MapperConfig.segmenter, metavar="auto|none|FILE",
                    help="RGB input: the 2-D segmenter of segipm and of label weights run on RGB "
                         "(auto = the shipped one; default: %(default)s)")
+    p.add_argument("--temporal-window", type=int, default=TemporalConfig.window, metavar="N",
+                   help="fuse the method's output over the last N frames, aligned by the bag's odometry, in "
+                        "log-odds (any method; 1 = off; default: %(default)s)")
     p.add_argument("--classes", nargs="+", default=None, metavar="CLASS",
                    help="BEV classes to produce (default: the method's)")
     p.add_argument("--scope", default=ReplayOptions.scope, choices=SCOPES,
@@ -123,6 +127,7 @@ def options_from_args(args: argparse.Namespace) -> ReplayOptions:
         frames_every=args.frames_every, gif=args.gif, report=not args.no_report,
         storage=args.storage, force=args.force,
         progress=not args.quiet and sys.stderr.isatty(),
+        temporal=TemporalConfig(window=args.temporal_window),
     )
 
 

@@ -43,11 +43,12 @@ def source_points(grid: BevGrid, prev_from_cur) -> tuple[np.ndarray, np.ndarray]
     return src[:, 0].reshape(grid.shape), src[:, 1].reshape(grid.shape)
 
 
-def sampling_grid(grid: BevGrid, prev_from_cur) -> torch.Tensor:
+def sampling_grid(grid: BevGrid, prev_from_cur, points: tuple[np.ndarray, np.ndarray] | None = None) -> torch.Tensor:
     """``torch.nn.functional.grid_sample`` coordinates ``(1, H, W, 2)`` (``align_corners=False``)
-    of the earlier layer's points that the current cells show.
+    of the earlier layer's points that the current cells show (``points``: their
+    :func:`source_points`, when already computed).
     """
-    xs, ys = source_points(grid, prev_from_cur)
+    xs, ys = source_points(grid, prev_from_cur) if points is None else points
     u = 2.0 * (xs - grid.x_min) / (grid.x_max - grid.x_min) - 1.0  # along columns (x)
     v = 2.0 * (ys - grid.y_min) / (grid.y_max - grid.y_min) - 1.0  # along rows (y)
     return torch.from_numpy(np.stack([u, v], axis=-1)[None].astype(np.float32))  # (1, H, W, 2)
@@ -66,10 +67,10 @@ def warp_layers(layers: torch.Tensor, grid: BevGrid, prev_from_cur) -> tuple[tor
     x = layers[None] if squeeze else layers  # (B, C, H, W)
     if x.dim() != 4 or tuple(x.shape[-2:]) != grid.shape:
         raise ValueError(f"layers must be (B, C, {grid.height}, {grid.width}), got {tuple(layers.shape)}")
-    g = sampling_grid(grid, prev_from_cur).to(device=x.device, dtype=x.dtype)
+    xs, ys = source_points(grid, prev_from_cur)
+    g = sampling_grid(grid, prev_from_cur, (xs, ys)).to(device=x.device, dtype=x.dtype)
     g = g.expand(x.shape[0], -1, -1, -1)  # (B, H, W, 2)
     out = F.grid_sample(x, g, mode="bilinear", padding_mode="zeros", align_corners=False)  # (B, C, H, W)
-    xs, ys = source_points(grid, prev_from_cur)
     valid = torch.from_numpy(grid.contains(xs, ys)).to(x.device)
     return (out[0] if squeeze else out), valid
 

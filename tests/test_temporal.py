@@ -48,20 +48,23 @@ def test_static_evidence_is_averaged_in_log_odds_after_undoing_the_ego_motion():
     assert r2.prediction.probs[0, 3, -2] == pytest.approx(0.5, abs=1e-4)  # both frames: 0.5 and 0.5
 
 
-def test_hidden_now_but_seen_before_stays_known_and_unknown_evidence_is_ignored():
-    fusion = TemporalFusion(GRID, TemporalConfig(window=3))
-    p = np.full(GRID.shape, 0.8)
-    fusion.update(pred(p), 0, pose())
+def test_known_cells_are_the_current_frames_and_object_layers_are_not_fused_by_default():
+    def two(p1, p2, known2, **cfg):
+        fusion = TemporalFusion(GRID, TemporalConfig(window=3, **cfg))
+        fusion.update(BevPrediction(("drivable", "vehicle"), np.stack([p1, p1]).astype(np.float32),
+                                    np.ones(GRID.shape, bool)), 0, pose())
+        return fusion.update(BevPrediction(("drivable", "vehicle"), np.stack([p2, p2]).astype(np.float32), known2),
+                             S // 10, pose()).prediction
+
     hidden = np.ones(GRID.shape, bool)
     hidden[5:8, 5:8] = False
-    r = fusion.update(pred(np.full(GRID.shape, 0.1), hidden), S // 10, pose())
-    assert r.prediction.known.all()  # the hidden block keeps the first frame's evidence
-    assert r.prediction.probs[0, 6, 6] == pytest.approx(0.8, abs=1e-4)
-    # and a cell both frames know averages the two
-    assert 0.1 < r.prediction.probs[0, 0, 0] < 0.8
-    fresh = TemporalFusion(GRID, TemporalConfig(window=3))
-    r = fresh.update(pred(np.full(GRID.shape, 0.1), hidden), 0, pose())
-    assert not r.prediction.known[6, 6]  # nothing to remember: unknown stays unknown
+    out = two(np.full(GRID.shape, 0.8), np.full(GRID.shape, 0.1), hidden)
+    np.testing.assert_array_equal(out.known, hidden)  # hidden now stays unknown
+    assert out.probs[0, 6, 6] == pytest.approx(0.1, abs=1e-6)  # (the method's own value, untouched)
+    assert 0.1 < out.probs[0, 0, 0] < 0.8  # the flat layer: both frames
+    assert out.probs[1, 0, 0] == pytest.approx(0.1, abs=1e-6)  # vehicles: this frame only
+    both = two(np.full(GRID.shape, 0.8), np.full(GRID.shape, 0.1), hidden, layers="all")
+    assert both.probs[1, 0, 0] == pytest.approx(both.probs[0, 0, 0], abs=1e-6)  # fused like the flat one
 
 
 @pytest.mark.parametrize("stamp, where, reason", [
@@ -84,9 +87,51 @@ def test_window_one_is_the_identity_and_bad_settings_are_refused():
     for i in range(3):
         r = fusion.update(p, i * S // 10, pose(x=0.1 * i))
         assert r.prediction is p and r.frames == 1
-    for bad in ({"window": 0}, {"window": 2.0}, {"max_gap_s": 0}, {"max_jump_m": float("nan")}):
+    for bad in ({"window": 0}, {"window": 2.0}, {"max_gap_s": 0}, {"max_jump_m": float("nan")}, {"layers": "some"}):
         with pytest.raises(ConfigError):
             TemporalConfig(**bad)
     with pytest.raises(ConfigError, match="not on the grid"):
         TemporalFusion(GRID, TemporalConfig(window=2)).update(
             BevPrediction(("drivable",), np.zeros((1, 3, 3), np.float32), np.ones((3, 3), bool)), 0, pose())
+
+
+@pytest.mark.slow
+def test_replay_fuses_over_the_bags_odometry_exactly_as_the_core(tmp_path):
+    """``bev-bag replay --temporal-window 2``: every frame after the first is fused with the one
+    before, aligned by the bag's /odom; the output grids equal the core's fusion of the core
+    mapper's maps, and the default (window 1) leaves them the method's own."""
+    from bag_helpers import replay_ipm, synth_small
+
+    from bags.reader import BagReader
+    from bags.replay import BAG_DIR, METRICS_FILE
+    from bev_mapper_core.mapper import MapperConfig, create_mapper
+
+    bag = synth_small(tmp_path / "bag", frames=4)
+    assert replay_ipm(bag, tmp_path / "fused", "--temporal-window", "2", "--no-pictures", "--no-report") == 0
+    assert replay_ipm(bag, tmp_path / "alone", "--no-pictures", "--no-report") == 0
+    import json
+
+    m = json.loads((tmp_path / "fused" / METRICS_FILE).read_text())
+    assert m["temporal"] == {"window": 2, "fused_frames": 7, "resets": 0, "frames_without_pose": 0}
+    with BagReader(bag) as r:
+        grid = r.grid()
+        mapper = create_mapper(r.rig(), grid, MapperConfig(method="ipm"))
+        fusion = TemporalFusion(grid, TemporalConfig(window=2))
+        want, alone = {}, {}
+        for f in r.frames(rgb=False):
+            pred = mapper.map(f.labels)
+            alone[f.stamp_ns] = grid.to_occupancy(pred.layer("lane_divider"), pred.known)
+            fused = fusion.update(pred, f.stamp_ns, f.odom.world_from_ego).prediction
+            want[f.stamp_ns] = grid.to_occupancy(fused.layer("lane_divider"), fused.known)
+
+    def grids(out):
+        with BagReader(out / BAG_DIR) as r:
+            return {m.msg.header.stamp.sec * 1_000_000_000 + m.msg.header.stamp.nanosec: np.asarray(m.msg.data)
+                    for m in r.messages(["/bev/lane_divider"])}
+
+    got, got_alone = grids(tmp_path / "fused"), grids(tmp_path / "alone")
+    assert sorted(got) == sorted(want) and len(got) == 4
+    for stamp in want:
+        np.testing.assert_array_equal(got[stamp], want[stamp])
+        np.testing.assert_array_equal(got_alone[stamp], alone[stamp])
+    assert any((got[s] != got_alone[s]).any() for s in list(want)[1:])  # fusion changed something
