@@ -108,6 +108,10 @@ class TemporalFusion:
     def _drop_reason(self, odom_from_base, stamp_ns: int) -> str:
         if odom_from_base is None:
             return "no ego pose for this frame: mapped without temporal fusion"
+        T = np.asarray(odom_from_base, dtype=np.float64)
+        if T.shape != (4, 4) or not np.isfinite(T).all() or not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3),
+                                                                           atol=1e-6):
+            return "the ego pose is not a finite rigid 4x4 transform: mapped without temporal fusion"
         if not self._memory:
             return ""
         last = self._memory[-1]
@@ -136,11 +140,11 @@ class TemporalFusion:
         note = self._drop_reason(odom_from_base, int(stamp_ns))
         if note:
             self.reset()
+        if self.config.window == 1 or "mapped without temporal fusion" in note:
+            return FusionResult(pred, 1, note)
         p = torch.from_numpy(np.clip(pred.probs, EPS, 1.0 - EPS).astype(np.float32))  # (C, H, W)
         known = torch.from_numpy(np.asarray(pred.known, dtype=bool))  # (H, W)
         logits = torch.log(p) - torch.log1p(-p)
-        if odom_from_base is None or self.config.window == 1:
-            return FusionResult(pred, 1, note)
         T_cur = np.asarray(odom_from_base, dtype=np.float64)
         fused_layers = [i for i, c in enumerate(pred.classes) if self.config.layers == "all" or bev_class(c).flat]
         kept = torch.where(known, logits, torch.zeros_like(logits))  # (C, H, W)

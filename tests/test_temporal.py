@@ -72,6 +72,7 @@ def test_known_cells_are_the_current_frames_and_object_layers_are_not_fused_by_d
     (2 * S, pose(x=0.2), "since the previous frame"),
     (S // 5, pose(x=40.0), "jumped"),
     (S // 5, None, "no ego pose"),
+    (S // 5, np.full((4, 4), np.nan), "not a finite rigid"),
 ])
 def test_memory_drops_on_a_loop_a_gap_a_pose_jump_or_no_pose(stamp, where, reason):
     fusion = TemporalFusion(GRID, TemporalConfig(window=2, max_gap_s=0.5, max_jump_m=5.0))
