@@ -20,6 +20,7 @@ from bev_mapper_core.errors import BevMapperError, ConfigError
 from bev_mapper_core.grid import BevGrid
 from bev_mapper_core.mapper import MapperConfig
 from bev_mapper_core.rig import PRESETS, preset_rig
+from bev_mapper_core.temporal import TemporalConfig
 from bev_mapper_core.transforms import make_transform, quat_to_rot
 from msg_adapters.sync import SyncConfig
 
@@ -69,6 +70,10 @@ class NodeConfig:
             synchronized sets in the window were dropped (mapping slower than the cameras).
         stale_error_s: ``/diagnostics`` reports ERROR when images arrive but nothing was
             mapped for this long, or when no image arrived for this long after some did.
+        odom_topic: ``nav_msgs/Odometry`` of the ego (``frame_id`` a fixed frame,
+            ``child_frame_id`` the base frame); its pose at each image stamp aligns the frames
+            of the temporal fusion.
+        temporal: method-independent temporal fusion (core dataclass; ``window`` 1 = off).
     """
 
     cameras: tuple[str, ...]
@@ -89,6 +94,8 @@ class NodeConfig:
     clock_mismatch_s: float = 10.0
     drop_warn_ratio: float = 0.2
     stale_error_s: float = 5.0
+    odom_topic: str = "/odom"
+    temporal: TemporalConfig = field(default_factory=TemporalConfig)
 
     def __post_init__(self) -> None:
         cams = tuple(self.cameras)
@@ -246,6 +253,8 @@ PARAM_FIELDS: dict[str, ParamField] = {
     "clock_mismatch_s": ParamField(NodeConfig, "clock_mismatch_s"),
     "drop_warn_ratio": ParamField(NodeConfig, "drop_warn_ratio"),
     "stale_error_s": ParamField(NodeConfig, "stale_error_s"),
+    "odom_topic": ParamField(NodeConfig, "odom_topic"),
+    "temporal_window": ParamField(TemporalConfig, "window"),
 }
 
 #: Parameters that may change while the node runs (``ros2 param set``): the diagnostics'
@@ -323,7 +332,7 @@ def node_config_from_params(p: dict) -> NodeConfig:
     """
     p = {**preset_parameters(str(p.get("rig") or "")),
          **{k: v for k, v in p.items() if not (k == "cameras" or k.startswith("extrinsics.")) or list(v or ())}}
-    kwargs: dict[type, dict] = {NodeConfig: {}, MapperConfig: {}, BevGrid: {}}
+    kwargs: dict[type, dict] = {NodeConfig: {}, MapperConfig: {}, BevGrid: {}, TemporalConfig: {}}
     for name, pf in PARAM_FIELDS.items():
         if name in p:
             kwargs[pf.owner][pf.field] = pf.from_param(p[name])
@@ -338,7 +347,8 @@ def node_config_from_params(p: dict) -> NodeConfig:
         T = extrinsic_from_list(cam, p.get(f"extrinsics.{cam}"))
         if T is not None:
             ext[cam] = T
-    return NodeConfig(cameras=cameras, mapper=mapper, grid=grid, extrinsics=tuple(ext.items()), **node_kw)
+    return NodeConfig(cameras=cameras, mapper=mapper, grid=grid, extrinsics=tuple(ext.items()),
+                      temporal=TemporalConfig(**kwargs[TemporalConfig]), **node_kw)
 
 
 def with_runtime_parameters(cfg: NodeConfig, changes: dict) -> NodeConfig:

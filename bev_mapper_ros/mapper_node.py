@@ -28,7 +28,7 @@ import time
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from nav_msgs.msg import OccupancyGrid
+from nav_msgs.msg import OccupancyGrid, Odometry
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.exceptions import NameValidationException, ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -41,6 +41,8 @@ from bev_mapper_core.classes import bev_picture
 from bev_mapper_core.errors import BevMapperError
 from bev_mapper_core.label_maps import label_map
 from bev_mapper_core.mapper import create_mapper, output_classes, preflight
+from bev_mapper_core.pose_buffer import PoseBuffer
+from bev_mapper_core.temporal import TemporalFusion
 from msg_adapters import (
     FrameSynchronizer,
     RclpyFactory,
@@ -52,6 +54,7 @@ from msg_adapters import (
     image_to_rgb,
     make_image,
     make_occupancy_grid,
+    odometry_to_state,
 )
 
 from .calibration import LiveCalibration
@@ -128,6 +131,13 @@ class MapperNode(Node):
             self._subs.append(self.create_subscription(
                 CameraInfo, cfg.camera_info_topic_for(cam), self._contained(f"{cam} camera_info", self._info_cb(cam)),
                 qos_profile_sensor_data))
+        # temporal fusion: the ego pose at each image stamp from odometry (window 1: neither)
+        self.poses = PoseBuffer()
+        self._poses_lock = threading.Lock()
+        self.fusion = TemporalFusion(cfg.grid, cfg.temporal) if cfg.temporal.window > 1 else None
+        if self.fusion is not None:
+            self._subs.append(self.create_subscription(
+                Odometry, cfg.odom_topic, self._contained("odometry", self._odom_cb), 50))
         self._grid_pubs = {c: self.create_publisher(OccupancyGrid, f"{cfg.output_prefix}/{c}", OUTPUT_QOS)
                            for c in self.class_names}
         self._image_pub = self.create_publisher(Image, f"{cfg.output_prefix}/image", OUTPUT_QOS)
@@ -207,6 +217,15 @@ class MapperNode(Node):
 
     def _on_set(self, synced) -> None:
         self.slot.put(synced)
+
+    def _odom_cb(self, msg) -> None:
+        """Keep the ego pose of an odometry message (a bad one is counted and skipped)."""
+        try:
+            state = odometry_to_state(msg)
+            with self._poses_lock:
+                self.poses.add(state.stamp_ns, state.world_from_ego)
+        except BevMapperError as exc:
+            self._bad_input(f"odometry: {exc}", "odometry")
 
     def _throttled_warning(self, key: str, message: str) -> None:
         """Log a warning ``message`` at most every THROTTLE_S per ``key``."""
@@ -325,8 +344,19 @@ class MapperNode(Node):
         missing = [c for c in self.cfg.cameras if c not in images]
         if not images:
             return
-        pred = self.mapper.map(images, stamp_ns=synced.stamp_ns)
         stamp = synced.stamp_ns
+        pose = None
+        if self.fusion is not None:
+            with self._poses_lock:
+                pose = self.poses.at(stamp)
+        pred = self.mapper.map(images, ego_pose=pose, stamp_ns=stamp)
+        if self.fusion is not None:
+            fused = self.fusion.update(pred, stamp, pose)
+            pred = fused.prediction
+            with self.stats.lock:
+                self.stats.temporal_frames, self.stats.temporal_note = fused.frames, fused.note
+            if fused.note:
+                self._throttled_warning("temporal", fused.note)
         for ci, name in enumerate(self.class_names):
             msg = make_occupancy_grid(self.factory, self.cfg.grid, pred.probs[ci], pred.known,
                                       stamp, self.cfg.base_frame)

@@ -90,6 +90,10 @@ _DECLARATIONS: dict[str, tuple] = {
     "drop_warn_ratio": (_T.PARAMETER_DOUBLE, "WARN when more than this fraction of the sets in the window is dropped"),
     "stale_error_s": (_T.PARAMETER_DOUBLE,
                       "ERROR when images arrive but nothing is mapped for this long, or images stop (s)"),
+    "odom_topic": (_T.PARAMETER_STRING, "nav_msgs/Odometry of the ego: its pose at each image stamp aligns the "
+                   "frames of the temporal fusion"),
+    "temporal_window": (_T.PARAMETER_INTEGER, "fuse the flat layers over the last N frames, aligned by odometry "
+                        "(log-odds; 1 = off)"),
 }
 _DEFAULTS = parameter_defaults()
 # name -> (default, type, read_only, description), in PARAM_FIELDS order; default None = an empty

@@ -64,6 +64,8 @@ class NodeStats:
     last_input_s: float | None = None
     last_mapped_s: float | None = None
     clock_skew_s: float | None = None  # node clock - stamp of the last image
+    temporal_frames: int = 0  # frames fused into the last published set (temporal fusion on)
+    temporal_note: str = ""  # why the last set was mapped without its history ('' = it was not)
     # (monotonic s, processing ms, latency ms or None) of recent mapped sets
     recent: deque = field(default_factory=lambda: deque(maxlen=2000), repr=False)
     # (monotonic s, dropped sets so far), one per diagnostics message
@@ -149,6 +151,9 @@ def diagnostic_values(stats: NodeStats, now_s: float, cfg, dropped: int) -> tupl
     ratio = dropped_window / considered if considered else 0.0
     values["dropped_in_window"] = dropped_window
     values["drop_ratio"] = round(ratio, 3)
+    if cfg.temporal.window > 1:
+        values["temporal_frames"] = stats.temporal_frames
+        values["temporal_note"] = stats.temporal_note
 
     problems: list[tuple[int, str]] = []
     if last_in is not None and now_s - last_in > cfg.stale_error_s:

@@ -22,6 +22,7 @@ from bev_mapper_core.mapper import INPUT_KINDS, MapperConfig, available_methods
 from bev_mapper_core.rig import PRESETS
 from bev_mapper_core.synth.config import SynthConfig
 from bev_mapper_core.synth.styles import STYLE_CHOICES
+from bev_mapper_core.temporal import TemporalConfig
 from bev_mapper_ros.config import (
     PARAM_FIELDS,
     NodeConfig,
@@ -32,13 +33,15 @@ from bev_mapper_ros.rig_params import CONFIG_DIR
 from msg_adapters import GridMessageError, SyncConfig, check_grid_info
 
 # ------------------------------------------------------------ node parameters
-_OWNED_ELSEWHERE = {"mapper", "grid", "extrinsics"}  # nested dataclasses / per-camera parameters
+_OWNED_ELSEWHERE = {"mapper", "grid", "extrinsics", "temporal"}  # nested dataclasses / per-camera parameters
 
 
 def _owner_field(name: str):
     """The dataclass field a parameter sets, found by name (independently of PARAM_FIELDS)."""
     if name.startswith("grid."):
         owner, fname = BevGrid, name.split(".", 1)[1]
+    elif name.startswith("temporal_"):
+        owner, fname = TemporalConfig, name.split("_", 1)[1]
     elif name in {f.name for f in fields(NodeConfig)}:
         owner, fname = NodeConfig, name
     else:
@@ -79,6 +82,8 @@ def test_every_scalar_field_is_a_parameter():
             if owner is NodeConfig and f.name in _OWNED_ELSEWHERE:
                 continue
             assert (owner, f.name) in declared, f"{owner.__name__}.{f.name} has no node parameter"
+    # of the temporal fusion's settings, the node exposes the window (the rest keep their defaults)
+    assert {(o, f) for o, f in declared if o is TemporalConfig} == {(TemporalConfig, "window")}
 
 
 def test_declared_defaults_give_the_dataclass_defaults():
