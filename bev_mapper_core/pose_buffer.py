@@ -64,6 +64,11 @@ class PoseBuffer:
     def __len__(self) -> int:
         return len(self._stamps)
 
+    @property
+    def latest_stamp_ns(self) -> int | None:
+        """Stamp of the newest pose (``None`` when empty)."""
+        return self._stamps[-1] if self._stamps else None
+
     def clear(self) -> None:
         """Forget every pose."""
         self._stamps.clear()

@@ -96,6 +96,9 @@ def _tf_lookup_for(node: Node):
     return lookup
 
 
+#: How long a frame waits for the odometry of its stamp (temporal fusion only).
+POSE_WAIT_S = 0.2
+
 class MapperNode(Node):
     """Subscribes to N cameras, maps synchronized sets to BEV, publishes grids + diagnostics."""
 
@@ -217,6 +220,19 @@ class MapperNode(Node):
 
     def _on_set(self, synced) -> None:
         self.slot.put(synced)
+
+    def _pose_at(self, stamp_ns: int):
+        """The ego pose at ``stamp_ns``; waits up to POSE_WAIT_S for odometry at or after the
+        stamp (odometry of the same instant often arrives just after the images), else None.
+        """
+        deadline = time.monotonic() + POSE_WAIT_S
+        while True:
+            with self._poses_lock:
+                pose, latest = self.poses.at(stamp_ns), self.poses.latest_stamp_ns
+            if pose is not None or (latest is not None and latest >= stamp_ns) or time.monotonic() > deadline \
+                    or self._stopping.is_set():
+                return pose
+            time.sleep(0.005)
 
     def _odom_cb(self, msg) -> None:
         """Keep the ego pose of an odometry message (a bad one is counted and skipped)."""
@@ -345,10 +361,7 @@ class MapperNode(Node):
         if not images:
             return
         stamp = synced.stamp_ns
-        pose = None
-        if self.fusion is not None:
-            with self._poses_lock:
-                pose = self.poses.at(stamp)
+        pose = self._pose_at(stamp) if self.fusion is not None else None
         pred = self.mapper.map(images, ego_pose=pose, stamp_ns=stamp)
         if self.fusion is not None:
             fused = self.fusion.update(pred, stamp, pose)
