@@ -99,6 +99,7 @@ def _tf_lookup_for(node: Node):
 #: How long a frame waits for the odometry of its stamp (temporal fusion only).
 POSE_WAIT_S = 0.2
 
+
 class MapperNode(Node):
     """Subscribes to N cameras, maps synchronized sets to BEV, publishes grids + diagnostics."""
 
