@@ -17,18 +17,19 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
-from .errors import ConfigError
+from .errors import CalibrationError, ConfigError
 from .grid import BevGrid
+from .transforms import validate_transform
 
 
 def _check_transform(T) -> np.ndarray:
-    T = np.asarray(T, dtype=np.float64)
-    if T.shape != (4, 4) or not np.isfinite(T).all():
-        raise ConfigError(f"prev_from_cur must be a finite 4x4 transform, got shape {T.shape}")
-    R = T[:3, :3]
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or not np.isclose(np.linalg.det(R), 1.0, atol=1e-6):
-        raise ConfigError("prev_from_cur has no rotation part (R R^T != I or det != 1)")
-    return T
+    """``T`` as float64 after :func:`~bev_mapper_core.transforms.validate_transform` (a bad one:
+    ConfigError).
+    """
+    try:
+        return validate_transform(T, "prev_from_cur")
+    except CalibrationError as exc:
+        raise ConfigError(str(exc)) from None
 
 
 def source_points(grid: BevGrid, prev_from_cur) -> tuple[np.ndarray, np.ndarray]:

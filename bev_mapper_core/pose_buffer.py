@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import ConfigError
-from .transforms import quat_to_rot, rot_to_quat
+from .errors import CalibrationError, ConfigError
+from .transforms import quat_to_rot, rot_to_quat, validate_transform
 
 
 @dataclass(frozen=True)
@@ -81,10 +81,10 @@ class PoseBuffer:
         Raises:
             ConfigError: not a finite rigid 4x4 transform (nothing is kept).
         """
-        T = np.asarray(odom_from_base, dtype=np.float64)
-        if T.shape != (4, 4) or not np.isfinite(T).all() or not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3),
-                                                                           atol=1e-6):
-            raise ConfigError("an ego pose must be a finite rigid 4x4 transform")
+        try:
+            T = validate_transform(odom_from_base, "ego pose")
+        except CalibrationError as exc:
+            raise ConfigError(f"an ego pose must be a finite rigid 4x4 transform: {exc}") from None
         stamp_ns = int(stamp_ns)
         if self._stamps and stamp_ns < self._stamps[-1]:
             self.clear()

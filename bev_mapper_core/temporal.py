@@ -37,9 +37,10 @@ import torch
 
 from .bev_warp import warp_layers
 from .classes import bev_class
-from .errors import ConfigError
+from .errors import CalibrationError, ConfigError
 from .grid import BevGrid
 from .mapper import BevPrediction
+from .transforms import validate_transform
 
 #: ``TemporalConfig.layers`` choices.
 TEMPORAL_LAYERS = ("flat", "all")
@@ -105,13 +106,19 @@ class TemporalFusion:
         """Forget every kept frame."""
         self._memory.clear()
 
-    def _drop_reason(self, odom_from_base, stamp_ns: int) -> str:
+    @staticmethod
+    def _pose_problem(odom_from_base) -> str:
+        """Why ``odom_from_base`` cannot align this frame ('' = it can)."""
         if odom_from_base is None:
             return "no ego pose for this frame: mapped without temporal fusion"
-        T = np.asarray(odom_from_base, dtype=np.float64)
-        if T.shape != (4, 4) or not np.isfinite(T).all() or not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3),
-                                                                           atol=1e-6):
-            return "the ego pose is not a finite rigid 4x4 transform: mapped without temporal fusion"
+        try:
+            validate_transform(odom_from_base, "ego pose")
+        except CalibrationError as exc:
+            return f"the ego pose is not a finite rigid 4x4 transform ({exc}): mapped without temporal fusion"
+        return ""
+
+    def _drop_reason(self, odom_from_base, stamp_ns: int) -> str:
+        """Why the kept frames cannot be fused with a frame at this (valid) pose and stamp."""
         if not self._memory:
             return ""
         last = self._memory[-1]
@@ -137,10 +144,11 @@ class TemporalFusion:
         if self._classes is not None and pred.classes != self._classes:
             self.reset()
         self._classes = pred.classes
-        note = self._drop_reason(odom_from_base, int(stamp_ns))
+        bad_pose = self._pose_problem(odom_from_base)
+        note = bad_pose or self._drop_reason(odom_from_base, int(stamp_ns))
         if note:
             self.reset()
-        if self.config.window == 1 or "mapped without temporal fusion" in note:
+        if self.config.window == 1 or bad_pose:
             return FusionResult(pred, 1, note)
         p = torch.from_numpy(np.clip(pred.probs, EPS, 1.0 - EPS).astype(np.float32))  # (C, H, W)
         known = torch.from_numpy(np.asarray(pred.known, dtype=bool))  # (H, W)
