@@ -39,9 +39,8 @@ def source_points(grid: BevGrid, prev_from_cur) -> tuple[np.ndarray, np.ndarray]
         ConfigError: ``prev_from_cur`` is not a finite rigid 4x4 transform.
     """
     T = _check_transform(prev_from_cur)
-    pts = grid.points()  # (H*W, 3) current-frame cell centres on the ground
-    src = pts @ T[:3, :3].T + T[:3, 3]  # (H*W, 3) in the earlier frame
-    return src[:, 0].reshape(grid.shape), src[:, 1].reshape(grid.shape)
+    xs, ys = grid.centers  # (H, W) each, cached by the grid; the cells lie at z = 0
+    return T[0, 0] * xs + T[0, 1] * ys + T[0, 3], T[1, 0] * xs + T[1, 1] * ys + T[1, 3]
 
 
 def sampling_grid(grid: BevGrid, prev_from_cur, points: tuple[np.ndarray, np.ndarray] | None = None) -> torch.Tensor:
