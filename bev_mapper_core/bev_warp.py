@@ -75,4 +75,24 @@ def warp_layers(layers: torch.Tensor, grid: BevGrid, prev_from_cur) -> tuple[tor
     return (out[0] if squeeze else out), valid
 
 
-__all__ = ["sampling_grid", "source_points", "warp_layers"]
+def warp_batch(layers: torch.Tensor, grid: BevGrid, prev_from_cur: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`warp_layers` for a batch with one motion per sample, in torch (training and the
+    FocusBEV memory bank): ``layers`` ``(B, C, H, W)`` on ``grid``, ``prev_from_cur`` ``(B, 4, 4)``
+    (rigid, not checked here: the callers' poses are) -> warped ``(B, C, H, W)`` and ``valid``
+    ``(B, H, W)`` bool.
+    """
+    if layers.dim() != 4 or tuple(layers.shape[-2:]) != grid.shape:
+        raise ValueError(f"layers must be (B, C, {grid.height}, {grid.width}), got {tuple(layers.shape)}")
+    T = prev_from_cur.to(device=layers.device, dtype=torch.float64)
+    xs, ys = (torch.tensor(a, device=layers.device) for a in grid.centers)  # (H, W) float64 each
+    px = T[:, 0, 0, None, None] * xs + T[:, 0, 1, None, None] * ys + T[:, 0, 3, None, None]  # (B, H, W)
+    py = T[:, 1, 0, None, None] * xs + T[:, 1, 1, None, None] * ys + T[:, 1, 3, None, None]
+    u = 2.0 * (px - grid.x_min) / (grid.x_max - grid.x_min) - 1.0
+    v = 2.0 * (py - grid.y_min) / (grid.y_max - grid.y_min) - 1.0
+    g = torch.stack([u, v], dim=-1).to(layers.dtype)  # (B, H, W, 2)
+    out = F.grid_sample(layers, g, mode="bilinear", padding_mode="zeros", align_corners=False)  # (B, C, H, W)
+    valid = (px >= grid.x_min) & (px < grid.x_max) & (py >= grid.y_min) & (py < grid.y_max)
+    return out, valid
+
+
+__all__ = ["sampling_grid", "source_points", "warp_batch", "warp_layers"]

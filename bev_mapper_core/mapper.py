@@ -106,11 +106,16 @@ class BevPrediction:
         classes: layer names, in layer order.
         probs: ``(C, H, W)`` float32 probabilities in [0, 1].
         known: ``(H, W)`` bool, cells the method has evidence for (False = unknown).
+        frames: frames a temporal method fused into this one (1: this frame alone).
+        note: why a temporal method mapped without (some of) its memory ('' = nothing to say):
+            no ego pose, a reset; for logs and ``/diagnostics``.
     """
 
     classes: tuple[str, ...]
     probs: np.ndarray
     known: np.ndarray
+    frames: int = 1
+    note: str = ""
 
     def layer(self, name: str) -> np.ndarray:
         """The ``(H, W)`` probability layer of class ``name``."""
@@ -125,9 +130,15 @@ class Mapper(ABC):
 
     Subclasses set :attr:`name` and implement :meth:`map`. Calibration-dependent state is
     (re)built in :meth:`set_rig`, which the caller invokes only when calibration changes.
+
+    Temporal methods set :attr:`uses_ego_pose`: callers then pass every frame's stamp and ego
+    pose to :meth:`map` (single-frame methods may ignore both), and the method keeps its own
+    memory, which :meth:`reset` drops.
     """
 
     name: str = ""
+    #: the method reads ``ego_pose`` and ``stamp_ns`` (callers look poses up for it)
+    uses_ego_pose: bool = False
 
     def __init__(self, rig: Rig, grid: BevGrid, config: MapperConfig) -> None:
         self.grid = grid
@@ -175,7 +186,9 @@ class Mapper(ABC):
         """Map one synchronized set of images (camera name -> image) to BEV layers.
 
         Cameras missing from ``images`` are treated as unseen. ``ego_pose`` is
-        ``world_from_ego`` (4x4) for methods with temporal fusion.
+        ``world_from_ego`` (4x4, ``odom_from_base``) and ``stamp_ns`` the images' stamp, for
+        methods with temporal fusion (:attr:`uses_ego_pose`); ``None`` when unknown: such a
+        method then maps the frame alone and says so in :attr:`BevPrediction.note`.
         """
 
     # ------------------------------------------------------------ helpers
@@ -224,6 +237,7 @@ _REGISTRY: dict[str, str] = {
     "bimapper": "bev_mapper_core.models.bimapper_mapper:BiMapperMapper",
     "segipm": "bev_mapper_core.models.segipm_mapper:SegIpmMapper",
     "s2g2": "bev_mapper_core.models.s2g2_mapper:S2G2Mapper",
+    "focusbev": "bev_mapper_core.models.focusbev_mapper:FocusBEVMapper",
 }
 
 

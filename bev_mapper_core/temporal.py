@@ -75,6 +75,34 @@ class TemporalConfig:
             raise ConfigError(f"temporal layers must be one of {TEMPORAL_LAYERS}, got {self.layers!r}")
 
 
+def pose_problem(odom_from_base) -> str:
+    """Why ``odom_from_base`` cannot align a frame with earlier ones ('' = it can)."""
+    if odom_from_base is None:
+        return "no ego pose for this frame: mapped without temporal fusion"
+    try:
+        validate_transform(odom_from_base, "ego pose")
+    except CalibrationError as exc:
+        return f"the ego pose is not a finite rigid 4x4 transform ({exc}): mapped without temporal fusion"
+    return ""
+
+
+def drop_reason(last_stamp_ns: int, last_pose: np.ndarray, stamp_ns: int, odom_from_base, config: TemporalConfig) -> str:
+    """Why memory kept up to a frame at ``last_stamp_ns`` / ``last_pose`` cannot be used with a
+    frame at ``stamp_ns`` / ``odom_from_base`` (a valid pose): the stamp went back (a bag loop),
+    the gap exceeds ``config.max_gap_s``, or the pose jumped more than ``config.max_jump_m``.
+    '' = it can.
+    """
+    if stamp_ns <= last_stamp_ns:
+        return f"stamp went back by {(last_stamp_ns - stamp_ns) / 1e9:.3f} s: temporal memory reset"
+    gap = (stamp_ns - last_stamp_ns) / 1e9
+    if gap > config.max_gap_s:
+        return f"{gap:.3f} s since the previous frame (> {config.max_gap_s} s): temporal memory reset"
+    jump = float(np.linalg.norm(np.asarray(odom_from_base)[:3, 3] - np.asarray(last_pose)[:3, 3]))
+    if jump > config.max_jump_m:
+        return f"ego pose jumped {jump:.2f} m (> {config.max_jump_m} m): temporal memory reset"
+    return ""
+
+
 @dataclass(frozen=True)
 class FusionResult:
     """One fused frame: ``prediction``, the number of ``frames`` fused into it (1 = alone), and
@@ -106,31 +134,12 @@ class TemporalFusion:
         """Forget every kept frame."""
         self._memory.clear()
 
-    @staticmethod
-    def _pose_problem(odom_from_base) -> str:
-        """Why ``odom_from_base`` cannot align this frame ('' = it can)."""
-        if odom_from_base is None:
-            return "no ego pose for this frame: mapped without temporal fusion"
-        try:
-            validate_transform(odom_from_base, "ego pose")
-        except CalibrationError as exc:
-            return f"the ego pose is not a finite rigid 4x4 transform ({exc}): mapped without temporal fusion"
-        return ""
-
     def _drop_reason(self, odom_from_base, stamp_ns: int) -> str:
         """Why the kept frames cannot be fused with a frame at this (valid) pose and stamp."""
         if not self._memory:
             return ""
         last = self._memory[-1]
-        if stamp_ns <= last.stamp_ns:
-            return f"stamp went back by {(last.stamp_ns - stamp_ns) / 1e9:.3f} s: temporal memory reset"
-        gap = (stamp_ns - last.stamp_ns) / 1e9
-        if gap > self.config.max_gap_s:
-            return f"{gap:.3f} s since the previous frame (> {self.config.max_gap_s} s): temporal memory reset"
-        jump = float(np.linalg.norm(np.asarray(odom_from_base)[:3, 3] - last.odom_from_base[:3, 3]))
-        if jump > self.config.max_jump_m:
-            return f"ego pose jumped {jump:.2f} m (> {self.config.max_jump_m} m): temporal memory reset"
-        return ""
+        return drop_reason(last.stamp_ns, last.odom_from_base, stamp_ns, odom_from_base, self.config)
 
     def update(self, pred: BevPrediction, stamp_ns: int, odom_from_base: np.ndarray | None) -> FusionResult:
         """Fuse ``pred`` (this frame, on :attr:`grid`) with the kept frames and keep it.
@@ -144,7 +153,7 @@ class TemporalFusion:
         if self._classes is not None and pred.classes != self._classes:
             self.reset()
         self._classes = pred.classes
-        bad_pose = self._pose_problem(odom_from_base)
+        bad_pose = pose_problem(odom_from_base)
         note = bad_pose or self._drop_reason(odom_from_base, int(stamp_ns))
         if note:
             self.reset()
@@ -175,4 +184,4 @@ class TemporalFusion:
                             note)
 
 
-__all__ = ["EPS", "TEMPORAL_LAYERS", "FusionResult", "TemporalConfig", "TemporalFusion"]
+__all__ = ["EPS", "TEMPORAL_LAYERS", "FusionResult", "TemporalConfig", "TemporalFusion", "drop_reason", "pose_problem"]

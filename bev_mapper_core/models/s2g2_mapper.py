@@ -12,29 +12,26 @@ must be among them (a subset, any order).
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from ..errors import ConfigError
 from ..grid import BevGrid
-from ..mapper import BevPrediction, Mapper, MapperConfig
+from ..mapper import BevPrediction, MapperConfig
 from ..rig import Rig
+from .mono_mapper import MonocularMapper, shipped_weights
 from .runtime import inference_device
 from .s2g2 import S2G2, check_monocular
-from .s2g2_weights import WeightsError, load_s2g2, read_s2g2_metadata, validate_s2g2
-
-WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
+from .s2g2_weights import load_s2g2, read_s2g2_metadata, validate_s2g2
 
 
 def shipped_s2g2(rig_name: str, input_kind: str) -> Path:
     """Where the shipped S2G2 weights of a rig and input kind live (the file may not exist)."""
-    return WEIGHTS_DIR / f"s2g2_{rig_name}_{input_kind}.safetensors"
+    return shipped_weights("s2g2", rig_name, input_kind)
 
 
-class S2G2Mapper(Mapper):
+class S2G2Mapper(MonocularMapper):
     """Learned S2G2 inference: batch 1, ``torch.inference_mode``, sigmoid probabilities of the
     weights' ``inference_branch``; ``known`` = ground cells inside the camera's image.
 
@@ -45,74 +42,13 @@ class S2G2Mapper(Mapper):
     """
 
     name = "s2g2"
-
-    @classmethod
-    def weights_path(cls, config: MapperConfig, rig_name: str) -> Path:
-        """``config.weights``, or the shipped file of the rig and input kind.
-
-        Raises:
-            ConfigError: none given and none shipped for this rig and input kind.
-        """
-        if config.weights:
-            return Path(config.weights)
-        path = shipped_s2g2(rig_name, config.input_kind)
-        if not path.is_file():
-            shipped = sorted(p.name for p in WEIGHTS_DIR.glob("s2g2_*.safetensors"))
-            raise ConfigError(f"no S2G2 weights given and none shipped for rig {rig_name!r} / input "
-                              f"{config.input_kind!r} (shipped: {', '.join(shipped) or 'none'}): train them "
-                              "(bev-train --method s2g2 --rig front1 --grid ahead --unlabeled-drives N ...) and pass "
-                              "weights=<file>, or use method 'ipm'")
-        return path
-
-    @classmethod
-    def preflight(cls, config: MapperConfig, rig_name: str, grid: BevGrid | None = None,
-                  cameras: tuple[str, ...] | None = None) -> None:
-        """One camera (when the camera names are given), and a weights file that is S2G2
-        safetensors for this input kind, rig, classes, camera and (when given) grid, every tensor
-        of which fits the stored architecture: a node never starts with weights it cannot run.
-
-        Raises:
-            ConfigError: more than one camera; no weights given.
-            WeightsError: the first mismatch.
-        """
-        if cameras is not None and len(cameras) != 1:
-            raise ConfigError(f"S2G2 is monocular: rig {rig_name!r} has {len(cameras)} cameras {list(cameras)}; "
-                              "use a one-camera rig (e.g. front1), or method bimapper / ipm")
-        path = cls.weights_path(config, rig_name)
-        meta = read_s2g2_metadata(path)
-        if meta["input_kind"] != config.input_kind:
-            raise WeightsError(f"{path} is for input {meta['input_kind']!r}, configured input is {config.input_kind!r}")
-        if rig_name and meta["rig"] != rig_name:
-            raise WeightsError(f"{path} was trained for rig {meta['rig']!r}, not {rig_name!r}")
-        unknown = [c for c in config.classes or () if c not in meta["classes"]]
-        if unknown:
-            raise WeightsError(f"{path}: classes {unknown} are not among the weights' classes {meta['classes']}")
-        if cameras is not None and list(cameras) != list(meta["cameras"]):
-            raise WeightsError(f"{path}: weights were trained for camera {meta['cameras']}, but {list(cameras)} "
-                               "is configured")
-        stored = BevGrid.from_dict(meta["grid"])
-        if grid is not None and not grid.isclose(stored):
-            raise WeightsError(f"{path}: weights were trained for grid {stored.describe()}, but {grid.describe()} "
-                               "is configured; use weights trained for this grid, or method 'ipm'")
-        validate_s2g2(path)
-
-    @classmethod
-    def output_classes(cls, config: MapperConfig, rig_name: str) -> tuple[str, ...]:
-        """``config.classes``, or the classes the weights were trained for (header only)."""
-        if config.classes is not None:
-            return tuple(config.classes)
-        return tuple(read_s2g2_metadata(cls.weights_path(config, rig_name))["classes"])
+    title = "S2G2"
+    train_hint = "bev-train --method s2g2 --rig front1 --grid ahead --unlabeled-drives N ..."
+    read_metadata = staticmethod(read_s2g2_metadata)
+    validate = staticmethod(validate_s2g2)
 
     def __init__(self, rig: Rig, grid: BevGrid, config: MapperConfig) -> None:
-        check_monocular(rig)
-        self.preflight(config, rig.name, grid, rig.names)
-        self.weights_file = self.weights_path(config, rig.name)
-        meta = read_s2g2_metadata(self.weights_file)
-        weight_classes = tuple(meta["classes"])
-        if config.classes is None:
-            config = replace(config, classes=weight_classes)
-        #: output layers of the model to return, in the configured order (a subset is allowed)
-        self._layers = [weight_classes.index(c) for c in config.classes]
+        config, meta = self.open_weights(rig, grid, config)
         #: the branch that maps (the weights' ``inference_branch``)
         self.branch = meta["inference_branch"]
         self.device = inference_device(config)

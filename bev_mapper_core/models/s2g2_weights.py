@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import json
 import os
-import threading
 from pathlib import Path
 
 import torch
@@ -30,15 +29,11 @@ from ..errors import BevMapperError, ConfigError
 from ..grid import BevGrid
 from ..rig import Rig
 from .s2g2 import BRANCHES, S2G2, S2G2Config, check_monocular
-from .weights import META_KEY, WeightsError, _check_tensors, check_model_document, read_checked_tensors, read_document, standin_rig
+from .weights import META_KEY, WeightsError, cached_tensors, check_model_document, read_document, standin_rig
 
 FORMAT = "bev_mapper.s2g2"
 VERSION = 1
 _KEYS = ("method", "rig", "cameras", "input_kind", "classes", "grid", "input_size", "inference_branch", "config")
-
-#: file version -> checked tensors (name -> tensor)
-_STATE: dict[tuple, dict[str, torch.Tensor]] = {}
-_LOCK = threading.Lock()
 
 
 def s2g2_metadata(model: S2G2, inference_branch: str = "active") -> dict:
@@ -95,31 +90,6 @@ def read_s2g2_metadata(path: str | os.PathLike) -> dict:
     return meta
 
 
-def _file_key(path: Path) -> tuple:
-    try:
-        st = path.stat()
-    except OSError as e:
-        raise WeightsError(f"S2G2 weights {path}: {e.strerror or e}") from None
-    return (str(path.resolve()), st.st_ino, st.st_size, st.st_mtime_ns)
-
-
-def _read_tensors(path: Path, expected: dict) -> dict[str, torch.Tensor]:
-    """Every tensor of ``path`` after its header matched ``expected`` (nothing is read for a
-    file that does not fit), each checked for non-finite values; cached per file version.
-    """
-    key = _file_key(path)
-    with _LOCK:
-        state = _STATE.get(key)
-    if state is not None:
-        _check_tensors(path, {k: (tuple(t.shape), t.dtype) for k, t in state.items()}, expected)
-        return state
-    state = read_checked_tensors(path, expected)
-    with _LOCK:
-        _STATE.clear()  # one file at a time is plenty (a node loads one)
-        _STATE[key] = state
-    return state
-
-
 def validate_s2g2(path: str | os.PathLike) -> dict:
     """The full start-up check: the document, then the stored architecture built for a stand-in
     camera of the stored input size (tensor shapes do not depend on calibration) and every
@@ -160,7 +130,7 @@ def load_state_s2g2(model: S2G2, path: str | os.PathLike, meta: dict | None = No
                            f"the model maps {model.grid.describe()}")
     if list(meta["input_size"]) != list(model.input_size):
         raise WeightsError(f"{path}: weights expect input size {meta['input_size']}, the model has {list(model.input_size)}")
-    model.load_state_dict(_read_tensors(path, model.state_dict()), strict=True)
+    model.load_state_dict(cached_tensors(path, model.state_dict(), "S2G2"), strict=True)
 
 
 def load_s2g2(path: str | os.PathLike, rig: Rig, grid: BevGrid | None = None,

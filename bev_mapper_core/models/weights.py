@@ -462,6 +462,37 @@ def _check_tensors(path: Path, found: dict, expected: dict) -> None:
             raise WeightsError(f"{path}: tensor {k!r} is {dtype}, the model needs {ref.dtype}")
 
 
+#: (what, file version) -> checked tensors (name -> tensor): the last file of each format
+_CACHED: dict[tuple, dict[str, torch.Tensor]] = {}
+_CACHED_LOCK = threading.Lock()
+
+
+def cached_tensors(path: Path, expected: dict, what: str) -> dict[str, torch.Tensor]:
+    """Every tensor of ``path`` after its header matched ``expected`` (nothing is read for a
+    file that does not fit), each checked for non-finite values; cached per file version, the
+    last file of each ``what`` (``S2G2``, ``FocusBEV``: a node loads one).
+
+    Raises:
+        WeightsError: an unreadable file, or tensors that do not fit ``expected``.
+    """
+    try:
+        st = path.stat()
+    except OSError as e:
+        raise WeightsError(f"{what} weights {path}: {e.strerror or e}") from None
+    key = (what, str(path.resolve()), st.st_ino, st.st_size, st.st_mtime_ns)
+    with _CACHED_LOCK:
+        state = _CACHED.get(key)
+    if state is not None:
+        _check_tensors(path, {k: (tuple(t.shape), t.dtype) for k, t in state.items()}, expected)
+        return state
+    state = read_checked_tensors(path, expected)
+    with _CACHED_LOCK:
+        for k in [k for k in _CACHED if k[0] == what]:
+            del _CACHED[k]
+        _CACHED[key] = state
+    return state
+
+
 def standin_rig(name: str, cameras: tuple[str, ...], size: tuple[int, int]) -> Rig:
     """A rig of forward-looking pinhole cameras delivering ``size`` = (width, height) images.
 

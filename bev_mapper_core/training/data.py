@@ -10,6 +10,9 @@ apart instead of 1 m):
 * ``gt`` ``(F, K, Hg, Wg)`` bool: BEV ground truth of the requested classes (the renderer's
   class table is swapped for the requested classes, e.g. Cam2BEV's road / vehicle / static);
 * ``visibility`` / ``ground_visibility`` ``(F, Hg, Wg)`` bool;
+* ``poses`` ``(F, 4, 4)`` float64 ``odom_from_base`` and ``stamps`` ``(F,)`` int64 ns of each frame
+  (temporal methods; a cache written before they existed gets them added from the drive's world,
+  which costs no rendering: :func:`drive_poses`);
 * ``rgb`` ``(F, N, h, w, 3)`` uint8, only when the spec asks for RGB: the camera images resized
   to ``DriveSpec.rgb`` = ``(h, w)`` with the models' own resize (:func:`resize_rgb`), so a model
   whose input is that size sees exactly what its preprocess would make of the camera image.
@@ -154,9 +157,11 @@ def render_drive(rig: Rig, grid: BevGrid, classes: Sequence[str], seed: int, fra
     cfg = SynthConfig(frames=(frames - 1) * stride + 1, seed=int(seed), **({"style": style} if style else {}))
     renderer = DriveRenderer(build_world(cfg), rig, grid)
     renderer.lut = label_lut(cls)  # GT of the requested classes
-    labels, gt, vis, gvis, rgbs = [], [], [], [], []
+    labels, gt, vis, gvis, rgbs, poses, stamps = [], [], [], [], [], [], []
     for i in range(frames):
         f = renderer.frame(i * stride)
+        poses.append(f.world_from_ego)
+        stamps.append(f.stamp_ns)
         labels.append(np.stack([f.cameras[n].labels for n in rig.names]))
         if rgb is not None:
             rgbs.append(resize_rgb(np.stack([f.cameras[n].rgb for n in rig.names]), rgb))
@@ -164,10 +169,24 @@ def render_drive(rig: Rig, grid: BevGrid, classes: Sequence[str], seed: int, fra
         vis.append(f.visibility.astype(bool))
         gvis.append((f.ground_visibility if f.ground_visibility is not None else f.visibility).astype(bool))
     out = {"labels": np.stack(labels).astype(np.uint8), "gt": np.stack(gt), "visibility": np.stack(vis),
-           "ground_visibility": np.stack(gvis)}
+           "ground_visibility": np.stack(gvis), "poses": np.stack(poses).astype(np.float64),
+           "stamps": np.asarray(stamps, np.int64)}
     if rgb is not None:
         out["rgb"] = np.stack(rgbs)
     return out
+
+
+def drive_poses(seed: int, frames: int, stride: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """``(poses (F, 4, 4) odom_from_base, stamps (F,) ns)`` of the frames :func:`render_drive`
+    renders, from the drive's world alone (no image is rendered).
+    """
+    from ..synth import SynthConfig
+    from ..synth.world import build_world
+
+    cfg = SynthConfig(frames=(frames - 1) * stride + 1, seed=int(seed))
+    world = build_world(cfg)
+    poses = np.stack([world.ego_pose(i * stride) for i in range(frames)]).astype(np.float64)
+    return poses, np.asarray([cfg.frame_stamp_ns(i * stride) for i in range(frames)], np.int64)
 
 
 def drive_path(cache_dir: str | os.PathLike, spec: DriveSpec, seed: int) -> Path:
@@ -188,8 +207,14 @@ def load_or_render(rig: Rig, grid: BevGrid, spec: DriveSpec, seed: int,
                 keys = ("labels", "gt", "visibility", "ground_visibility") + (("rgb",) if spec.rgb else ())
                 with np.load(path, allow_pickle=False) as z:
                     d = {k: z[k] for k in keys}
+                    timed = "poses" in z.files and "stamps" in z.files
+                    if timed:
+                        d["poses"], d["stamps"] = z["poses"], z["stamps"]
                 if (d["labels"].shape[:2] == (spec.frames, len(spec.cameras)) and d["gt"].shape[1] == len(spec.classes)
                         and (not spec.rgb or d["rgb"].shape[2:4] == spec.rgb)):
+                    if not timed:  # written before drives kept their poses: add them
+                        d["poses"], d["stamps"] = drive_poses(seed, spec.frames, spec.stride)
+                        _write_cache(path, d)
                     return d
             except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError):
                 pass
@@ -199,10 +224,15 @@ def load_or_render(rig: Rig, grid: BevGrid, spec: DriveSpec, seed: int,
         meta = path.parent / "spec.json"
         if not meta.exists():
             meta.write_text(json.dumps(asdict(spec), indent=1))
-        tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
-        np.savez_compressed(tmp, **d)
-        os.replace(tmp, path)
+        _write_cache(path, d)
     return d
+
+
+def _write_cache(path: Path, d: dict[str, np.ndarray]) -> None:
+    """Write a drive's arrays atomically (another process may be reading the file)."""
+    tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
+    np.savez_compressed(tmp, **d)
+    os.replace(tmp, path)
 
 
 def resize_labels(labels: np.ndarray, size: tuple[int, int]) -> np.ndarray:
@@ -226,31 +256,69 @@ class FrameSet:
     ``mask`` (M, Hg, Wg) bool (+ ``ground_mask``), with :meth:`batches` for training.
 
     ``rgb`` (M, N, h, w, 3) uint8, when loaded, holds the camera images (batches carry it as
-    ``rgb``).
+    ``rgb``). ``poses`` (M, 4, 4) ``odom_from_base``, ``stamps`` (M,) ns and ``drives`` (M,)
+    (which drive each frame is from; frames of a drive are consecutive and in order), when
+    known, make the frames a sequence: batches carry ``poses`` / ``stamps`` / ``drives``, and with
+    :attr:`window` > 1 every batch is a batch of windows (see :meth:`batch`).
     """
 
     def __init__(self, labels: np.ndarray, target: np.ndarray, mask: np.ndarray,
                  ground_mask: np.ndarray | None = None, camera_names: Sequence[str] = (),
-                 rgb: np.ndarray | None = None) -> None:
+                 rgb: np.ndarray | None = None, poses: np.ndarray | None = None,
+                 stamps: np.ndarray | None = None, drives: np.ndarray | None = None) -> None:
         if not (len(labels) == len(target) == len(mask)) or (rgb is not None and len(rgb) != len(labels)):
             raise ConfigError("labels, rgb, target and mask must have the same number of frames")
+        if (poses is None) != (stamps is None) or (poses is None) != (drives is None):
+            raise ConfigError("poses, stamps and drives come together")
+        if poses is not None and not (len(poses) == len(stamps) == len(drives) == len(labels)):
+            raise ConfigError("poses, stamps and drives must have one entry per frame")
         self.labels, self.target, self.mask, self.rgb = labels, target, mask, rgb
         self.ground_mask = mask if ground_mask is None else ground_mask
         self.camera_names = tuple(camera_names)
+        self.poses, self.stamps, self.drives = poses, stamps, drives
+        #: frames per sample of :meth:`batch` (the frame and the ``window - 1`` before it)
+        self.window = 1
 
     def __len__(self) -> int:
         return len(self.labels)
 
+    def windows(self, idx: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(ids (B, T), present (B, T))``: the frames ``idx - T + 1 .. idx`` of each frame's
+        drive, oldest first; before a drive's first frame ``present`` is False (the id repeats
+        the frame itself).
+        """
+        if self.drives is None:
+            raise ConfigError("these frames have no poses: they cannot form windows")
+        idx = np.asarray(idx)
+        ids = idx[:, None] + np.arange(-window + 1, 1)[None]  # (B, T)
+        clipped = np.clip(ids, 0, len(self) - 1)
+        present = (ids >= 0) & (self.drives[clipped] == self.drives[idx][:, None])
+        return np.where(present, clipped, idx[:, None]), present
+
     def batch(self, idx: np.ndarray) -> dict:
-        """Torch batch of frames ``idx``: ``images`` (B, N, h, w) uint8, ``target`` float, ``mask`` bool."""
+        """Torch batch of frames ``idx``: ``images`` (B, N, h, w) uint8, ``target`` float, ``mask``
+        bool[, ``rgb``; ``poses`` (B, 4, 4) float64, ``stamps``, ``drives`` (B,)].
+
+        With :attr:`window` ``T`` > 1, each sample is the window ending at its frame:
+        ``images`` (B, T, N, h, w), ``rgb`` (B, T, N, h, w, 3), ``poses`` (B, T, 4, 4) and
+        ``present`` (B, T) bool (see :meth:`windows`); ``target`` and ``mask`` are the last frame's.
+        """
         import torch
 
         idx = np.asarray(idx)
-        out = {"images": torch.from_numpy(self.labels[idx]),
-               "target": torch.from_numpy(self.target[idx]).float(),
-               "mask": torch.from_numpy(self.mask[idx])}
+        out = {"target": torch.from_numpy(self.target[idx]).float(), "mask": torch.from_numpy(self.mask[idx])}
+        if self.window > 1:
+            ids, present = self.windows(idx, self.window)
+            out["present"] = torch.from_numpy(present)
+        else:
+            ids = idx
+        out["images"] = torch.from_numpy(self.labels[ids])
         if self.rgb is not None:
-            out["rgb"] = torch.from_numpy(self.rgb[idx])
+            out["rgb"] = torch.from_numpy(self.rgb[ids])
+        if self.poses is not None:
+            out["poses"] = torch.from_numpy(self.poses[ids])
+            out["stamps"] = torch.from_numpy(self.stamps[idx])
+            out["drives"] = torch.from_numpy(self.drives[idx])
         return out
 
     def batches(self, batch_size: int, seed: int, epoch: int, limit: int | None = None,
@@ -280,9 +348,12 @@ def synth_frameset(rig: Rig, grid: BevGrid, classes: Sequence[str], seeds: Seque
         from tqdm import tqdm
 
         it = tqdm(seeds, desc=f"drives {rig.name}", unit="drive")
-    L, T, M, G, R = [], [], [], [], []
-    for s in it:
+    L, T, M, G, R, P, S, D = [], [], [], [], [], [], [], []
+    for i, s in enumerate(it):
         d = load_or_render(rig, grid, spec, s, cache_dir)
+        P.append(d["poses"])
+        S.append(d["stamps"])
+        D.append(np.full(len(d["poses"]), i, np.int64))
         lab = d["labels"] if input_size is None else resize_labels(d["labels"], input_size)
         L.append(lab)
         T.append(d["gt"])
@@ -291,7 +362,7 @@ def synth_frameset(rig: Rig, grid: BevGrid, classes: Sequence[str], seeds: Seque
         if rgb is not None:
             R.append(d["rgb"])
     return FrameSet(np.concatenate(L), np.concatenate(T), np.concatenate(M), np.concatenate(G), rig.names,
-                    np.concatenate(R) if R else None)
+                    np.concatenate(R) if R else None, np.concatenate(P), np.concatenate(S), np.concatenate(D))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -71,15 +71,26 @@ def evaluate_mapper(mapper, frames: FrameSet, grid: BevGrid, scope: str = "visib
     """:func:`score_frameset` of a :class:`~bev_mapper_core.mapper.Mapper` over full-resolution
     ``frames``, one frame at a time through ``mapper.map`` (as the node and replay call it). A
     mapper on RGB input (``mapper.config.input_kind == "rgb"``) gets the frames' camera images.
+    Frames with poses are mapped as drives: in order, with each frame's stamp and ego pose, and
+    :meth:`~bev_mapper_core.mapper.Mapper.reset` at the start of every drive (a temporal
+    method's memory never crosses drives).
     """
     names = frames.camera_names
     rgb = mapper.config.input_kind == "rgb"
     if rgb and frames.rgb is None:
         raise ConfigError("an RGB mapper needs frames with camera images (load them with rgb=...)")
 
+    drive = [None]
+
     def predict(batch: dict):  # images (1, N, H, W[, 3]) -> (1, C, H, W), (1, H, W)
         images = (batch["rgb"] if rgb else batch["images"]).numpy()
-        pred = mapper.map({n: images[0, c] for c, n in enumerate(names)})
+        pose = stamp = None
+        if "poses" in batch:  # a sequence: a temporal method gets stamps and poses, and a new drive resets it
+            pose, stamp = batch["poses"][0].numpy(), int(batch["stamps"][0])
+            if int(batch["drives"][0]) != drive[0]:
+                mapper.reset()
+                drive[0] = int(batch["drives"][0])
+        pred = mapper.map({n: images[0, c] for c, n in enumerate(names)}, ego_pose=pose, stamp_ns=stamp)
         return pred.probs[None], pred.known[None]
 
     return score_frameset(predict, frames, grid, mapper.class_names, scope=scope,

@@ -28,9 +28,9 @@ its training settings (:attr:`TrainMethod.loss_config_type`, a frozen dataclass:
 schedules). ``bev-train`` flags of the method are declared as :class:`CliFlag` and land on a
 field of one of the two (see :meth:`~.config.TrainConfig.from_dict`).
 
-How the semi-supervised and temporal methods plug in. **S2G2** is implemented in
-:mod:`.s2g2_method` along this sketch (its source: ``TrainConfig.unlabeled_drives``); FocusBEV
-is still a sketch (names are its to choose).
+How the semi-supervised and temporal methods plug in: **S2G2** is implemented in
+:mod:`.s2g2_method` along this sketch (its source: ``TrainConfig.unlabeled_drives``), FocusBEV in
+:mod:`.focusbev_method` (windows of frames with poses: :meth:`~.data.FrameSet.windows`).
 
 **S2G2** (semi-supervised; labeled + unlabeled front images, EMA passive branch)::
 
@@ -233,6 +233,7 @@ _REGISTRY: dict[str, str | type[TrainMethod]] = {
     "bimapper": "bev_mapper_core.training.bimapper_method:BiMapperMethod",
     "segmenter": "bev_mapper_core.training.segmenter_method:SegmenterMethod",
     "s2g2": "bev_mapper_core.training.s2g2_method:S2G2Method",
+    "focusbev": "bev_mapper_core.training.focusbev_method:FocusBEVMethod",
 }
 
 

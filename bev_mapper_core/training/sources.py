@@ -135,7 +135,7 @@ class SynthSource(DataSource):
     """
 
     name = "synthetic"
-    supports = frozenset({"rgb", "unlabeled"})
+    supports = frozenset({"rgb", "unlabeled", "sequences", "poses"})
 
     @override
     def rig_grid(self, cfg: "TrainConfig") -> tuple[Rig, BevGrid]:
@@ -171,7 +171,7 @@ class SynthSource(DataSource):
                                        style=cfg.unlabeled_style or cfg.style)
         extra = "" if unlabeled is None else f" / {len(unlabeled)} unlabeled"
         log(f"data: {len(train)} training{extra} / {len(val)} held-out frames ({time.time() - t0:.1f} s)")
-        return TrainData(train, val, unlabeled)
+        return with_window(TrainData(train, val, unlabeled), needs)
 
 
 class InMemorySource(DataSource):
@@ -187,6 +187,8 @@ class InMemorySource(DataSource):
         extras = {"unlabeled"} if unlabeled is not None else set()
         if all(s.rgb is not None for s in sets):
             extras.add("rgb")
+        if all(s.poses is not None for s in sets):
+            extras |= {"poses", "sequences"}
         self.supports = frozenset(type(self).supports | extras)
 
     @override
@@ -197,7 +199,15 @@ class InMemorySource(DataSource):
     def load(self, cfg: "TrainConfig", rig: Rig, grid: BevGrid, needs: DataNeeds,
              log: Callable[[str], None]) -> TrainData:
         self.check(needs)
-        return self.data
+        return with_window(self.data, needs)
+
+
+def with_window(data: TrainData, needs: DataNeeds) -> TrainData:
+    """``data`` with every frame set's :attr:`~.data.FrameSet.window` set to ``needs.sequence_length``."""
+    for fs in (data.train, data.val, data.unlabeled):
+        if fs is not None:
+            fs.window = needs.sequence_length
+    return data
 
 
 __all__ = ["UNLABELED_KEYS", "DataNeeds", "DataSource", "InMemorySource", "SynthSource", "TrainData"]
