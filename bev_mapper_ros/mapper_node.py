@@ -40,7 +40,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from bev_mapper_core.classes import bev_picture
 from bev_mapper_core.errors import BevMapperError
 from bev_mapper_core.label_maps import label_map
-from bev_mapper_core.mapper import create_mapper, output_classes, preflight
+from bev_mapper_core.mapper import create_mapper, mapper_class, output_classes, preflight
 from bev_mapper_core.pose_buffer import PoseBuffer
 from bev_mapper_core.temporal import TemporalFusion
 from msg_adapters import (
@@ -135,11 +135,13 @@ class MapperNode(Node):
             self._subs.append(self.create_subscription(
                 CameraInfo, cfg.camera_info_topic_for(cam), self._contained(f"{cam} camera_info", self._info_cb(cam)),
                 qos_profile_sensor_data))
-        # temporal fusion: the ego pose at each image stamp from odometry (window 1: neither)
+        # the ego pose at each image stamp from odometry, for the temporal fusion (window > 1)
+        # and for methods with their own memory (FocusBEV); neither: no odometry subscription
         self.poses = PoseBuffer()
         self._poses_lock = threading.Lock()
         self.fusion = TemporalFusion(cfg.grid, cfg.temporal) if cfg.temporal.window > 1 else None
-        if self.fusion is not None:
+        self.needs_pose = self.fusion is not None or mapper_class(cfg.mapper.method).uses_ego_pose
+        if self.needs_pose:
             self._subs.append(self.create_subscription(
                 Odometry, cfg.odom_topic, self._contained("odometry", self._odom_cb), 50))
         self._grid_pubs = {c: self.create_publisher(OccupancyGrid, f"{cfg.output_prefix}/{c}", OUTPUT_QOS)
@@ -362,8 +364,13 @@ class MapperNode(Node):
         if not images:
             return
         stamp = synced.stamp_ns
-        pose = self._pose_at(stamp) if self.fusion is not None else None
+        pose = self._pose_at(stamp) if self.needs_pose else None
         pred = self.mapper.map(images, ego_pose=pose, stamp_ns=stamp)
+        if self.mapper.uses_ego_pose:  # the method's own memory
+            with self.stats.lock:
+                self.stats.temporal_frames, self.stats.temporal_note = pred.frames, pred.note
+            if pred.note:
+                self._throttled_warning("temporal", pred.note)
         if self.fusion is not None:
             fused = self.fusion.update(pred, stamp, pose)
             pred = fused.prediction

@@ -42,6 +42,7 @@ def rig_parameters(rig: Rig, grid: BevGrid | None = None, method: str = MapperCo
 #: the grid of its shipped weights).
 METHOD_CONFIGS: dict[str, dict] = {
     "front1_s2g2": {"rig": "front1", "method": "s2g2", "input_kind": "rgb", "grid": "ahead"},
+    "front1_focusbev": {"rig": "front1", "method": "focusbev", "input_kind": "rgb", "grid": "ahead"},
 }
 
 

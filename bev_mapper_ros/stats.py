@@ -19,6 +19,8 @@ import threading
 from collections import deque
 from dataclasses import dataclass, field
 
+from bev_mapper_core.mapper import mapper_class
+
 OK, WARN, ERROR = 0, 1, 2
 #: what ``latency_ms`` says when the image stamps and the node's clock disagree
 CLOCK_MISMATCH = "clock mismatch"
@@ -151,7 +153,7 @@ def diagnostic_values(stats: NodeStats, now_s: float, cfg, dropped: int) -> tupl
     ratio = dropped_window / considered if considered else 0.0
     values["dropped_in_window"] = dropped_window
     values["drop_ratio"] = round(ratio, 3)
-    if cfg.temporal.window > 1:
+    if cfg.temporal.window > 1 or mapper_class(cfg.mapper.method).uses_ego_pose:
         values["temporal_frames"] = stats.temporal_frames
         values["temporal_note"] = stats.temporal_note
 
