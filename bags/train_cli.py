@@ -42,6 +42,7 @@ from bev_mapper_core.label_maps import PRESET_NAMES
 from bev_mapper_core.mapper import INPUT_KINDS, MapperConfig
 from bev_mapper_core.rig import PRESETS
 from bev_mapper_core.synth.styles import STYLE_CHOICES, style_help
+from bev_mapper_core.temporal import TemporalConfig
 from bev_mapper_core.training.config import AUTO_CLASSES, TrainConfig
 from bev_mapper_core.training.method import CliFlag, method_class, train_methods
 
@@ -231,6 +232,9 @@ def eval_parser() -> argparse.ArgumentParser:
     p.add_argument("--cache", default=DEFAULTS["cache"])
     p.add_argument("--device", default=DEFAULTS["device"])
     p.add_argument("--threads", type=_pos_int, default=DEFAULTS["threads"])
+    p.add_argument("--temporal-window", type=_pos_int, default=TemporalConfig.window, metavar="N",
+                   help="fuse the mapper's maps over the last N frames of each drive, aligned by the drive's "
+                        "poses (bev_mapper_core.temporal; default %(default)s = off)")
     p.add_argument("--json", default=None, help="write the metrics here")
     p.add_argument("--name", default=None, help="row name for the markdown summary")
     return p
@@ -257,7 +261,7 @@ def run_eval(argv: list[str]) -> int:
     seeds = a.val_seeds or val_seeds(a.val_drives)
     res = evaluate(preset_rig(a.rig), a.grid or BevGrid(), classes, a.method, a.weights, seeds, a.frames_per_drive, a.stride,
                    a.cache, a.device, progress=True, ipm_occlusion=a.ipm_occlusion, unknown_below=a.unknown_below,
-                   input_kind=a.input_kind, style=a.style)
+                   input_kind=a.input_kind, style=a.style, temporal_window=a.temporal_window)
     print(format_table(res))
     print(f"{res['ms_per_frame']:.1f} ms/frame (mapper.map, {torch.get_num_threads()} threads)")
     print(summary_header(classes, list(res["iou_by_range"])))

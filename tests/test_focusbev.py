@@ -257,6 +257,30 @@ def test_memory_bank_resets_on_a_backward_stamp_and_without_a_pose(weights):
     jump = create_mapper(RIG, GRID, cfg)
     jump.map({"front": a}, _pose(0.0), 10**9)
     assert "jumped" in jump.map({"front": b}, _pose(40.0), 10**9 + 300_000_000).note
+    # a short camera drop-out keeps the bank (the frame 0.3 s back is still there), a long one drops it
+    gap = create_mapper(RIG, GRID, cfg)
+    for k in (0, 1, 2):
+        gap.map({"front": a}, _pose(0.5 * k), 10**9 + k * 100_000_000)
+    assert gap.map({"front": b}, _pose(2.5), 10**9 + 500_000_000).frames == 2  # 0.3 s of missing frames
+    late = gap.map({"front": b}, _pose(3.0), 10**9 + 1_500_000_000)  # 1 s without a frame
+    assert late.frames == 1 and "since the previous frame" in late.note
+
+
+def test_preflight_refuses_what_the_weights_cannot_serve(weights):
+    from bev_mapper_core.mapper import preflight
+
+    cfg = MapperConfig(method="focusbev", input_kind="rgb", weights=str(weights))
+    preflight(cfg, "front1", GRID, ("front",))
+    with pytest.raises(WeightsError, match="grid"):
+        preflight(cfg, "front1", BevGrid(0.0, 32.0, -16.0, 16.0, 0.25), ("front",))
+    with pytest.raises(WeightsError, match="configured input is 'labels'"):
+        preflight(replace(cfg, input_kind="labels"), "front1", GRID, ("front",))
+    with pytest.raises(WeightsError, match="classes"):
+        preflight(replace(cfg, classes=("sidewalk",)), "front1", GRID, ("front",))
+    with pytest.raises(ConfigError, match="FocusBEV is monocular"):
+        preflight(cfg, "surround6", GRID, ("front", "back"))
+    with pytest.raises(ConfigError, match="no FocusBEV weights given and none shipped for rig 'front1' / input 'labels'"):
+        preflight(replace(cfg, weights=None, input_kind="labels"), "front1", GRID, ("front",))
 
 
 # ------------------------------------------------------------------------- training

@@ -136,3 +136,32 @@ def test_replay_fuses_over_the_bags_odometry_exactly_as_the_core(tmp_path):
         np.testing.assert_array_equal(got[stamp], want[stamp])
         np.testing.assert_array_equal(got_alone[stamp], alone[stamp])
     assert any((got[s] != got_alone[s]).any() for s in list(want)[1:])  # fusion changed something
+
+
+def test_eval_fuses_each_drive_over_its_poses(tmp_path):
+    """``evaluate_mapper(..., temporal=TemporalConfig(window=2))`` (``bev-train eval
+    --temporal-window 2``) scores exactly the fusion of the mapper's maps over each drive's frames
+    in order, the memory dropped between drives."""
+    from bev_mapper_core.grid import grid_preset
+    from bev_mapper_core.mapper import MapperConfig, create_mapper
+    from bev_mapper_core.metrics import MetricAccumulator, scope_masks
+    from bev_mapper_core.rig import preset_rig
+    from bev_mapper_core.training.evaluate import evaluate_mapper, held_out_frames
+
+    classes = ("drivable", "lane_divider", "sidewalk")
+    rig, grid = preset_rig("front1"), grid_preset("ahead")
+    fs = held_out_frames(rig, grid, classes, (950_000_013, 950_000_014), frames=3, cache=str(tmp_path))
+    mapper = create_mapper(rig, grid, MapperConfig(method="ipm", classes=classes))
+    res = evaluate_mapper(mapper, fs, grid, temporal=TemporalConfig(window=2))
+    acc, fusion = MetricAccumulator(grid, classes), TemporalFusion(grid, TemporalConfig(window=2))
+    fused = 0
+    for i in range(len(fs)):
+        if i % 3 == 0:
+            fusion.reset()
+        out = fusion.update(mapper.map({"front": fs.labels[i, 0]}), int(fs.stamps[i]), fs.poses[i])
+        fused += out.frames > 1
+        pred = out.prediction
+        acc.update(pred.probs, fs.target[i], scope_masks(classes, fs.mask[i], fs.ground_mask[i], "visible"), pred.known)
+    assert fused == 4  # frames 1, 2 of each drive
+    assert res["miou"] == pytest.approx(acc.result()["miou"], abs=1e-12)
+    assert res["miou"] != evaluate_mapper(mapper, fs, grid)["miou"]

@@ -24,6 +24,7 @@ from ..grid import BevGrid
 from ..mapper import MapperConfig, create_mapper
 from ..metrics import MetricAccumulator, scope_masks
 from ..rig import Rig
+from ..temporal import TemporalConfig, TemporalFusion
 from .data import FrameSet, synth_frameset
 
 
@@ -67,15 +68,20 @@ def score_frameset(predict: Callable[[dict], tuple[np.ndarray, np.ndarray]], fra
 
 
 def evaluate_mapper(mapper, frames: FrameSet, grid: BevGrid, scope: str = "visible",
-                    progress: bool = False) -> dict:
+                    progress: bool = False, temporal: TemporalConfig | None = None) -> dict:
     """:func:`score_frameset` of a :class:`~bev_mapper_core.mapper.Mapper` over full-resolution
     ``frames``, one frame at a time through ``mapper.map`` (as the node and replay call it). A
     mapper on RGB input (``mapper.config.input_kind == "rgb"``) gets the frames' camera images.
     Frames with poses are mapped as drives: in order, with each frame's stamp and ego pose, and
     :meth:`~bev_mapper_core.mapper.Mapper.reset` at the start of every drive (a temporal
-    method's memory never crosses drives).
+    method's memory never crosses drives). ``temporal`` (window > 1): the method-independent
+    fusion of the published maps (:class:`~bev_mapper_core.temporal.TemporalFusion`) over each
+    drive's frames, as ``bev-bag replay --temporal-window`` and the node's ``temporal_window``.
     """
     names = frames.camera_names
+    fusion = TemporalFusion(grid, temporal) if temporal is not None and temporal.window > 1 else None
+    if fusion is not None and frames.poses is None:
+        raise ConfigError("temporal fusion needs frames with poses")
     rgb = mapper.config.input_kind == "rgb"
     if rgb and frames.rgb is None:
         raise ConfigError("an RGB mapper needs frames with camera images (load them with rgb=...)")
@@ -89,8 +95,12 @@ def evaluate_mapper(mapper, frames: FrameSet, grid: BevGrid, scope: str = "visib
             pose, stamp = batch["poses"][0].numpy(), int(batch["stamps"][0])
             if int(batch["drives"][0]) != drive[0]:
                 mapper.reset()
+                if fusion is not None:
+                    fusion.reset()
                 drive[0] = int(batch["drives"][0])
         pred = mapper.map({n: images[0, c] for c, n in enumerate(names)}, ego_pose=pose, stamp_ns=stamp)
+        if fusion is not None:
+            pred = fusion.update(pred, stamp, pose).prediction
         return pred.probs[None], pred.known[None]
 
     return score_frameset(predict, frames, grid, mapper.class_names, scope=scope,
@@ -115,18 +125,20 @@ def evaluate(rig: Rig, grid: BevGrid, classes: Sequence[str], method: str, weigh
              frames: int = 20, stride: int = 3, cache: str | None = "data/cache", device: str = "cpu",
              progress: bool = False, ipm_occlusion: bool = MapperConfig.ipm_occlusion,
              unknown_below: float = MapperConfig.unknown_below, input_kind: str = "labels",
-             style: str | None = None) -> dict:
+             style: str | None = None, temporal_window: int = TemporalConfig.window) -> dict:
     """Build the mapper and score it on the held-out drives ``seeds`` (``ipm_occlusion``, ``unknown_below``: see
     :class:`~bev_mapper_core.mapper.MapperConfig`; False = the classical IPM). ``input_kind``
     ``rgb``: the mapper reads the drives' camera images, rendered in ``style``.
+    ``temporal_window`` > 1: the method-independent temporal fusion over that many frames.
     """
     fs = held_out_frames(rig, grid, classes, seeds, frames, stride, cache, progress, rgb=input_kind == "rgb",
                          style=style)
     mapper = create_mapper(rig, grid, MapperConfig(method=method, input_kind=input_kind, classes=tuple(classes),
                                                    weights=weights, device=device,
                                                    ipm_occlusion=ipm_occlusion, unknown_below=unknown_below))
-    res = evaluate_mapper(mapper, fs, grid, progress=progress)
-    res.update(method=method, weights=weights, rig=rig.name, seeds=list(seeds), frames_per_drive=frames, stride=stride,
+    res = evaluate_mapper(mapper, fs, grid, progress=progress, temporal=TemporalConfig(window=temporal_window))
+    res.update(method=method, weights=weights, temporal_window=temporal_window, rig=rig.name, seeds=list(seeds),
+               frames_per_drive=frames, stride=stride,
                input_kind=input_kind, style=style if input_kind == "rgb" else None, grid=grid.to_dict())
     return res
 
