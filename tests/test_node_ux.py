@@ -23,6 +23,7 @@ from ros_helpers import REPO, free_domain_id, rclpy, ros_env, start_process, sto
 from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 
 from bev_mapper_core.grid import BevGrid
+from bev_mapper_core.mapper import available_methods
 from bev_mapper_core.rig import PRESETS, preset_rig
 from bev_mapper_core.synth import SynthConfig, generate_drive
 from bev_mapper_ros.config import NodeConfig, preset_parameters
@@ -199,7 +200,7 @@ def test_bad_params_file_is_one_error_line(tmp_path, kind):
 
 @pytest.mark.parametrize("args, choices", [
     (["-p", "rig:=surround7"], "surround6, cam2bev4, front1"),
-    (["-p", "rig:=front1", "-p", "method:=ipn"], "['bimapper', 'ipm', 's2g2', 'segipm']"),
+    (["-p", "rig:=front1", "-p", "method:=ipn"], str(list(available_methods()))),
     (["-p", "rig:=front1", "-p", "input_kind:=depth"], "('labels', 'rgb')"),
     (["-p", "rig:=front1", "-p", "method:=ipm", "-p", "classes:=[roads]"], "'drivable', 'lane_divider'"),
     (["-p", "rig:=front1", "-p", "classes:=[road]"], "not among the weights' classes ['drivable'"),

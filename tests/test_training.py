@@ -19,6 +19,7 @@ from bev_mapper_core.synth.styles import STYLE_CHOICES  # noqa: E402
 from bev_mapper_core.training.config import TrainConfig  # noqa: E402
 from bev_mapper_core.training.data import (  # noqa: E402
     VAL_SEED_BASE,
+    FrameSet,
     check_disjoint,
     drive_path,
     drive_spec,
@@ -344,11 +345,16 @@ def test_a_second_method_through_bev_train(tmp_path, tiny_data, toy_method, caps
 
 
 def test_data_sources_refuse_needs_they_cannot_honour(tiny_data):
+    from bags.train_data import BagSource
+
     tr, va, _ = tiny_data
-    for src in (SynthSource(), InMemorySource(tr, va)):
+    untimed = [FrameSet(f.labels, f.target, f.mask) for f in (tr, va)]  # frames without poses
+    for src in (BagSource(), InMemorySource(*untimed)):
         with pytest.raises(ConfigError, match=r"\['poses', 'sequences'\]"):
             src.check(DataNeeds(sequence_length=2, poses=True))
         src.check(DataNeeds(image_size=(8, 16)))  # labeled single frames: fine
+    for src in (SynthSource(), InMemorySource(tr, va)):  # synthetic drives carry their poses
+        src.check(DataNeeds(sequence_length=2, poses=True))
     with pytest.raises(ConfigError, match="unlabeled"):  # no unlabeled frames given
         InMemorySource(tr, va).check(DataNeeds(unlabeled=True))
     SynthSource().check(DataNeeds(unlabeled=True))  # from unlabeled_drives (tests/test_s2g2.py)
