@@ -24,6 +24,30 @@ RGB_MEAN = (0.485, 0.456, 0.406)
 RGB_STD = (0.229, 0.224, 0.225)
 
 
+class DictConfig:
+    """``to_dict`` / ``from_dict`` of a frozen config dataclass (JSON-ready: tuples as lists;
+    unknown keys refused), as the weights files store it.
+    """
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict (tuples as lists)."""
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, d: dict):
+        """Inverse of :meth:`to_dict`.
+
+        Raises:
+            ConfigError: not a mapping, unknown keys, or bad values.
+        """
+        if not isinstance(d, dict):
+            raise ConfigError(f"{cls.__name__} must be a mapping, got {type(d).__name__}")
+        extra = sorted(set(d) - {f.name for f in fields(cls)})
+        if extra:
+            raise ConfigError(f"unknown {cls.__name__} fields {extra}")
+        return cls(**d)
+
+
 @dataclass(frozen=True)
 class BiMapperConfig:
     """Architecture hyperparameters (all saved with the weights and checked on load).

@@ -28,7 +28,7 @@ every history frame, as after a memory reset). The features to keep in a memory 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -40,16 +40,16 @@ from ..grid import BevGrid
 from ..ipm import ground_tables
 from ..rig import Rig
 from .bimapper import BevDecoder
-from .config import MAX_CHANNELS, MAX_DOWNSAMPLE, MAX_WIDTH_PX, RGB_MEAN, RGB_STD
+from .config import MAX_CHANNELS, MAX_DOWNSAMPLE, MAX_WIDTH_PX, RGB_MEAN, RGB_STD, DictConfig
 from .efficientnet import downsampled_size
 from .focusbev_blocks import ColumnTransformer, EgoMotionFusion, depth_bins, depth_ranges, feature_grid, polar_grids, polar_to_cartesian
-from .geometry import scaled_camera
+from .geometry import check_one_camera, one_camera_input_size, scaled_camera
 from .inputs import preprocess_images
 from .resnet import FPN, RESNET_DEPTHS, ResNet
 
 
 @dataclass(frozen=True)
-class FocusBEVConfig:
+class FocusBEVConfig(DictConfig):
     """FocusBEV architecture (saved with the weights and checked on load). The defaults are a
     CPU-sized network; :meth:`paper` gives the paper's sizes.
 
@@ -131,33 +131,15 @@ class FocusBEVConfig:
         """Model input channels."""
         return NUM_LABELS if self.input_kind == "labels" else 3
 
-    def to_dict(self) -> dict:
-        """JSON-ready dict (tuples as lists)."""
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "FocusBEVConfig":
-        """Inverse of :meth:`to_dict`; unknown keys raise ConfigError."""
-        if not isinstance(d, dict):
-            raise ConfigError(f"FocusBEV config must be a mapping, got {type(d).__name__}")
-        extra = sorted(set(d) - {f.name for f in fields(cls)})
-        if extra:
-            raise ConfigError(f"unknown FocusBEVConfig fields {extra}")
-        return cls(**d)
-
 
 def check_monocular(rig: Rig) -> None:
     """Raise ConfigError unless ``rig`` has exactly one camera (FocusBEV maps one front camera)."""
-    if len(rig.cameras) != 1:
-        raise ConfigError(f"FocusBEV is monocular: rig {rig.name!r} has {len(rig.cameras)} cameras "
-                          f"{list(rig.names)}; use a one-camera rig (e.g. front1), or method bimapper / ipm")
+    check_one_camera(rig, "FocusBEV")
 
 
 def input_size(config: FocusBEVConfig, rig: Rig) -> tuple[int, int]:
     """Model input ``(h, w)`` of the rig's camera at ``config.input_width``."""
-    check_monocular(rig)
-    w, h = scaled_camera(rig.cameras[0], config.input_width).model.image_size
-    return h, w
+    return one_camera_input_size(rig, config.input_width, "FocusBEV")
 
 
 def max_depth(config: FocusBEVConfig, grid: BevGrid) -> float:

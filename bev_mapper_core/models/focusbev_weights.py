@@ -16,45 +16,39 @@ the frustum are not stored: they are rebuilt from the rig the weights are used w
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from pathlib import Path
 
 import torch
-from safetensors.torch import save_file
 
-from ..errors import BevMapperError, ConfigError
 from ..grid import BevGrid
 from ..rig import Rig
 from .focusbev import FocusBEV, FocusBEVConfig, check_monocular
-from .weights import META_KEY, WeightsError, cached_tensors, check_model_document, read_document, standin_rig
+from .mono_weights import (
+    load_monocular,
+    load_state_monocular,
+    monocular_metadata,
+    read_monocular_metadata,
+    save_monocular,
+    validate_monocular,
+)
+from .weights import WeightsError
 
 FORMAT = "bev_mapper.focusbev"
 VERSION = 1
-_KEYS = ("method", "rig", "cameras", "input_kind", "classes", "grid", "input_size", "memory_interval_s", "config")
 #: the longest history spacing a weights file may ask for (s)
 MAX_INTERVAL_S = 10.0
 
 
 def focusbev_metadata(model: FocusBEV, memory_interval_s: float) -> dict:
     """The metadata document of ``model`` (see the module docstring)."""
-    cfg = model.config
-    return {"format": FORMAT, "version": VERSION, "method": "focusbev", "rig": model.rig.name,
-            "cameras": list(model.rig.names), "input_kind": cfg.input_kind, "classes": list(cfg.classes),
-            "grid": model.grid.to_dict(), "input_size": list(model.input_size),
-            "memory_interval_s": float(memory_interval_s), "config": cfg.to_dict()}
+    return {**monocular_metadata(model, FORMAT, VERSION, "focusbev"), "memory_interval_s": float(memory_interval_s)}
 
 
 def save_focusbev(model: FocusBEV, path: str | os.PathLike, memory_interval_s: float) -> Path:
     """Write ``model``'s parameters and buffers and its metadata (atomically)."""
-    path = Path(path)
-    meta = focusbev_metadata(model, memory_interval_s)
-    tensors = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
-    tmp = path.with_name(path.name + ".tmp")
-    save_file(tensors, str(tmp), metadata={META_KEY: json.dumps(meta, sort_keys=True)})
-    os.replace(tmp, path)
-    return path
+    return save_monocular(model, path, focusbev_metadata(model, memory_interval_s))
 
 
 def read_focusbev_metadata(path: str | os.PathLike) -> dict:
@@ -65,21 +59,16 @@ def read_focusbev_metadata(path: str | os.PathLike) -> dict:
             header, no or malformed FocusBEV metadata.
     """
     path = Path(path)
-    meta = read_document(path, FORMAT, VERSION, "FocusBEV")
-    missing = sorted(set(_KEYS) - set(meta))
-    if missing:
-        raise WeightsError(f"{path}: metadata lacks {missing}")
-    if meta["method"] != "focusbev":
-        raise WeightsError(f"{path}: metadata is for method {meta['method']!r}, not 'focusbev'")
-    cams = meta["cameras"]
-    if not isinstance(meta["rig"], str) or not isinstance(cams, list) or len(cams) != 1 \
-            or not isinstance(cams[0], str) or not cams[0]:
-        raise WeightsError(f"{path}: metadata must name a rig and exactly one camera, got {meta['rig']!r}, {cams!r}")
+    meta = read_monocular_metadata(path, FORMAT, VERSION, "focusbev", "FocusBEV", FocusBEVConfig,
+                                   ("memory_interval_s",))
     v = meta["memory_interval_s"]
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not 0 < v <= MAX_INTERVAL_S:
         raise WeightsError(f"{path}: metadata 'memory_interval_s' must be in (0, {MAX_INTERVAL_S}] s, got {v!r}")
-    check_model_document(meta, path, FocusBEVConfig)
     return meta
+
+
+def _build(meta: dict):
+    return lambda rig, grid: FocusBEV(FocusBEVConfig.from_dict(meta["config"]), rig, grid)
 
 
 def validate_focusbev(path: str | os.PathLike) -> dict:
@@ -91,13 +80,7 @@ def validate_focusbev(path: str | os.PathLike) -> dict:
     """
     path = Path(path)
     meta = read_focusbev_metadata(path)
-    h, w = meta["input_size"]
-    try:
-        model = FocusBEV(FocusBEVConfig.from_dict(meta["config"]),
-                         standin_rig(meta["rig"], tuple(meta["cameras"]), (w, h)), BevGrid.from_dict(meta["grid"]))
-    except (BevMapperError, ValueError, RuntimeError) as e:
-        raise WeightsError(f"{path}: cannot build the stored FocusBEV model ({e})") from None
-    load_state_focusbev(model, path, meta)
+    validate_monocular(path, meta, _build(meta), load_state_focusbev, "FocusBEV")
     return meta
 
 
@@ -109,19 +92,8 @@ def load_state_focusbev(model: FocusBEV, path: str | os.PathLike, meta: dict | N
             extra, misshapen or non-finite tensor; a corrupt file.
     """
     path = Path(path)
-    meta = read_focusbev_metadata(path) if meta is None else meta
-    if FocusBEVConfig.from_dict(meta["config"]) != model.config:
-        stored = meta["config"]
-        diff = [k for k, v in model.config.to_dict().items() if stored.get(k) != v]
-        raise WeightsError(f"{path}: architecture differs from the model's in {diff}")
-    if list(meta["cameras"]) != list(model.rig.names):
-        raise WeightsError(f"{path}: weights were trained for camera {meta['cameras']}, the rig has {list(model.rig.names)}")
-    if not BevGrid.from_dict(meta["grid"]).isclose(model.grid):
-        raise WeightsError(f"{path}: weights were trained for grid {BevGrid.from_dict(meta['grid']).describe()}, "
-                           f"the model maps {model.grid.describe()}")
-    if list(meta["input_size"]) != list(model.input_size):
-        raise WeightsError(f"{path}: weights expect input size {meta['input_size']}, the model has {list(model.input_size)}")
-    model.load_state_dict(cached_tensors(path, model.state_dict(), "FocusBEV"), strict=True)
+    load_state_monocular(model, path, read_focusbev_metadata(path) if meta is None else meta, FocusBEVConfig,
+                         "FocusBEV")
 
 
 def load_focusbev(path: str | os.PathLike, rig: Rig, grid: BevGrid | None = None,
@@ -137,14 +109,7 @@ def load_focusbev(path: str | os.PathLike, rig: Rig, grid: BevGrid | None = None
     check_monocular(rig)
     path = Path(path)
     meta = read_focusbev_metadata(path)
-    if list(meta["cameras"]) != list(rig.names):
-        raise WeightsError(f"{path}: weights were trained for camera {meta['cameras']}, the rig has {list(rig.names)}")
-    try:
-        model = FocusBEV(FocusBEVConfig.from_dict(meta["config"]), rig, grid or BevGrid.from_dict(meta["grid"]))
-    except ConfigError as e:
-        raise WeightsError(f"{path}: cannot build the stored model for rig {rig.name!r} ({e})") from None
-    load_state_focusbev(model, path, meta)
-    return model.to(device).eval(), meta
+    return load_monocular(path, meta, rig, grid, device, _build(meta), load_state_focusbev), meta
 
 
 __all__ = ["FORMAT", "focusbev_metadata", "load_focusbev", "load_state_focusbev", "read_focusbev_metadata",

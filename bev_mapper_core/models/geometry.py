@@ -139,6 +139,20 @@ def feature_grid(grid: BevGrid, downsample: int) -> BevGrid:
     return replace(grid, resolution=grid.resolution * downsample)
 
 
+def check_one_camera(rig: Rig, title: str) -> None:
+    """Raise ConfigError unless ``rig`` has exactly one camera (monocular method ``title``)."""
+    if len(rig.cameras) != 1:
+        raise ConfigError(f"{title} is monocular: rig {rig.name!r} has {len(rig.cameras)} cameras "
+                          f"{list(rig.names)}; use a one-camera rig (e.g. front1), or method bimapper / ipm")
+
+
+def one_camera_input_size(rig: Rig, input_width: int, title: str) -> tuple[int, int]:
+    """Model input ``(h, w)`` of a one-camera rig's camera at ``input_width`` (same aspect)."""
+    check_one_camera(rig, title)
+    w, h = scaled_camera(rig.cameras[0], input_width).model.image_size
+    return h, w
+
+
 def scaled_camera(camera: RigCamera, input_width: int) -> RigCamera:
     """``camera`` seen at the model's input width (intrinsics rescaled with ``model.scaled``)."""
     w, _ = camera.model.image_size

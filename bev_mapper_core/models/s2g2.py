@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import copy
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -46,9 +46,9 @@ from ..grid import BevGrid
 from ..ipm import ground_tables
 from ..rig import Rig
 from .bimapper import BevDecoder
-from .config import MAX_CHANNELS, MAX_DOWNSAMPLE, MAX_WIDTH_PX, RGB_MEAN, RGB_STD
+from .config import MAX_CHANNELS, MAX_DOWNSAMPLE, MAX_WIDTH_PX, RGB_MEAN, RGB_STD, DictConfig
 from .efficientnet import EfficientNet, EfficientNetConfig, downsampled_size
-from .geometry import scaled_camera
+from .geometry import check_one_camera, one_camera_input_size
 from .inputs import preprocess_images
 from .s2g2_blocks import VIEW_TRANSFORMS, CrossViewAttention, InterViewAttention, ViewTransform
 
@@ -57,7 +57,7 @@ BRANCHES = ("active", "passive")
 
 
 @dataclass(frozen=True)
-class S2G2Config:
+class S2G2Config(DictConfig):
     """S2G2 architecture (saved with the weights and checked on load).
 
     The defaults are a CPU-trainable network; :meth:`paper` gives the paper's sizes.
@@ -139,33 +139,15 @@ class S2G2Config:
             over["depth_mult"] = self.depth_mult
         return EfficientNetConfig.variant(self.encoder_variant, **over)
 
-    def to_dict(self) -> dict:
-        """JSON-ready dict (tuples as lists)."""
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "S2G2Config":
-        """Inverse of :meth:`to_dict`; unknown keys raise ConfigError."""
-        if not isinstance(d, dict):
-            raise ConfigError(f"S2G2 config must be a mapping, got {type(d).__name__}")
-        extra = sorted(set(d) - {f.name for f in fields(cls)})
-        if extra:
-            raise ConfigError(f"unknown S2G2Config fields {extra}")
-        return cls(**d)
-
 
 def check_monocular(rig: Rig) -> None:
     """Raise ConfigError unless ``rig`` has exactly one camera (S2G2 maps one front camera)."""
-    if len(rig.cameras) != 1:
-        raise ConfigError(f"S2G2 is monocular: rig {rig.name!r} has {len(rig.cameras)} cameras "
-                          f"{list(rig.names)}; use a one-camera rig (e.g. front1), or method bimapper / ipm")
+    check_one_camera(rig, "S2G2")
 
 
 def input_size(config: S2G2Config, rig: Rig) -> tuple[int, int]:
     """Model input ``(h, w)`` of the rig's camera at ``config.input_width``."""
-    check_monocular(rig)
-    w, h = scaled_camera(rig.cameras[0], config.input_width).model.image_size
-    return h, w
+    return one_camera_input_size(rig, config.input_width, "S2G2")
 
 
 class S2G2(nn.Module):
