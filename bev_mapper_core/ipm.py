@@ -26,6 +26,9 @@ from .mapper import BevPrediction, Mapper, MapperConfig
 from .rig import Rig, RigCamera
 from .transforms import transform_points
 
+#: bits per class of IPM's packed per-cell class counts (up to 15 cameras, 16 classes per uint64)
+CODE_BITS = 4
+
 
 @dataclass(frozen=True)
 class RemapTable:
@@ -48,6 +51,39 @@ class RemapTable:
             image, self.map_x, self.map_y, interpolation,
             borderMode=cv2.BORDER_REPLICATE,
         )
+
+
+@dataclass(frozen=True)
+class GatherTable:
+    """A :class:`RemapTable` (nearest) as flat indices: per-frame IPM is then one gather.
+
+    Attributes:
+        cells: ``(n,)`` int64 flat indices of the target cells the camera sees (``valid``), in
+            increasing order.
+        pixels: ``(n,)`` int64 flat index into the camera image of the pixel each of those
+            cells takes, exactly the pixel ``cv2.remap(..., INTER_NEAREST, BORDER_REPLICATE)``
+            picks (found by remapping an image of pixel indices, so the rounding is cv2's own).
+        image_shape: ``(h, w)`` of the camera image the indices are for.
+    """
+
+    cells: np.ndarray
+    pixels: np.ndarray
+    image_shape: tuple[int, int]
+
+    @classmethod
+    def from_remap(cls, table: RemapTable, image_shape: tuple[int, int]) -> "GatherTable":
+        """The gather form of ``table`` for images of ``image_shape`` = ``(h, w)``."""
+        h, w = image_shape
+        if h * w >= 2 ** 24:
+            raise ValueError(f"images of {w}x{h} have more pixels than float32 indexes exactly")
+        index_image = np.arange(h * w, dtype=np.float32).reshape(h, w)
+        picked = table.warp(index_image, cv2.INTER_NEAREST)  # (H, W) float32 pixel indices
+        cells = np.flatnonzero(table.valid)
+        return cls(cells, picked.ravel()[cells].astype(np.int64), (h, w))
+
+    def gather(self, image: np.ndarray) -> np.ndarray:
+        """``(n,)`` values of ``image`` (``image_shape``) at the seen cells."""
+        return image.reshape(-1)[self.pixels]
 
 
 def remap_table(camera: RigCamera, points_ego: np.ndarray, shape: tuple[int, int]) -> RemapTable:
@@ -126,6 +162,13 @@ class IpmMapper(Mapper):
         self._occlusion = OcclusionModel()
         super().__init__(rig, grid, config)  # calls set_rig
         self._lut = label_lut(self.classes).astype(np.float32)  # (NUM_LABELS, C)
+        self._lut_t = np.ascontiguousarray(self._lut.T)  # (C, NUM_LABELS): one class row per gather
+        #: label id -> its class indicators packed CODE_BITS per class (None: too many classes
+        #: or cameras for one uint64 counter per cell; the float path then sums class rows)
+        self._codes = None
+        if len(self.classes) * CODE_BITS <= 64 and len(self.rig.cameras) < 2 ** CODE_BITS:
+            shifts = np.uint64(CODE_BITS) * np.arange(len(self.classes), dtype=np.uint64)
+            self._codes = (label_lut(self.classes).astype(np.uint64) << shifts[None]).sum(1, dtype=np.uint64)
 
     @classmethod
     def preflight(cls, config: MapperConfig, rig_name: str, grid: BevGrid | None = None,
@@ -138,32 +181,52 @@ class IpmMapper(Mapper):
             )
 
     def set_rig(self, rig: Rig) -> None:
-        """Recompute the ground lookup tables for a new calibration."""
+        """Recompute the ground lookup tables (and their gather form) for a new calibration."""
         super().set_rig(rig)
         self.tables = ground_tables(rig, self.grid)
+        self.gathers = {c.name: GatherTable.from_remap(self.tables[c.name], c.model.image_size[::-1])
+                        for c in rig.cameras}
         self.sight = LineOfSight(rig, self.grid, self._occlusion if self.config.ipm_occlusion else None,
                                  self.tables)
 
     def map(self, images: Mapping[str, np.ndarray], ego_pose=None, stamp_ns=None) -> BevPrediction:
-        """Warp each camera's labels to the ground and average the class indicators."""
+        """Warp each camera's labels to the ground and average the class indicators.
+
+        Per camera one gather of the seen cells' pixels (:class:`GatherTable`) and one lookup of
+        their class indicators; the sums run over the cameras in order, so the result is the
+        same float32 arithmetic as warping whole images and accumulating them.
+        """
         images = self.check_images(images)
         H, W = self.grid.shape
         C = len(self.classes)
-        acc = np.zeros((H, W, C), np.float32)
-        count = np.zeros((H, W), np.float32)
-        lut = self._lut
-        n_labels = lut.shape[0]
+        codes = self._codes
+        acc = np.zeros(H * W, np.uint64) if codes is not None else np.zeros((C, H * W), np.float32)
+        count = np.zeros(H * W, np.float32)
+        n_labels = self._lut_t.shape[1]
+        occlusion = self.sight.occlusion is not None
         for name, labels in images.items():
-            table = self.tables[name]
-            warped = table.warp(labels, cv2.INTER_NEAREST)
-            valid = self.sight.camera_valid(name, warped)
-            warped = np.where(warped < n_labels, warped, 0)  # ids unknown to us -> unlabeled
-            acc[valid] += lut[warped[valid]]
-            count += valid
-        known = count > 0
-        probs = acc / np.maximum(count, 1.0)[..., None]
-        # (H, W, C) -> (C, H, W)
-        return BevPrediction(self.class_names, np.ascontiguousarray(np.moveaxis(probs, -1, 0)), known)
+            g = self.gathers[name]
+            ids = g.gather(labels)  # (n,) label ids of the seen cells
+            cells = g.cells
+            if occlusion:  # the occlusion model reads the warped image
+                warped = np.zeros(H * W, labels.dtype)
+                warped[cells] = ids
+                keep = self.sight.camera_valid(name, warped.reshape(H, W)).reshape(-1)[cells]
+                cells, ids = cells[keep], ids[keep]
+            ids = np.where(ids < n_labels, ids, 0)  # ids unknown to us -> unlabeled
+            # cells are unique within a camera, so fancy-indexed += adds once per cell
+            if codes is not None:
+                acc[cells] += codes[ids]  # every class's count in one integer
+            else:
+                acc[:, cells] += self._lut_t[:, ids]
+            count[cells] += 1.0
+        if codes is not None:  # unpack: class c's count is bits [c*CODE_BITS, (c+1)*CODE_BITS)
+            shifts = np.uint64(CODE_BITS) * np.arange(C, dtype=np.uint64)
+            acc = ((acc[None] >> shifts[:, None]) & np.uint64(2 ** CODE_BITS - 1)).astype(np.float32)  # (C, H*W)
+        known = (count > 0).reshape(H, W)
+        # a sum of class indicators (0 / 1) is exact in float32 either way
+        probs = (acc / np.maximum(count, 1.0)[None]).reshape(C, H, W)  # (C, H*W) -> (C, H, W)
+        return BevPrediction(self.class_names, probs, known)
 
     def warp_rgb(self, images: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """BEV colour mosaic ``(H, W, 3)`` uint8 of RGB images (linear), and its known mask."""

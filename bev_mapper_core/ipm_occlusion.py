@@ -125,6 +125,8 @@ class RayRaster:
         to_cell_x, to_cell_y: ``(rays, samples)`` float32 grid column / row of every polar
             sample, for ``cv2.remap`` (-1 outside the grid).
         step: range step of the polar samples (m).
+        cells: ``(n,)`` flat indices of the cells the camera looks at (``valid``); the
+            per-frame shadow test runs on these only.
     """
 
     height: float
@@ -133,6 +135,7 @@ class RayRaster:
     to_cell_x: np.ndarray
     to_cell_y: np.ndarray
     step: float
+    cells: np.ndarray | None = None
 
 
 def ray_raster(camera: RigCamera, grid: BevGrid, valid: np.ndarray) -> RayRaster:
@@ -162,7 +165,7 @@ def ray_raster(camera: RigCamera, grid: BevGrid, valid: np.ndarray) -> RayRaster
     row = (py - grid.y_min) / grid.resolution - 0.5
     ray = np.clip(np.rint((ang - lo) / ANGLE_STEP_RAD), 0, n_rays - 1).astype(np.int32)
     return RayRaster(hc, dist.astype(np.float32), ray, col.astype(np.float32),
-                     row.astype(np.float32), step)
+                     row.astype(np.float32), step, np.flatnonzero(valid))
 
 
 class OcclusionModel:
@@ -214,11 +217,14 @@ class OcclusionModel:
                           borderMode=cv2.BORDER_CONSTANT, borderValue=NUM_LABELS)
         occ = cv2.LUT(polar, self._occluder_lut)  # (rays, samples) uint8, 1 = occluder
         n_rays, n_samples = occ.shape
-        hidden = np.zeros(lab.shape, bool)
+        # the shadow test runs on the cells the camera looks at (all cells if not known)
+        cells = np.flatnonzero(valid) if rr.cells is None else rr.cells
+        dist, ray = rr.dist.reshape(-1)[cells], rr.ray.reshape(-1)[cells]  # (n,) each
+        hidden = np.zeros(len(cells), bool)
         rays = np.arange(n_rays)  # rays still searched for a near edge
         j_from = np.zeros(n_rays, np.int64)  # ... from this sample on
         for _ in range(MAX_EDGES):
-            part = occ[rays]
+            part = occ if len(rays) == n_rays else occ[rays]  # the first pass reads every ray in place
             if j_from.any():  # samples before the previous shadow's end do not count
                 part = part * (np.arange(n_samples)[None, :] >= j_from[:, None])
             j0 = part.argmax(axis=1)  # (rays,) first occluder sample
@@ -235,11 +241,13 @@ class OcclusionModel:
             with np.errstate(divide="ignore"):
                 far[rays] = np.where(h >= rr.height, np.inf, d0 * rr.height / np.maximum(rr.height - h, 1e-6))
             # per cell: its ray's near edge and shadow end
-            hidden |= (rr.dist > near[rr.ray]) & (rr.dist <= far[rr.ray])
+            hidden |= (dist > near[ray]) & (dist <= far[ray])
             finite = np.isfinite(far[rays])
             rays = rays[finite]
             j_from = np.ceil(far[rays] / rr.step).astype(np.int64) + 1
             if not len(rays):
                 break
         # a cell whose own pixel shows no occluder was seen: the ray to its ground point is clear
-        return hidden & valid & (self.heights[lab] > 0)
+        out = np.zeros(lab.size, bool)
+        out[cells] = hidden & valid.reshape(-1)[cells] & (self.heights[lab.reshape(-1)[cells]] > 0)
+        return out.reshape(lab.shape)
