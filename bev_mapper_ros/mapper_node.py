@@ -46,6 +46,7 @@ from bev_mapper_core.temporal import TemporalFusion
 from msg_adapters import (
     FrameSynchronizer,
     RclpyFactory,
+    camera_info_key,
     camera_info_to_model,
     compressed_to_array,
     compressed_to_labels,
@@ -127,6 +128,7 @@ class MapperNode(Node):
         self.worker = Worker(self.slot, self._process, self._on_worker_error)
 
         image_type = CompressedImage if cfg.compressed else Image
+        self._info_keys: dict[str, tuple | None] = {}  # camera -> key of its last accepted CameraInfo
         self._subs = []
         for cam in cfg.cameras:
             self._subs.append(self.create_subscription(
@@ -209,11 +211,15 @@ class MapperNode(Node):
 
     def _info_cb(self, cam: str):
         def cb(msg) -> None:
+            key = camera_info_key(msg)
+            if key is not None and key == self._info_keys.get(cam):
+                return  # the same calibration again (drivers send it with every image)
             try:
                 model = camera_info_to_model(msg)
             except BevMapperError as exc:
                 self._bad_input(f"{cam} camera_info rejected: {exc}", f"{cam}:camera_info")
                 return
+            self._info_keys[cam] = key
             if self.calibration.update_intrinsics(cam, model, str(msg.header.frame_id)):
                 self.get_logger().info(f"calibration of {cam}: {model.image_size[0]}x{model.image_size[1]}")
         return cb

@@ -6,7 +6,7 @@ messages and on rosbags-deserialized messages alike; building goes through a fac
 rosbags typestore).
 """
 
-from .camera_info import camera_info_fields, camera_info_to_model, make_camera_info
+from .camera_info import camera_info_fields, camera_info_key, camera_info_to_model, make_camera_info
 from .errors import (
     AdapterError,
     CalibrationMessageError,
@@ -81,6 +81,7 @@ __all__ = [
     "TransformError",
     "array_to_image_fields",
     "camera_info_fields",
+    "camera_info_key",
     "camera_info_to_model",
     "check_grid_info",
     "check_image_size",

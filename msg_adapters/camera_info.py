@@ -22,6 +22,22 @@ from .factory import MessageFactory, make_header
 from .limits import DEFAULT_LIMITS, AdapterLimits
 
 
+def camera_info_key(msg: Any) -> tuple | None:
+    """A hashable key of everything :func:`camera_info_to_model` reads from ``msg`` (size, K,
+    distortion model and D, binning, ROI) and its ``frame_id``: two messages with the same key
+    give the same model, so a node converts a camera's CameraInfo only when its key changes.
+    ``None`` when a field cannot be read (then convert, to get the error).
+    """
+    try:
+        roi = msg.roi
+        return (str(msg.header.frame_id), int(msg.width), int(msg.height), str(msg.distortion_model),
+                tuple(float(v) for v in msg.k), tuple(float(v) for v in msg.d), int(msg.binning_x),
+                int(msg.binning_y), int(roi.x_offset), int(roi.y_offset), int(roi.width), int(roi.height),
+                bool(roi.do_rectify))
+    except (AttributeError, TypeError, ValueError):
+        return None
+
+
 def camera_info_to_model(msg: Any, *, limits: AdapterLimits = DEFAULT_LIMITS) -> CameraModel:
     """Convert a ``sensor_msgs/CameraInfo`` (rclpy or rosbags) into a :class:`CameraModel`.
 

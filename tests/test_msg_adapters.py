@@ -186,6 +186,35 @@ def test_camera_info_roundtrip(factory, model):
     assert ma.camera_info_to_model(msg) == model
 
 
+def test_camera_info_key_changes_with_every_field_the_conversion_reads(factory):
+    """Equal keys mean equal models (the node then skips the conversion); any change of size,
+    K, D, distortion model, binning, ROI or frame gives another key, and the stamp does not."""
+    base = ma.make_camera_info(factory, MODELS[1], 42, "front_optical_frame")
+    key = ma.camera_info_key(base)
+    assert key is not None and key == ma.camera_info_key(ma.make_camera_info(factory, MODELS[1], 99,
+                                                                            "front_optical_frame"))
+    changed = [ma.make_camera_info(factory, MODELS[1], 42, "other_frame")]
+    for m in (MODELS[0], MODELS[2]):
+        changed.append(ma.make_camera_info(factory, m, 42, "front_optical_frame"))
+    for name, value in (("width", 321), ("height", 241), ("distortion_model", "plumb_bob"), ("binning_x", 2),
+                        ("binning_y", 2)):
+        msg = ma.make_camera_info(factory, MODELS[1], 42, "front_optical_frame")
+        setattr(msg, name, value)
+        changed.append(msg)
+    for arr in ("k", "d"):
+        msg = ma.make_camera_info(factory, MODELS[1], 42, "front_optical_frame")
+        v = np.asarray(getattr(msg, arr), dtype=np.float64).copy()
+        v[0] += 1e-9
+        setattr(msg, arr, [float(x) for x in v])
+        changed.append(msg)
+    msg = ma.make_camera_info(factory, MODELS[1], 42, "front_optical_frame")
+    msg.roi.x_offset = 11
+    changed.append(msg)
+    keys = [ma.camera_info_key(m) for m in changed]
+    assert all(k is not None and k != key for k in keys) and len(set(keys)) == len(keys)
+    assert ma.camera_info_key(object()) is None  # unreadable: convert, and get the error
+
+
 def _info(factory, *, k=None, d=(0.0,) * 5, model="plumb_bob", width=640, height=480):
     k = [500.0, 0, 320, 0, 500, 240, 0, 0, 1] if k is None else k
     roi = factory.msg("sensor_msgs/msg/RegionOfInterest", x_offset=0, y_offset=0, height=0,
