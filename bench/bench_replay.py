@@ -68,7 +68,7 @@ def main() -> None:
         # marginal cost per frame: the same replay cut at a third, fixed costs cancel out
         few = max(1, m["frames"] // 3)
         t0 = time.perf_counter()
-        replay(ReplayOptions(bag=bag, out=tmp / "few", max_frames=few,
+        replay(ReplayOptions(bag=bag, out=tmp / "few", max_frames=few, mapper=MapperConfig(method="ipm"),
                              pictures=not args.no_pictures, frames_every=args.frames_every))
         marginal = (wall - (time.perf_counter() - t0)) / (m["frames"] - few) if m["frames"] > few \
             else float("nan")
