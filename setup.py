@@ -37,6 +37,8 @@ setup(
         # colcon: the README's colcon section is tested (tests/test_ros2_cli.py); ruff runs the
         # lint test and is pinned, since its rules change between versions
         "test": ["pytest>=7", "pytest-timeout>=2", "colcon-common-extensions>=0.3", "ruff==0.17.6"],
+        # faster inference backends for learned methods (MapperConfig.backend), optional
+        "fast": ["onnxruntime>=1.17", "openvino>=2024.0", "onnx>=1.16", "onnxscript>=0.2"],
     },
     zip_safe=True,
     maintainer="bev_mapper maintainers",

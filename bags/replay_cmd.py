@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 
 from bev_mapper_core.label_maps import PRESET_NAMES
-from bev_mapper_core.mapper import INPUT_KINDS, MapperConfig, available_methods
+from bev_mapper_core.mapper import BACKENDS, INPUT_KINDS, MapperConfig, available_methods
 from bev_mapper_core.metrics import format_table, format_whole_grid_table
 from bev_mapper_core.temporal import TemporalConfig
 
@@ -74,6 +74,9 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help=f"mapping method (default {MapperConfig.method}: the shipped weights of the bag's rig)")
     p.add_argument("--weights", default=MapperConfig.weights, help="safetensors weights (learned methods)")
     p.add_argument("--device", default=MapperConfig.device, help="torch device of learned methods")
+    p.add_argument("--backend", default=MapperConfig.backend, choices=BACKENDS,
+                   help="inference runtime of Bi-Mapper: torch, onnxruntime or openvino (the model exported to "
+                        "ONNX, cached), auto = the fastest installed (default %(default)s)")
     p.add_argument("--input", dest="input_kind", default=MapperConfig.input_kind, choices=INPUT_KINDS,
                    help="camera images to map: semantic labels or RGB")
     p.add_argument("--label-map", default=MapperConfig.label_map, metavar="PRESET|YAML",
@@ -118,7 +121,7 @@ def options_from_args(args: argparse.Namespace) -> ReplayOptions:
     grid = grid_from_args(args, default=None)
     mapper = MapperConfig(method=args.method, input_kind=args.input_kind,
                           classes=tuple(args.classes) if args.classes else None,
-                          weights=args.weights, device=args.device,
+                          weights=args.weights, device=args.device, backend=args.backend,
                           ipm_occlusion=args.ipm_occlusion, unknown_below=args.unknown_below,
                           segmenter=args.segmenter, label_map=args.label_map)
     return ReplayOptions(

@@ -22,6 +22,8 @@ from .registry import resolve
 from .rig import Rig
 
 INPUT_KINDS = ("labels", "rgb")
+#: ``MapperConfig.backend`` choices (see :mod:`~bev_mapper_core.models.backends`).
+BACKENDS = ("torch", "onnxruntime", "openvino", "auto")
 
 
 @dataclass(frozen=True)
@@ -54,6 +56,10 @@ class MapperConfig:
             with ``input_kind`` ``rgb``): ``auto`` (the shipped segmenter; Bi-Mapper: only when
             no end-to-end RGB weights are given or shipped), ``none``, or a safetensors path.
             Label input ignores it.
+        backend: inference runtime of learned methods: ``torch`` (the reference), ``onnxruntime``
+            or ``openvino`` (the model exported to ONNX once per weights and calibration, cached;
+            optional extras), or ``auto`` (the fastest installed); see
+            :mod:`~bev_mapper_core.models.backends`. Bi-Mapper uses it; the other methods run torch.
         label_map: how the ids of the label images (``input_kind`` labels) map onto this
             package's :class:`~bev_mapper_core.classes.Label`: ``native`` (they are Label
             ids), a preset of another segmenter (``cityscapes_ids``, ``cityscapes_train_ids``,
@@ -72,6 +78,7 @@ class MapperConfig:
     unknown_below: float = 0.05
     segmenter: str = "auto"
     label_map: str = NATIVE
+    backend: str = "torch"
 
     def __post_init__(self) -> None:
         v = self.unknown_below
@@ -85,6 +92,8 @@ class MapperConfig:
             raise ConfigError(f"segmenter must be 'auto', 'none' or a weights path, got {self.segmenter!r}")
         if self.method not in _REGISTRY:
             raise ConfigError(f"unknown method {self.method!r}; available: {list(available_methods())}")
+        if self.backend not in BACKENDS:
+            raise ConfigError(f"backend must be one of {BACKENDS}, got {self.backend!r}")
         if self.input_kind not in INPUT_KINDS:
             raise ConfigError(f"input_kind must be one of {INPUT_KINDS}, got {self.input_kind!r}")
         if self.classes is not None:
@@ -288,6 +297,7 @@ def create_mapper(rig: Rig, grid: BevGrid, config: MapperConfig) -> Mapper:
 
 
 __all__ = [
+    "BACKENDS",
     "BEV_CLASS_NAMES",
     "BevPrediction",
     "Mapper",

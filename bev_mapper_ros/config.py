@@ -234,6 +234,7 @@ PARAM_FIELDS: dict[str, ParamField] = {
     "weights": ParamField(MapperConfig, "weights"),
     "device": ParamField(MapperConfig, "device"),
     "threads": ParamField(MapperConfig, "threads"),
+    "backend": ParamField(MapperConfig, "backend"),
     "ipm_occlusion": ParamField(MapperConfig, "ipm_occlusion"),
     "unknown_below": ParamField(MapperConfig, "unknown_below"),
     "segmenter": ParamField(MapperConfig, "segmenter"),

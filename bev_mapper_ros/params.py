@@ -29,7 +29,7 @@ from rclpy.parameter import Parameter
 
 from bev_mapper_core.classes import BEV_CLASS_NAMES
 from bev_mapper_core.label_maps import PRESET_NAMES
-from bev_mapper_core.mapper import INPUT_KINDS, available_methods
+from bev_mapper_core.mapper import BACKENDS, INPUT_KINDS, available_methods
 from bev_mapper_core.rig import PRESETS
 
 from .config import (
@@ -63,6 +63,8 @@ _DECLARATIONS: dict[str, tuple] = {
     "weights": (_T.PARAMETER_STRING, "safetensors weights ('' = shipped default)"),
     "device": (_T.PARAMETER_STRING, "torch device of learned methods"),
     "threads": (_T.PARAMETER_INTEGER, "CPU threads of learned methods; 0 = all CPUs but one (left to the callbacks)"),
+    "backend": (_T.PARAMETER_STRING, f"inference runtime of Bi-Mapper, one of {list(BACKENDS)}: torch, or the model "
+                "exported to ONNX (cached) for onnxruntime / openvino (the 'fast' extra); auto = the fastest installed"),
     "ipm_occlusion": (_T.PARAMETER_BOOL, "occlusion reasoning on label images: cells hidden behind an object a "
                       "camera sees are unknown to it (IPM: not the flat-ground smear; learned "
                       "methods: beyond the object's full length)"),

@@ -24,6 +24,7 @@ from ..ipm import LineOfSight
 from ..ipm_occlusion import OcclusionModel, learned_footprints
 from ..mapper import BevPrediction, Mapper, MapperConfig
 from ..rig import Rig
+from .backends import ExportedModel, resolve_backend
 from .bimapper import BiMapper
 from .runtime import inference_device, inference_threads
 from .segipm_mapper import SegmenterStage, segmenter_path
@@ -136,6 +137,8 @@ class BiMapperMapper(Mapper):
         self._layers = [weight_classes.index(c) for c in config.classes]
         self._weight_classes = weight_classes
         self.device = inference_device(config)
+        #: the inference runtime (``MapperConfig.backend`` resolved; ``auto``: the fastest installed)
+        self.backend = resolve_backend(config.backend)
         self.weights_path = path
         #: the chained first stage (RGB -> labels), None when the model reads the input itself
         self.stage = None if seg is None else SegmenterStage(seg, self.device)
@@ -156,6 +159,23 @@ class BiMapperMapper(Mapper):
                                                    classes=self._weight_classes, device=self.device)
         else:
             self.model.set_rig(rig)
+        self._exported = None  # the model exported for this calibration (first frame, backend != torch)
+
+    def _run_exported(self, raw: torch.Tensor, cam_mask: torch.Tensor) -> dict[str, torch.Tensor] | None:
+        """The model's calibrated logits (and visibility logits) from the ONNX backend, or None
+        when the backend is torch or the model runs on a GPU.
+        """
+        if self.backend == "torch" or self.device.type != "cpu":
+            return None
+        if self._exported is None:
+            wrapper = _Exportable(self.model).eval()
+            self._exported = ExportedModel(wrapper, (raw, cam_mask), self.backend,
+                                           self.config.threads or inference_threads())
+        outs = self._exported(raw.numpy(), cam_mask.numpy())
+        res = {"logits": torch.from_numpy(outs[0])}
+        if len(outs) > 1:
+            res["visibility_logits"] = torch.from_numpy(outs[1])
+        return res
 
     def map(self, images: Mapping[str, np.ndarray], ego_pose=None, stamp_ns=None) -> BevPrediction:
         """Map one synchronized set of images; cameras absent from ``images`` are unseen."""
@@ -174,11 +194,15 @@ class BiMapperMapper(Mapper):
             cam_mask = torch.tensor([present], dtype=torch.bool, device=self.device)  # (1, N)
             if len({r.shape for r in raws}) == 1:
                 raw = torch.from_numpy(np.stack(raws))[None].to(self.device)  # (1, N, H, W[, 3])
-                out = self.model(raw, cam_mask)
-            else:  # cameras of different sizes (the model refuses ipm_skip / lv_full_res then)
+                out = self._run_exported(raw, cam_mask)
+                if out is None:
+                    out = self.model(raw, cam_mask)
+                    out = {**out, "logits": self.model.calibrated(out["logits"])}
+            else:  # cameras of different sizes (the model refuses ipm_skip / lv_full_res then; torch only)
                 xs = [self.model.preprocess(torch.from_numpy(r)[None, None].to(self.device)) for r in raws]  # (1, 1, C_in, h, w) each
                 out = self.model.forward_preprocessed(torch.cat(xs, dim=1), cam_mask)  # input (1, N, C_in, h, w)
-            logits = self.model.calibrated(out["logits"])  # per-class temperature (1 if uncalibrated)
+                out = {**out, "logits": self.model.calibrated(out["logits"])}
+            logits = out["logits"]  # per-class temperature applied (1 if uncalibrated)
             probs = torch.sigmoid(logits[0, self._layers]).float().cpu().numpy()  # (K_wanted, H, W)
             known_t = self.model.known(cam_mask)[0]  # (H, W)
             vis = out.get("visibility_logits")
@@ -188,6 +212,23 @@ class BiMapperMapper(Mapper):
         if self.sight is not None:
             known = known & self.sight.known(images)
         return BevPrediction(self.class_names, np.ascontiguousarray(probs, dtype=np.float32), known.astype(bool))
+
+
+class _Exportable(torch.nn.Module):
+    """The part of :meth:`BiMapperMapper.map` an ONNX backend runs: raw images ``(1, N, H, W[, 3])``
+    and the camera mask ``(1, N)`` -> calibrated logits (and visibility logits when the weights
+    have the head).
+    """
+
+    def __init__(self, model: BiMapper) -> None:
+        super().__init__()
+        self.model = model
+
+    def forward(self, raw: torch.Tensor, cam_mask: torch.Tensor):
+        out = self.model(raw, cam_mask)
+        logits = self.model.calibrated(out["logits"])
+        vis = out.get("visibility_logits")
+        return (logits,) if vis is None else (logits, vis)
 
 
 __all__ = ["BiMapperMapper", "WeightsError", "default_weights_path", "inference_device", "inference_threads"]

@@ -1,0 +1,157 @@
+"""Inference backends for learned mappers: torch (the reference and the fallback), or the model
+exported to ONNX and run by onnxruntime or OpenVINO (optional extras:
+``pip install -e ".[fast]"``).
+
+``MapperConfig.backend``:
+
+* ``torch``: eager PyTorch (default);
+* ``onnxruntime`` / ``openvino``: the model is exported once (PyTorch's dynamo exporter, opset
+  18, static shapes) into a cache keyed by a hash of every parameter and buffer of the model,
+  calibration-dependent tables included, and of the input shapes: ``$BEV_MAPPER_CACHE`` or
+  ``~/.cache/bev_mapper``, ``onnx/<key>.onnx``. A new calibration or new weights export again
+  (about 7 s for the shipped surround6 Bi-Mapper on this machine); a later start reuses the
+  file. OpenVINO runs in f32 (``INFERENCE_PRECISION_HINT``: its default on CPUs with bf16 units
+  differs from torch by up to 0.13 in logits).
+* ``auto``: the fastest installed: OpenVINO, else onnxruntime, else torch.
+
+Both runtimes use the mapper's thread count (``MapperConfig.threads`` or
+:func:`~.runtime.inference_threads`). Outputs equal torch's within :data:`TOLERANCE` in
+probability (tested per method on real frames). Nothing is downloaded: the runtimes are Python
+packages, the model is the local weights file.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import os
+import tempfile
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import ConfigError
+from ..mapper import BACKENDS
+
+#: Python module of each optional backend.
+_MODULES = {"onnxruntime": "onnxruntime", "openvino": "openvino"}
+#: ``auto``'s order of preference (measured: OpenVINO 2.3x, onnxruntime 1.6x torch eager on the
+#: shipped surround6 Bi-Mapper, 1 thread; bench/bench_backends.py).
+AUTO_ORDER = ("openvino", "onnxruntime")
+#: Largest difference of an exported model's probabilities from torch's (tests check it).
+TOLERANCE = 1e-4
+#: Environment variable of the cache directory.
+CACHE_ENV = "BEV_MAPPER_CACHE"
+
+
+def installed_backends() -> tuple[str, ...]:
+    """The backends usable here: ``torch`` and every optional runtime that is importable."""
+    return ("torch",) + tuple(b for b in AUTO_ORDER if importlib.util.find_spec(_MODULES[b]) is not None)
+
+
+def resolve_backend(name: str) -> str:
+    """The backend that runs for ``name``: itself when installed, ``auto``'s pick.
+
+    Raises:
+        ConfigError: an unknown name, or a runtime that is not installed.
+    """
+    if name not in BACKENDS:
+        raise ConfigError(f"backend must be one of {BACKENDS}, got {name!r}")
+    have = installed_backends()
+    if name == "auto":
+        return next((b for b in AUTO_ORDER if b in have), "torch")
+    if name not in have:
+        raise ConfigError(f"backend {name!r} is not installed: pip install {_MODULES[name]} (or the package's "
+                          f"'fast' extra), or use backend 'torch' or 'auto'")
+    return name
+
+
+def cache_dir() -> Path:
+    """Where exported models are kept."""
+    return Path(os.environ.get(CACHE_ENV) or Path.home() / ".cache" / "bev_mapper")
+
+
+def model_key(module: torch.nn.Module, inputs: Sequence[torch.Tensor]) -> str:
+    """Hash of every parameter and buffer of ``module`` (non-persistent ones included) and of
+    the inputs' shapes and dtypes: two modules with the same key export to the same graph.
+    """
+    h = hashlib.sha256(torch.__version__.encode())
+    for name, t in list(module.named_parameters()) + list(module.named_buffers()):
+        h.update(name.encode())
+        h.update(str((tuple(t.shape), t.dtype)).encode())
+        h.update(t.detach().cpu().contiguous().numpy().tobytes())
+    for t in inputs:
+        h.update(str((tuple(t.shape), t.dtype)).encode())
+    return h.hexdigest()[:32]
+
+
+def export_onnx(module: torch.nn.Module, inputs: Sequence[torch.Tensor], path: Path) -> Path:
+    """Export ``module`` (eval mode, CPU) on example ``inputs`` to ``path`` (atomically)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(suffix=".onnx", dir=path.parent)
+    os.close(fd)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            program = torch.onnx.export(module, tuple(inputs), dynamo=True, opset_version=18, verbose=False)
+            program.save(tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+class ExportedModel:
+    """``module`` exported to ONNX and run by ``backend`` (``onnxruntime`` or ``openvino``):
+    call it with numpy arrays shaped as the example inputs; returns a list of numpy outputs.
+
+    Raises (constructor):
+        ConfigError: the backend is not installed, or the export failed.
+    """
+
+    def __init__(self, module: torch.nn.Module, inputs: Sequence[torch.Tensor], backend: str, threads: int) -> None:
+        self.backend = resolve_backend(backend)
+        if self.backend == "torch":
+            raise ConfigError("ExportedModel runs onnxruntime or openvino; torch runs the module itself")
+        self.shapes = [tuple(t.shape) for t in inputs]
+        path = cache_dir() / "onnx" / f"{model_key(module, inputs)}.onnx"
+        if not path.is_file():
+            try:
+                export_onnx(module, inputs, path)
+            except Exception as exc:  # the exporter raises many kinds
+                raise ConfigError(f"could not export the model to ONNX for backend {self.backend!r} ({exc}); "
+                                  "use backend 'torch'") from None
+        self.path = path
+        if self.backend == "onnxruntime":
+            import onnxruntime as ort
+
+            opts = ort.SessionOptions()
+            opts.intra_op_num_threads = threads
+            opts.inter_op_num_threads = 1
+            self._session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+            self._names = [i.name for i in self._session.get_inputs()]
+        else:
+            import openvino as ov
+
+            self._compiled = ov.Core().compile_model(str(path), "CPU", {"INFERENCE_NUM_THREADS": threads,
+                                                                        "INFERENCE_PRECISION_HINT": "f32"})
+            self._names = [i.get_any_name() for i in self._compiled.inputs]
+
+    def __call__(self, *arrays: np.ndarray) -> list[np.ndarray]:
+        """Run on numpy inputs (the example inputs' shapes)."""
+        shapes = [a.shape for a in arrays]
+        if shapes != self.shapes:
+            raise ValueError(f"exported model takes inputs {self.shapes}, got {shapes}")
+        feed = dict(zip(self._names, arrays))
+        if self.backend == "onnxruntime":
+            return self._session.run(None, feed)
+        result = self._compiled(feed)
+        return [result[o] for o in self._compiled.outputs]
+
+
+__all__ = ["AUTO_ORDER", "BACKENDS", "CACHE_ENV", "TOLERANCE", "ExportedModel", "export_onnx", "installed_backends",
+           "model_key", "resolve_backend"]

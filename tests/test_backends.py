@@ -1,0 +1,62 @@
+"""Inference backends (issue #15): the ONNX export run by onnxruntime / OpenVINO maps as torch
+does, ``auto`` picks an installed runtime and falls back to torch, and a missing runtime asked
+for by name is a clear error."""
+
+from __future__ import annotations
+
+import importlib.util
+
+import numpy as np
+import pytest
+
+from bev_mapper_core.errors import ConfigError
+from bev_mapper_core.grid import BevGrid
+from bev_mapper_core.mapper import BACKENDS, MapperConfig, create_mapper
+from bev_mapper_core.models import backends
+from bev_mapper_core.rig import preset_rig
+from bev_mapper_core.synth import SynthConfig, generate_drive
+
+
+def _hide(monkeypatch, *modules):
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name in modules else real(name, *a))
+
+
+def test_auto_falls_back_to_torch_and_a_missing_runtime_is_a_clear_error(monkeypatch):
+    _hide(monkeypatch, "openvino", "onnxruntime")
+    assert backends.installed_backends() == ("torch",)
+    assert backends.resolve_backend("auto") == "torch"
+    with pytest.raises(ConfigError, match="backend 'openvino' is not installed: pip install openvino"):
+        backends.resolve_backend("openvino")
+    with pytest.raises(ConfigError, match="not installed"):  # the mapper refuses it at construction
+        create_mapper(preset_rig("surround6"), BevGrid(), MapperConfig(backend="onnxruntime"))
+    _hide(monkeypatch, "openvino")
+    if importlib.util.find_spec("onnxruntime") is not None:
+        assert backends.resolve_backend("auto") == "onnxruntime"
+    with pytest.raises(ConfigError, match="backend must be one of"):
+        MapperConfig(backend="tensorrt")
+    assert BACKENDS == ("torch", "onnxruntime", "openvino", "auto")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("backend", ["onnxruntime", "openvino"])
+def test_exported_bimapper_maps_as_torch_does(backend, tmp_path_factory, monkeypatch):
+    """The shipped surround6 Bi-Mapper through the backend, on real frames (one with a camera
+    missing): probabilities within ``backends.TOLERANCE`` of torch's, the same known cells; the
+    export is cached and reused."""
+    if importlib.util.find_spec(backend) is None:
+        pytest.skip(f"{backend} is not installed (the 'fast' extra)")
+    cache = tmp_path_factory.getbasetemp() / "onnx_cache"  # shared by both backends: one export
+    monkeypatch.setenv(backends.CACHE_ENV, str(cache))
+    rig, grid = preset_rig("surround6"), BevGrid()
+    ref = create_mapper(rig, grid, MapperConfig(threads=1))
+    fast = create_mapper(rig, grid, MapperConfig(threads=1, backend=backend))
+    assert fast.backend == backend
+    frames = list(generate_drive(rig, grid, SynthConfig(frames=2, seed=950_000_018)))
+    sets = [{n: c.labels for n, c in f.cameras.items()} for f in frames]
+    sets.append({n: v for n, v in sets[0].items() if n != "back"})
+    for images in sets:
+        a, b = fast.map(images), ref.map(images)
+        assert np.abs(a.probs - b.probs).max() <= backends.TOLERANCE
+        np.testing.assert_array_equal(a.known, b.known)
+    assert len(list((cache / "onnx").glob("*.onnx"))) == 1
