@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import hashlib
 import importlib.util
+import logging
 import os
 import tempfile
 import warnings
@@ -94,10 +95,16 @@ def export_onnx(module: torch.nn.Module, inputs: Sequence[torch.Tensor], path: P
     fd, tmp = tempfile.mkstemp(suffix=".onnx", dir=path.parent)
     os.close(fd)
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            program = torch.onnx.export(module, tuple(inputs), dynamo=True, opset_version=18, verbose=False)
-            program.save(tmp)
+        quiet = logging.getLogger("torch.onnx")  # its notes (e.g. on torchvision ops) are not for users
+        level = quiet.level
+        quiet.setLevel(logging.ERROR)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                program = torch.onnx.export(module, tuple(inputs), dynamo=True, opset_version=18, verbose=False)
+                program.save(tmp)
+        finally:
+            quiet.setLevel(level)
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
