@@ -43,8 +43,8 @@ from .bimapper import BevDecoder
 from .config import MAX_CHANNELS, MAX_DOWNSAMPLE, MAX_WIDTH_PX, RGB_MEAN, RGB_STD, DictConfig
 from .efficientnet import downsampled_size
 from .focusbev_blocks import ColumnTransformer, EgoMotionFusion, depth_bins, depth_ranges, feature_grid, polar_grids, polar_to_cartesian
-from .geometry import check_one_camera, one_camera_input_size, scaled_camera
-from .inputs import preprocess_images
+from .geometry import check_one_camera, check_same_camera, one_camera_input_size, scaled_camera
+from .inputs import preprocess_one_camera
 from .resnet import FPN, RESNET_DEPTHS, ResNet
 
 
@@ -202,11 +202,7 @@ class FocusBEV(nn.Module):
         Raises:
             ConfigError: another camera, more than one camera, or another model input size.
         """
-        if rig.names != self.rig.names:
-            raise ConfigError(f"rig cameras {list(rig.names)} differ from the model's {list(self.rig.names)}")
-        if input_size(self.config, rig) != self.input_size:
-            raise ConfigError(f"new calibration gives input size {input_size(self.config, rig)}, the model "
-                              f"needs {self.input_size}")
+        check_same_camera(self.rig, rig, self.config.input_width, self.input_size, "FocusBEV")
         grids, valid, frustum = self._tables(rig)
         self.polar_grid.copy_(grids)
         self.polar_valid.copy_(valid)
@@ -218,10 +214,8 @@ class FocusBEV(nn.Module):
         """Camera images ``(B, 1, H, W)`` label ids or ``(B, 1, H, W, 3)`` RGB -> model input
         ``(B, C_in, h, w)`` (:func:`~.inputs.preprocess_images`).
         """
-        if images.dim() < 2 or images.shape[1] != 1:
-            raise ValueError(f"FocusBEV takes the images of one camera, (B, 1, H, W[, 3]); got {tuple(images.shape)}")
-        x = preprocess_images(images, self.config.input_kind, self.input_size, self.rgb_mean, self.rgb_std)
-        return x[:, 0]  # (B, 1, C_in, h, w) -> (B, C_in, h, w)
+        return preprocess_one_camera(images, self.config.input_kind, self.input_size, self.rgb_mean, self.rgb_std,
+                                     "FocusBEV")
 
     # ---------------------------------------------------------------- forward
     def bev_features(self, x: torch.Tensor) -> torch.Tensor:

@@ -153,6 +153,20 @@ def one_camera_input_size(rig: Rig, input_width: int, title: str) -> tuple[int, 
     return h, w
 
 
+def check_same_camera(old: Rig, new: Rig, input_width: int, input_size: tuple[int, int], title: str) -> None:
+    """A new calibration ``new`` of a one-camera model built for ``old`` must name the same
+    camera and give the same model input size.
+
+    Raises:
+        ConfigError: another camera, more than one camera, or another model input size.
+    """
+    if new.names != old.names:
+        raise ConfigError(f"rig cameras {list(new.names)} differ from the model's {list(old.names)}")
+    got = one_camera_input_size(new, input_width, title)
+    if got != tuple(input_size):
+        raise ConfigError(f"new calibration gives input size {got}, the model needs {tuple(input_size)}")
+
+
 def scaled_camera(camera: RigCamera, input_width: int) -> RigCamera:
     """``camera`` seen at the model's input width (intrinsics rescaled with ``model.scaled``)."""
     w, _ = camera.model.image_size

@@ -55,4 +55,16 @@ def preprocess_images(images: torch.Tensor, input_kind: str, size: tuple[int, in
     return (x - rgb_mean.view(1, 1, 3, 1, 1)) / rgb_std.view(1, 1, 3, 1, 1)  # (3,) -> (1, 1, 3, 1, 1)
 
 
-__all__ = ["preprocess_images"]
+def preprocess_one_camera(images: torch.Tensor, input_kind: str, size: tuple[int, int], rgb_mean: torch.Tensor,
+                          rgb_std: torch.Tensor, title: str) -> torch.Tensor:
+    """:func:`preprocess_images` of a one-camera model: ``(B, 1, H, W[, 3])`` -> ``(B, C_in, h, w)``.
+
+    Raises:
+        ValueError: not the images of one camera, or see :func:`preprocess_images`.
+    """
+    if images.dim() < 2 or images.shape[1] != 1:
+        raise ValueError(f"{title} takes the images of one camera, (B, 1, H, W[, 3]); got {tuple(images.shape)}")
+    return preprocess_images(images, input_kind, size, rgb_mean, rgb_std)[:, 0]  # (B, 1, C_in, h, w) -> (B, C_in, h, w)
+
+
+__all__ = ["preprocess_images", "preprocess_one_camera"]

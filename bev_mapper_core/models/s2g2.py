@@ -48,8 +48,8 @@ from ..rig import Rig
 from .bimapper import BevDecoder
 from .config import MAX_CHANNELS, MAX_DOWNSAMPLE, MAX_WIDTH_PX, RGB_MEAN, RGB_STD, DictConfig
 from .efficientnet import EfficientNet, EfficientNetConfig, downsampled_size
-from .geometry import check_one_camera, one_camera_input_size
-from .inputs import preprocess_images
+from .geometry import check_one_camera, check_same_camera, one_camera_input_size
+from .inputs import preprocess_one_camera
 from .s2g2_blocks import VIEW_TRANSFORMS, CrossViewAttention, InterViewAttention, ViewTransform
 
 #: The two branches of the double branch generator.
@@ -192,11 +192,7 @@ class S2G2(nn.Module):
         Raises:
             ConfigError: another camera, more than one camera, or another model input size.
         """
-        if rig.names != self.rig.names:
-            raise ConfigError(f"rig cameras {list(rig.names)} differ from the model's {list(self.rig.names)}")
-        if input_size(self.config, rig) != self.input_size:
-            raise ConfigError(f"new calibration gives input size {input_size(self.config, rig)}, the model "
-                              f"needs {self.input_size}")
+        check_same_camera(self.rig, rig, self.config.input_width, self.input_size, "S2G2")
         self.frustum.copy_(self._frustum(rig))
         self.rig = rig
 
@@ -209,10 +205,8 @@ class S2G2(nn.Module):
         """Camera images ``(B, 1, H, W)`` label ids or ``(B, 1, H, W, 3)`` RGB (the rig's one
         camera) -> model input ``(B, C_in, h, w)`` (:func:`~.inputs.preprocess_images`).
         """
-        if images.dim() < 2 or images.shape[1] != 1:
-            raise ValueError(f"S2G2 takes the images of one camera, (B, 1, H, W[, 3]); got {tuple(images.shape)}")
-        x = preprocess_images(images, self.config.input_kind, self.input_size, self.rgb_mean, self.rgb_std)
-        return x[:, 0]  # (B, 1, C_in, h, w) -> (B, C_in, h, w)
+        return preprocess_one_camera(images, self.config.input_kind, self.input_size, self.rgb_mean, self.rgb_std,
+                                     "S2G2")
 
     # ---------------------------------------------------------------- forward
     def features(self, x: torch.Tensor, frozen_encoder: bool = False) -> dict[str, torch.Tensor]:
