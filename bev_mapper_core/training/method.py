@@ -60,20 +60,19 @@ How the semi-supervised and temporal methods plug in: **S2G2** is implemented in
 and its data source yields ``{"labeled": ..., "unlabeled": ...}`` batches from
 :meth:`~.sources.TrainData.batches` (a source without unlabeled frames refuses the run).
 
-**FocusBEV** (frame sequences with ego poses, memory bank of past BEV features)::
+**FocusBEV** (windows of consecutive frames with ego poses; :mod:`.focusbev_method`)::
 
     class FocusBEVMethod(TrainMethod):
-        name, model_config_type, loss_config_type = "focusbev", FocusBEVConfig, FocusBEVLoss
+        name, model_config_type, loss_config_type = "focusbev", FocusBEVConfig, FocusBEVTraining
         def configure_optimizer(self, lr):
-            return torch.optim.AdamW(self.trainable_parameters(), lr)
-        def data_needs(self):           # windows of consecutive frames, each with its ego pose
-            return DataNeeds(image_size=None, sequence_length=self.cfg.loss.window, poses=True)
-        def start_epoch(self, epoch):
-            self.model.memory.reset()
-        def loss(self, batch, epoch, step):   # images (B, T, N, h, w), poses (B, T, 4, 4)
-            self.model.memory.reset()         # a window starts a fresh bank (history detached)
-            for t in range(T): out = self.model(images[:, t], poses[:, t])
-            return weighted_bce + 0.001 * uncertainty + 0.01 * iou_loss, parts
+            return torch.optim.AdamW(self.model.parameters(), lr=lr, weight_decay=...)
+        def data_needs(self):           # the frame and the window - 1 before it, each with its pose
+            w = self.cfg.model.window
+            return DataNeeds(image_size=self.model.input_size, sequence_length=w, poses=w > 1, rgb=...)
+        def loss(self, batch, epoch, step):   # images (B, T, 1, h, w[, 3]), poses (B, T, 4, 4), present (B, T)
+            hist = history(self.model, x, poses, present)  # frames T-2..0 forward only, newest first
+            out = self.model(x[:, -1], hist)               # the last frame, fused with its history
+            return focusbev_loss(out["logits"], target, mask, ...)   # BCE + 0.001 unc. + 0.01 OA-IoU
 
 ``predict`` of both returns ``(probs (B, K, H, W), known (B, H, W))`` numpy arrays on the run's
 grid; the trainer scores them with the same scorer as every other method.
