@@ -11,7 +11,7 @@ import pytest
 
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.grid import BevGrid
-from bev_mapper_core.mapper import BACKENDS, MapperConfig, create_mapper
+from bev_mapper_core.mapper import BACKENDS, MapperConfig, create_mapper, preflight
 from bev_mapper_core.models import backends
 from bev_mapper_core.rig import preset_rig
 from bev_mapper_core.synth import SynthConfig, generate_drive
@@ -28,7 +28,9 @@ def test_auto_falls_back_to_torch_and_a_missing_runtime_is_a_clear_error(monkeyp
     assert backends.resolve_backend("auto") == "torch"
     with pytest.raises(ConfigError, match="backend 'openvino' is not installed: pip install openvino"):
         backends.resolve_backend("openvino")
-    with pytest.raises(ConfigError, match="not installed"):  # the mapper refuses it at construction
+    with pytest.raises(ConfigError, match="not installed"):  # refused at start-up (preflight) and construction
+        preflight(MapperConfig(backend="onnxruntime"), "surround6")
+    with pytest.raises(ConfigError, match="not installed"):
         create_mapper(preset_rig("surround6"), BevGrid(), MapperConfig(backend="onnxruntime"))
     _hide(monkeypatch, "openvino")
     if importlib.util.find_spec("onnxruntime") is not None:

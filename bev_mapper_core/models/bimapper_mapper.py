@@ -106,11 +106,13 @@ class BiMapperMapper(Mapper):
         """The weights file exists and is a Bi-Mapper safetensors file for this input kind, rig,
         classes and (when given) grid and camera names (in rig order), and every tensor fits the
         stored architecture (:meth:`WeightsFile.validate`): a node never starts with weights it
-        cannot run. Chained RGB input (:meth:`plan`) also needs a readable segmenter file.
+        cannot run. Chained RGB input (:meth:`plan`) also needs a readable segmenter file, and a
+        ``backend`` named explicitly an installed runtime.
 
         Reads the file once (:meth:`WeightsFile.open` caches the header and the checked tensors
         for the constructor).
         """
+        resolve_backend(config.backend)  # an inference runtime asked for by name must be installed
         path, kind, seg = cls.plan(config, rig_name)
         weights = WeightsFile.open(path)
         weights.check(rig_name=rig_name, cameras=cameras, grid=grid, input_kind=kind,
