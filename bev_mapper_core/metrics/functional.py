@@ -57,17 +57,18 @@ def mean_iou(ious) -> float:
 
 
 # --------------------------------------------------------------------------------- Chamfer
-def _distance_to(cells: np.ndarray) -> np.ndarray:
-    """Exact Euclidean distance (in cells) of every cell centre to the nearest True cell.
+def _distance_to(cells: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """Exact Euclidean distance (in cells) from each cell centre of ``at`` (bool, the same shape)
+    to the nearest True cell of ``cells``, as a 1-D float64 array in ``at``'s order.
 
     ``cells`` must contain at least one True cell.
     """
     # distanceTransform measures the distance to the nearest *zero* pixel.
     src = np.where(cells, 0, 1).astype(np.uint8)
-    d = cv2.distanceTransform(src, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    d = cv2.distanceTransform(src, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[at]
     # Between cell centres the squared distance is an integer: snapping it removes the last-ulp
     # noise of OpenCV's SIMD path (which varies with buffer alignment), so scores are exactly
-    # reproducible.
+    # reproducible. Only the cells asked for are snapped.
     return np.sqrt(np.rint(d.astype(np.float64) ** 2))
 
 
@@ -82,11 +83,11 @@ def _chamfer_terms(pred: np.ndarray, gt: np.ndarray, resolution: float, clip: fl
     if n_g == 0:
         d_p = np.full(n_p, clip)
     else:
-        d_p = np.minimum(_distance_to(gt)[pred].astype(np.float64) * resolution, clip)
+        d_p = np.minimum(_distance_to(gt, pred) * resolution, clip)
     if n_p == 0:
         d_g = np.full(n_g, clip)
     else:
-        d_g = np.minimum(_distance_to(pred)[gt].astype(np.float64) * resolution, clip)
+        d_g = np.minimum(_distance_to(pred, gt) * resolution, clip)
     return d_p, d_g
 
 
