@@ -22,12 +22,13 @@ def _calibration_counts(probs: np.ndarray, truth: np.ndarray, mask: np.ndarray, 
     ``probs`` ``(C, H, W)`` float, ``truth`` ``(C, H, W)`` bool, ``mask`` ``(C, H, W)`` bool.
     """
     C = probs.shape[0]
-    p = np.clip(probs.astype(np.float64), 0.0, 1.0)
-    b = np.minimum((p * bins).astype(np.int64), bins - 1)  # (C, H, W) bin of each cell
-    flat = (b + bins * np.arange(C)[:, None, None])[mask]  # class-major bin ids of scored cells
+    # the scored cells only, class-major (boolean indexing keeps C order): (n,) each
+    p = np.clip(probs[mask].astype(np.float64), 0.0, 1.0)
+    cls = np.repeat(np.arange(C), np.count_nonzero(mask.reshape(C, -1), axis=1))  # class of each scored cell
+    flat = np.minimum((p * bins).astype(np.int64), bins - 1) + bins * cls  # class-major bin ids
     size = C * bins
     count = np.bincount(flat, minlength=size).reshape(C, bins)
-    conf = np.bincount(flat, weights=p[mask], minlength=size).reshape(C, bins)
+    conf = np.bincount(flat, weights=p, minlength=size).reshape(C, bins)
     pos = np.bincount(flat, weights=truth[mask].astype(np.float64), minlength=size).reshape(C, bins)
     return count, conf, pos
 
