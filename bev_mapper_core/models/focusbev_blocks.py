@@ -34,6 +34,7 @@ from torch.nn import functional as F
 from ..bev_warp import warp_batch
 from ..grid import BevGrid
 from ..rig import RigCamera
+from ..transforms import transform_points
 
 
 class ColumnTransformer(nn.Module):
@@ -117,9 +118,7 @@ def polar_grids(camera: RigCamera, fgrid: BevGrid, ranges: list[tuple[float, flo
         is in front of the camera, inside the image's width and inside the level's range.
     """
     W_in = camera.model.image_size[0]
-    pts = fgrid.points(0.0)  # (h*w, 3) ego frame, on the ground
-    cam_from_ego = np.linalg.inv(camera.ego_from_cam_array)
-    p = pts @ cam_from_ego[:3, :3].T + cam_from_ego[:3, 3]  # (h*w, 3) optical frame
+    p = transform_points(camera.cam_from_ego, fgrid.points(0.0))  # (h*w, 3) ground cell centres, optical frame
     uv, in_front = camera.model.project(p)
     u = np.where(in_front, uv[:, 0], -1e6)
     z = p[:, 2]
