@@ -33,7 +33,7 @@ from ..grid import BevGrid
 from ..mapper import BevPrediction, MapperConfig
 from ..rig import Rig
 from ..temporal import TemporalConfig, drop_reason, pose_problem
-from .focusbev import FocusBEV, check_monocular
+from .focusbev import FocusBEV
 from .focusbev_weights import load_focusbev, read_focusbev_metadata, validate_focusbev
 from .mono_mapper import MonocularMapper, shipped_weights
 from .runtime import inference_device
@@ -53,7 +53,8 @@ class _Kept:
 
 class FocusBEVMapper(MonocularMapper):
     """Learned FocusBEV inference with its memory bank (see the module docstring); ``known`` =
-    ground cells inside the camera's image.
+    ground cells inside the camera's image. A new calibration keeps the bank: the ego motion
+    does not depend on the camera's calibration.
 
     Raises (constructor):
         ConfigError: no weights file given and none shipped, a rig of more than one camera, or a
@@ -66,6 +67,7 @@ class FocusBEVMapper(MonocularMapper):
     train_hint = "bev-train --method focusbev --rig front1 --grid ahead ..."
     uses_ego_pose = True
     read_metadata = staticmethod(read_focusbev_metadata)
+    load = staticmethod(load_focusbev)
     validate = staticmethod(validate_focusbev)
     #: when the memory is dropped (gap, jump): the method-independent fusion's defaults
     rules = TemporalConfig()
@@ -78,17 +80,6 @@ class FocusBEVMapper(MonocularMapper):
         self.model: FocusBEV | None = None
         self._kept: deque[_Kept] = deque()
         super().__init__(rig, grid, config)
-
-    def set_rig(self, rig: Rig) -> None:
-        """Load the model on first use; afterwards rebuild its tables for the new calibration
-        (the memory bank stays: the ego motion does not depend on the camera's calibration).
-        """
-        check_monocular(rig)
-        super().set_rig(rig)
-        if self.model is None:
-            self.model, _ = load_focusbev(self.weights_file, rig, self.grid, self.device)
-        else:
-            self.model.set_rig(rig)
 
     def reset(self) -> None:
         """Drop the memory bank."""

@@ -16,6 +16,7 @@ from ..errors import ConfigError
 from ..grid import BevGrid
 from ..mapper import Mapper, MapperConfig
 from ..rig import Rig
+from .geometry import check_one_camera
 from .weights import WeightsError
 
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
@@ -43,6 +44,22 @@ class MonocularMapper(Mapper):
     def validate(path: Path) -> dict:
         """The full check of a weights file (every tensor against its stored architecture)."""
         raise NotImplementedError
+
+    @staticmethod
+    def load(path: Path, rig: Rig, grid: BevGrid, device) -> tuple:
+        """``(model in eval mode, metadata)`` of a weights file built for ``rig`` and ``grid``."""
+        raise NotImplementedError
+
+    def set_rig(self, rig: Rig) -> None:
+        """Load the model on first use (``self.model`` None); afterwards hand it the new
+        calibration (its ``set_rig`` rebuilds the calibration-dependent tables).
+        """
+        check_one_camera(rig, self.title)
+        super().set_rig(rig)
+        if self.model is None:
+            self.model, _ = self.load(self.weights_file, rig, self.grid, self.device)
+        else:
+            self.model.set_rig(rig)
 
     @classmethod
     def weights_path(cls, config: MapperConfig, rig_name: str) -> Path:
@@ -105,9 +122,7 @@ class MonocularMapper(Mapper):
         sets :attr:`weights_file` and ``_layers`` (the output layers to return, in the
         configured order: a subset is allowed).
         """
-        if len(rig.cameras) != 1:
-            raise ConfigError(f"{self.title} is monocular: rig {rig.name!r} has {len(rig.cameras)} cameras "
-                              f"{list(rig.names)}; use a one-camera rig (e.g. front1), or method bimapper / ipm")
+        check_one_camera(rig, self.title)
         self.preflight(config, rig.name, grid, rig.names)
         self.weights_file = self.weights_path(config, rig.name)
         meta = self.read_metadata(self.weights_file)

@@ -22,7 +22,7 @@ from ..mapper import BevPrediction, MapperConfig
 from ..rig import Rig
 from .mono_mapper import MonocularMapper, shipped_weights
 from .runtime import inference_device
-from .s2g2 import S2G2, check_monocular
+from .s2g2 import S2G2
 from .s2g2_weights import load_s2g2, read_s2g2_metadata, validate_s2g2
 
 
@@ -45,6 +45,7 @@ class S2G2Mapper(MonocularMapper):
     title = "S2G2"
     train_hint = "bev-train --method s2g2 --rig front1 --grid ahead --unlabeled-drives N ..."
     read_metadata = staticmethod(read_s2g2_metadata)
+    load = staticmethod(load_s2g2)
     validate = staticmethod(validate_s2g2)
 
     def __init__(self, rig: Rig, grid: BevGrid, config: MapperConfig) -> None:
@@ -54,15 +55,6 @@ class S2G2Mapper(MonocularMapper):
         self.device = inference_device(config)
         self.model: S2G2 | None = None
         super().__init__(rig, grid, config)
-
-    def set_rig(self, rig: Rig) -> None:
-        """Load the model on first use; afterwards rebuild its frustum for the new calibration."""
-        check_monocular(rig)
-        super().set_rig(rig)
-        if self.model is None:
-            self.model, _ = load_s2g2(self.weights_file, rig, self.grid, self.device)
-        else:
-            self.model.set_rig(rig)
 
     def map(self, images: Mapping[str, np.ndarray], ego_pose=None, stamp_ns=None) -> BevPrediction:
         """Map the camera's image (the only camera, so always present)."""
