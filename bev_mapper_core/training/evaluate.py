@@ -86,18 +86,19 @@ def evaluate_mapper(mapper, frames: FrameSet, grid: BevGrid, scope: str = "visib
     if rgb and frames.rgb is None:
         raise ConfigError("an RGB mapper needs frames with camera images (load them with rgb=...)")
 
-    drive = [None]
+    drive = None  # the drive of the last frame mapped
 
     def predict(batch: dict):  # images (1, N, H, W[, 3]) -> (1, C, H, W), (1, H, W)
+        nonlocal drive
         images = (batch["rgb"] if rgb else batch["images"]).numpy()
         pose = stamp = None
         if "poses" in batch:  # a sequence: a temporal method gets stamps and poses, and a new drive resets it
             pose, stamp = batch["poses"][0].numpy(), int(batch["stamps"][0])
-            if int(batch["drives"][0]) != drive[0]:
+            if int(batch["drives"][0]) != drive:
                 mapper.reset()
                 if fusion is not None:
                     fusion.reset()
-                drive[0] = int(batch["drives"][0])
+                drive = int(batch["drives"][0])
         pred = mapper.map({n: images[0, c] for c, n in enumerate(names)}, ego_pose=pose, stamp_ns=stamp)
         if fusion is not None:
             pred = fusion.update(pred, stamp, pose).prediction
