@@ -167,8 +167,8 @@ class IpmMapper(Mapper):
         #: or cameras for one uint64 counter per cell; the float path then sums class rows)
         self._codes = None
         if len(self.classes) * CODE_BITS <= 64 and len(self.rig.cameras) < 2 ** CODE_BITS:
-            shifts = np.uint64(CODE_BITS) * np.arange(len(self.classes), dtype=np.uint64)
-            self._codes = (label_lut(self.classes).astype(np.uint64) << shifts[None]).sum(1, dtype=np.uint64)
+            self._shifts = np.uint64(CODE_BITS) * np.arange(len(self.classes), dtype=np.uint64)  # (C,)
+            self._codes = (label_lut(self.classes).astype(np.uint64) << self._shifts[None]).sum(1, dtype=np.uint64)
 
     @classmethod
     def preflight(cls, config: MapperConfig, rig_name: str, grid: BevGrid | None = None,
@@ -221,8 +221,7 @@ class IpmMapper(Mapper):
                 acc[:, cells] += self._lut_t[:, ids]
             count[cells] += 1.0
         if codes is not None:  # unpack: class c's count is bits [c*CODE_BITS, (c+1)*CODE_BITS)
-            shifts = np.uint64(CODE_BITS) * np.arange(C, dtype=np.uint64)
-            acc = ((acc[None] >> shifts[:, None]) & np.uint64(2 ** CODE_BITS - 1)).astype(np.float32)  # (C, H*W)
+            acc = ((acc[None] >> self._shifts[:, None]) & np.uint64(2 ** CODE_BITS - 1)).astype(np.float32)  # (C, H*W)
         known = (count > 0).reshape(H, W)
         # a sum of class indicators (0 / 1) is exact in float32 either way
         probs = (acc / np.maximum(count, 1.0)[None]).reshape(C, H, W)  # (C, H*W) -> (C, H, W)
