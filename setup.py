@@ -39,6 +39,8 @@ setup(
         "test": ["pytest>=7", "pytest-timeout>=2", "colcon-common-extensions>=0.3", "ruff==0.17.6"],
         # faster inference backends for learned methods (MapperConfig.backend), optional
         "fast": ["onnxruntime>=1.17", "openvino>=2024.0", "onnx>=1.16", "onnxscript>=0.2"],
+        # fleet scale (bev-bag evaluate / synth-many on a Ray cluster, or a local Ray runtime)
+        "fleet": ["ray>=2.30"],
     },
     zip_safe=True,
     maintainer="bev_mapper maintainers",

@@ -15,13 +15,13 @@ log=.venv/setup.log
 export PYTHONWARNINGS=ignore  # setuptools' editable-install banners are not for users
 want=$(cat setup.py scripts/setup_venv.sh | sha256sum | cut -c1-16)
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
-  echo "setting up .venv: CPU PyTorch 2.13, OpenCV, rosbags, onnxruntime, OpenVINO, the ROS 2 Jazzy wheels (rclpy, messages," \
+  echo "setting up .venv: CPU PyTorch 2.13, OpenCV, rosbags, onnxruntime, OpenVINO, Ray, the ROS 2 Jazzy wheels (rclpy, messages," \
        "Fast DDS) and this package; about 1-3 minutes on a first run, seconds afterwards" >&2
   .venv/bin/python -m pip install -q --upgrade pip >/dev/null 2>&1 || true
   # The CPU wheel first, pinned: a looser requirement would pull several GB of CUDA packages.
   # pip's and setuptools' chatter goes to the log; a failure prints its end.
   if ! { .venv/bin/python -m pip install -q "torch==2.13.0" &&
-         .venv/bin/python -m pip install -q -e ".[ros,test,fast]"; } >"$log" 2>&1; then
+         .venv/bin/python -m pip install -q -e ".[ros,test,fast,fleet]"; } >"$log" 2>&1; then
     tail -n 30 "$log" >&2
     echo "error: installing into .venv failed (whole log: $log)" >&2
     exit 1
