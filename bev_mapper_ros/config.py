@@ -26,6 +26,8 @@ from msg_adapters.sync import SyncConfig
 
 from .rig_params import rig_parameters
 
+#: Values of ``image_reliability`` (:mod:`.input_qos` says what each means).
+RELIABILITY_CHOICES = ("auto", "reliable", "best_effort")
 DEFAULT_TOPICS = {"labels": "/cameras/{camera}/labels", "rgb": "/cameras/{camera}/image_raw"}
 
 
@@ -50,6 +52,9 @@ class NodeConfig:
         image_topic: image topic pattern ('' = the default for ``mapper.input_kind``).
         camera_info_topic: CameraInfo topic pattern.
         compressed: subscribe to ``sensor_msgs/CompressedImage`` on ``<image_topic>/compressed``.
+        image_reliability: QoS reliability of the image and CameraInfo subscriptions: ``auto``
+            (what the publishers offer, as ``ros2 bag record``), ``reliable`` or
+            ``best_effort`` (see :mod:`.input_qos`).
         mapper: method settings (core dataclass).
         grid: output grid (core dataclass).
         base_frame: frame of the output grids (the ego frame).
@@ -81,6 +86,7 @@ class NodeConfig:
     image_topic: str = ""
     camera_info_topic: str = "/cameras/{camera}/camera_info"
     compressed: bool = False
+    image_reliability: str = "auto"
     mapper: MapperConfig = field(default_factory=MapperConfig)
     grid: BevGrid = field(default_factory=BevGrid)
     base_frame: str = "base_link"
@@ -118,6 +124,9 @@ class NodeConfig:
                 raise NodeConfigError(f"topic pattern {pat!r} must contain '{{camera}}'")
         if not self.base_frame:
             raise NodeConfigError("base_frame must not be empty")
+        if self.image_reliability not in RELIABILITY_CHOICES:
+            raise NodeConfigError(f"image_reliability must be one of {list(RELIABILITY_CHOICES)}, "
+                                  f"got {self.image_reliability!r}")
         ext = dict(self.extrinsics)
         unknown = sorted(set(ext) - set(cams))
         if unknown:
@@ -230,6 +239,7 @@ PARAM_FIELDS: dict[str, ParamField] = {
     "image_topic": ParamField(NodeConfig, "image_topic"),
     "camera_info_topic": ParamField(NodeConfig, "camera_info_topic"),
     "compressed": ParamField(NodeConfig, "compressed"),
+    "image_reliability": ParamField(NodeConfig, "image_reliability"),
     "method": ParamField(MapperConfig, "method"),
     "weights": ParamField(MapperConfig, "weights"),
     "device": ParamField(MapperConfig, "device"),

@@ -33,7 +33,7 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.exceptions import NameValidationException, ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
@@ -61,6 +61,7 @@ from msg_adapters import (
 from .calibration import LiveCalibration
 from .command_line import CommandLineError, check_command_line, rcl_message, wants_help
 from .config import RUNTIME_PARAMETERS, NodeConfigError, node_config_from_params, with_runtime_parameters
+from .input_qos import RECHECK_S, CameraSubscription
 from .params import declare_parameters, parameter_help, read_parameters
 from .stats import NodeStats, clock_mismatch_text, diagnostic_values
 from .worker import LatestSlot, Worker
@@ -130,13 +131,19 @@ class MapperNode(Node):
         image_type = CompressedImage if cfg.compressed else Image
         self._info_keys: dict[str, tuple | None] = {}  # camera -> key of its last accepted CameraInfo
         self._subs = []
+        # images and CameraInfo: reliability as image_reliability says (input_qos: a reliable
+        # subscription loses no camera of a burst, but matches reliable publishers only)
+        self._camera_subs = []
         for cam in cfg.cameras:
-            self._subs.append(self.create_subscription(
-                image_type, cfg.image_topic_for(cam), self._contained(f"{cam} image", self._image_cb(cam)),
-                qos_profile_sensor_data))
-            self._subs.append(self.create_subscription(
-                CameraInfo, cfg.camera_info_topic_for(cam), self._contained(f"{cam} camera_info", self._info_cb(cam)),
-                qos_profile_sensor_data))
+            for msg_type, topic, where, cb in (
+                    (image_type, cfg.image_topic_for(cam), f"{cam} image", self._image_cb(cam)),
+                    (CameraInfo, cfg.camera_info_topic_for(cam), f"{cam} camera_info", self._info_cb(cam))):
+                self._camera_subs.append(CameraSubscription(
+                    self, msg_type, topic, self._contained(where, cb), cfg.image_reliability,
+                    on_change=self.get_logger().info,
+                    on_incompatible=lambda text, t=topic: self._throttled_warning(f"qos:{t}", text)))
+        if cfg.image_reliability == "auto":
+            self.create_timer(RECHECK_S, self._contained("qos", self._recheck_qos))
         # the ego pose at each image stamp from odometry, for the temporal fusion (window > 1)
         # and for methods with their own memory (FocusBEV); neither: no odometry subscription
         self.poses = PoseBuffer()
@@ -223,6 +230,10 @@ class MapperNode(Node):
             if self.calibration.update_intrinsics(cam, model, str(msg.header.frame_id)):
                 self.get_logger().info(f"calibration of {cam}: {model.image_size[0]}x{model.image_size[1]}")
         return cb
+
+    def _recheck_qos(self) -> None:
+        for sub in self._camera_subs:
+            sub.recheck()
 
     def _poll_sync(self) -> None:
         self.sync.poll(self._now_ns())

@@ -34,6 +34,7 @@ from bev_mapper_core.rig import PRESETS
 
 from .config import (
     PARAM_FIELDS,
+    RELIABILITY_CHOICES,
     RUNTIME_PARAMETERS,
     NodeConfigError,
     parameter_defaults,
@@ -58,6 +59,9 @@ _DECLARATIONS: dict[str, tuple] = {
                     "image topic pattern with {camera}; '' = /cameras/{camera}/labels or /image_raw"),
     "camera_info_topic": (_T.PARAMETER_STRING, "CameraInfo topic pattern with {camera}"),
     "compressed": (_T.PARAMETER_BOOL, "subscribe to <image_topic>/compressed"),
+    "image_reliability": (_T.PARAMETER_STRING,
+                          f"QoS of the image and camera_info subscriptions, one of {list(RELIABILITY_CHOICES)}: "
+                          "auto = what the publishers offer (reliable ones: no image of a burst lost)"),
     "method": (_T.PARAMETER_STRING,
                f"mapping method, one of {list(available_methods())} (bimapper: shipped weights per rig)"),
     "weights": (_T.PARAMETER_STRING, "safetensors weights ('' = shipped default)"),
