@@ -30,6 +30,11 @@ def main() -> None:
     ap.add_argument("--method", default=None, help="override the file's method (bimapper, ipm, s2g2, ...)")
     ap.add_argument("--hz", type=float, default=20.0, help="input rate of synchronized sets")
     ap.add_argument("--seconds", type=float, default=20.0)
+    ap.add_argument("--publishers", choices=("reliable", "best_effort"), default="reliable",
+                    help="QoS reliability of the cameras' image publishers (the node's image_reliability "
+                         "stays auto: it follows them)")
+    ap.add_argument("--node-arg", action="append", default=[], metavar="NAME:=VALUE",
+                    help="another node parameter, e.g. backend:=openvino (repeatable)")
     ap.add_argument("--domain-id", type=int, default=150 + os.getpid() % 50)
     args = ap.parse_args()
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
@@ -39,7 +44,7 @@ def main() -> None:
     import yaml  # noqa: PLC0415
     from diagnostic_msgs.msg import DiagnosticArray  # noqa: PLC0415
     from nav_msgs.msg import OccupancyGrid  # noqa: PLC0415
-    from rclpy.qos import qos_profile_sensor_data  # noqa: PLC0415
+    from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data  # noqa: PLC0415
     from sensor_msgs.msg import CameraInfo, Image  # noqa: PLC0415
 
     from bev_mapper_core.grid import BevGrid  # noqa: PLC0415
@@ -56,14 +61,16 @@ def main() -> None:
               for f in generate_drive(rig, grid, SynthConfig(frames=10, seed=950_000_008))]
     node_proc = subprocess.Popen(
         [sys.executable, "-m", "bev_mapper_ros.mapper_node", "--ros-args", "--params-file",
-         str(params_file), "-p", f"method:={method}"],
+         str(params_file), "-p", f"method:={method}", *(a for p in args.node_arg for a in ("-p", p))],
         cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT, env=dict(os.environ))
     rclpy.init()
     node = rclpy.create_node("bench_node_rate")
     factory = RclpyFactory()
     topic = "labels" if kind == "labels" else "image_raw"
     encoding = "mono8" if kind == "labels" else "rgb8"
-    pubs = {c: node.create_publisher(Image, f"/cameras/{c}/{topic}", qos_profile_sensor_data) for c in rig.names}
+    image_qos = (QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE) if args.publishers == "reliable"
+                 else qos_profile_sensor_data)
+    pubs = {c: node.create_publisher(Image, f"/cameras/{c}/{topic}", image_qos) for c in rig.names}
     infos = {c: node.create_publisher(CameraInfo, f"/cameras/{c}/camera_info", 10) for c in rig.names}
     received: list[tuple[float, int]] = []
 
@@ -104,8 +111,8 @@ def main() -> None:
         rate = (len(steady) - 1) / (steady[-1][0] - steady[0][0]) if len(steady) > 1 else 0.0
         lat = [(t - s / 1e9) * 1000.0 for t, s in steady]
         w, h = rig.cameras[0].model.image_size
-        print(f"{args.params}.yaml, method {method}: input {args.hz:.1f} sets/s of {len(rig.cameras)} x {w}x{h} "
-              f"{kind} for {args.seconds:.0f} s")
+        print(f"{args.params}.yaml, method {method} {' '.join(args.node_arg)}: input {args.hz:.1f} sets/s of "
+              f"{len(rig.cameras)} x {w}x{h} {kind} for {args.seconds:.0f} s, {args.publishers} publishers")
         print(f"output rate      : {rate:.1f} grids/s on /bev/drivable ({len(steady)} after warm-up)")
         print(f"latency (recv - stamp): p50 {statistics.median(lat):.1f} ms, "
               f"p95 {sorted(lat)[int(0.95 * (len(lat) - 1))]:.1f} ms")

@@ -23,7 +23,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: $BEV_MAPPER_TORCH_THREADS or all CPUs)")
+    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: every CPU but one, as the node)")
     ap.add_argument("--weights", default=None, help="S2G2 weights file (default: the shipped one)")
     args = ap.parse_args()
     if args.threads:

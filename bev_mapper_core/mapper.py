@@ -59,7 +59,8 @@ class MapperConfig:
         backend: inference runtime of learned methods: ``torch`` (the reference), ``onnxruntime``
             or ``openvino`` (the model exported to ONNX once per weights and calibration, cached;
             optional extras), or ``auto`` (the fastest installed); see
-            :mod:`~bev_mapper_core.models.backends`. Bi-Mapper uses it; the other methods run torch.
+            :mod:`~bev_mapper_core.models.backends`. Bi-Mapper, S2G2 and FocusBEV use it (FocusBEV
+            for its image -> BEV feature part); segipm's segmenter runs torch.
         label_map: how the ids of the label images (``input_kind`` labels) map onto this
             package's :class:`~bev_mapper_core.classes.Label`: ``native`` (they are Label
             ids), a preset of another segmenter (``cityscapes_ids``, ``cityscapes_train_ids``,

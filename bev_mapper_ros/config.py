@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import difflib
 import math
-import os
 from dataclasses import MISSING, dataclass, field, fields, replace
 
 import numpy as np
@@ -168,20 +167,6 @@ def extrinsic_from_list(camera: str, values) -> np.ndarray | None:
         raise NodeConfigError(f"extrinsics.{camera}: {exc}") from None
 
 
-def node_default_threads() -> int:
-    """Inference threads in the node: every CPU but one, which stays free for the executor.
-
-    With torch on every core the subscription callbacks starve, the images of one set arrive
-    further apart than the sync timeout and sets are split into partial ones (measured with
-    ``bench/bench_node_rate.py``).
-    """
-    try:
-        cpus = len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        cpus = os.cpu_count() or 1
-    return max(1, cpus - 1)
-
-
 @dataclass(frozen=True)
 class ParamField:
     """Where a node parameter's value lives: ``owner.field`` (the owner holds its default).
@@ -335,8 +320,9 @@ def node_config_from_params(p: dict) -> NodeConfig:
     """Build a :class:`NodeConfig` from a flat parameter dict (names as the node declares them).
 
     Missing parameters take the dataclass defaults; a preset ``rig`` gives the cameras and
-    extrinsics that ``p`` leaves empty (:func:`preset_parameters`); ``threads`` 0 becomes
-    :func:`node_default_threads`.
+    extrinsics that ``p`` leaves empty (:func:`preset_parameters`). ``threads`` 0 stays 0: the
+    mapper then takes :func:`~bev_mapper_core.models.runtime.inference_threads` (every CPU but
+    one, the rule of replay and the benchmarks too).
 
     Raises:
         NodeConfigError / ConfigError / GridError: with a message naming the bad parameter.
@@ -347,9 +333,7 @@ def node_config_from_params(p: dict) -> NodeConfig:
     for name, pf in PARAM_FIELDS.items():
         if name in p:
             kwargs[pf.owner][pf.field] = pf.from_param(p[name])
-    mapper_kw = kwargs[MapperConfig]
-    mapper_kw["threads"] = mapper_kw.get("threads") or node_default_threads()
-    mapper = MapperConfig(**mapper_kw)
+    mapper = MapperConfig(**kwargs[MapperConfig])
     grid = BevGrid(**kwargs[BevGrid])
     node_kw = kwargs[NodeConfig]
     cameras = node_kw.pop("cameras", ())

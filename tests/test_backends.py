@@ -62,3 +62,43 @@ def test_exported_bimapper_maps_as_torch_does(backend, tmp_path_factory, monkeyp
         assert np.abs(a.probs - b.probs).max() <= backends.TOLERANCE
         np.testing.assert_array_equal(a.known, b.known)
     assert len(list((cache / "onnx").glob("*.onnx"))) == 1
+
+
+def _pose(x: float) -> np.ndarray:
+    T = np.eye(4)
+    T[0, 3] = x
+    return T
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("backend", ["onnxruntime", "openvino"])
+@pytest.mark.parametrize("method", ["s2g2", "focusbev"])
+def test_exported_monocular_methods_map_as_torch_does(method, backend, tmp_path, monkeypatch):
+    """The shipped front1 RGB weights of S2G2 and FocusBEV through the backend, on a real drive
+    in order with its stamps and poses (FocusBEV's memory bank fuses the kept features): within
+    ``backends.TOLERANCE`` of torch, the same known cells and frames; a new calibration exports
+    again.
+    """
+    if importlib.util.find_spec(backend) is None:
+        pytest.skip(f"{backend} is not installed (the 'fast' extra)")
+    from bev_mapper_core.grid import grid_preset
+
+    monkeypatch.setenv(backends.CACHE_ENV, str(tmp_path))
+    rig, grid = preset_rig("front1"), grid_preset("ahead")
+    cfg = MapperConfig(method=method, input_kind="rgb", threads=1)
+    ref, fast = create_mapper(rig, grid, cfg), create_mapper(rig, grid, MapperConfig(**{**cfg.__dict__, "backend": backend}))
+    frames = list(generate_drive(rig, grid, SynthConfig(frames=3, seed=950_000_011)))
+    for k, f in enumerate(frames):
+        images = {n: c.rgb for n, c in f.cameras.items()}
+        pose, stamp = _pose(2.0 * k), 10**9 + k * 300_000_000  # one memory interval apart
+        a, b = fast.map(images, pose, stamp), ref.map(images, pose, stamp)
+        assert np.abs(a.probs - b.probs).max() <= backends.TOLERANCE, (k, np.abs(a.probs - b.probs).max())
+        np.testing.assert_array_equal(a.known, b.known)
+        assert a.frames == b.frames
+    if method == "focusbev":
+        assert a.frames == 2  # the bank was used: the exported features are what it keeps
+    assert len(list((tmp_path / "onnx").glob("*.onnx"))) == 1
+    moved = rig.scaled(1.0)  # the same rig, rebuilt: no new export
+    fast.set_rig(moved)
+    fast.map({n: c.rgb for n, c in frames[0].cameras.items()})
+    assert len(list((tmp_path / "onnx").glob("*.onnx"))) == 1

@@ -120,11 +120,20 @@ def test_live_calibration_prefers_tf_and_bumps_version_only_on_change():
     assert calib.rig() is second  # cached while nothing changes
 
 
-def test_inference_threads_leave_a_core_to_the_callbacks():
+def test_inference_threads_leave_a_core_to_the_callbacks(monkeypatch):
+    """One rule in the node, replay and the benchmarks: every CPU but one (the environment
+    variable overrides it); the node's ``threads`` 0 leaves the choice to that rule.
+    """
     import os
 
+    from bev_mapper_core.models.runtime import THREADS_ENV, inference_threads
+
     cpus = len(os.sched_getaffinity(0))
-    assert node_config_from_params({"cameras": ["a"]}).mapper.threads == max(1, cpus - 1)
+    monkeypatch.delenv(THREADS_ENV, raising=False)
+    assert inference_threads() == max(1, cpus - 1)
+    monkeypatch.setenv(THREADS_ENV, "3")
+    assert inference_threads() == 3
+    assert node_config_from_params({"cameras": ["a"]}).mapper.threads == 0
     assert node_config_from_params({"cameras": ["a"], "threads": 3}).mapper.threads == 3
     from bev_mapper_core.mapper import MapperConfig
 

@@ -27,7 +27,6 @@ from bev_mapper_ros.config import (
     PARAM_FIELDS,
     NodeConfig,
     node_config_from_params,
-    node_default_threads,
 )
 from bev_mapper_ros.rig_params import CONFIG_DIR
 from msg_adapters import GridMessageError, SyncConfig, check_grid_info
@@ -93,7 +92,7 @@ def test_declared_defaults_give_the_dataclass_defaults():
 
     read_back = {n: v[0] for n, v in PARAMETERS.items()}
     read_back.update(cameras=["a"], classes=[])  # declared without a value: read back empty
-    want = NodeConfig(cameras=("a",), mapper=MapperConfig(threads=node_default_threads()))
+    want = NodeConfig(cameras=("a",), mapper=MapperConfig())
     assert node_config_from_params(read_back) == want
     assert node_config_from_params({"cameras": ["a"]}) == want
     assert node_config_from_params({"cameras": ["a"], "rig": "front1"}).rig == "front1"

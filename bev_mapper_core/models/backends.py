@@ -14,6 +14,12 @@ exported to ONNX and run by onnxruntime or OpenVINO (optional extras:
   differs from torch by up to 0.13 in logits).
 * ``auto``: the fastest installed: OpenVINO, else onnxruntime, else torch.
 
+What is exported, per method (:class:`BackendRunner`): Bi-Mapper's whole forward pass with its
+calibration; S2G2's image -> logits of the inference branch; FocusBEV's image -> BEV feature
+(backbone, FPN, column transformer, cycle: all but a few per cent of its time), while its
+memory bank, ego-motion fusion and head stay in torch (they take the kept features and poses of
+earlier frames, which change in number).
+
 Both runtimes use the mapper's thread count (``MapperConfig.threads`` or
 :func:`~.runtime.inference_threads`). Outputs equal torch's within :data:`TOLERANCE` in
 probability (tested per method on real frames). Nothing is downloaded: the runtimes are Python
@@ -160,5 +166,49 @@ class ExportedModel:
         return [result[o] for o in self._compiled.outputs]
 
 
-__all__ = ["AUTO_ORDER", "BACKENDS", "CACHE_ENV", "TOLERANCE", "ExportedModel", "export_onnx", "installed_backends",
-           "model_key", "resolve_backend"]
+class BackendRunner:
+    """Runs one part of a learned mapper with the configured backend: eagerly in torch, or
+    exported on first use (per calibration: :meth:`reset` when the model's tables change) and
+    run by onnxruntime / OpenVINO. Every learned method's mapper holds one per exported part.
+
+    ``backend``: ``MapperConfig.backend`` resolved (:func:`resolve_backend`); ``device``: the
+    model's torch device (exported backends run on the CPU only: elsewhere torch runs);
+    ``threads``: the runtime's intra-op threads.
+    """
+
+    def __init__(self, backend: str, device: torch.device, threads: int) -> None:
+        self.backend, self.device, self.threads = backend, device, threads
+        self._exported: ExportedModel | None = None
+
+    @property
+    def eager(self) -> bool:
+        """True when torch runs the part itself."""
+        return self.backend == "torch" or self.device.type != "cpu"
+
+    def reset(self) -> None:
+        """Forget the exported graph (a new calibration: the model's tables changed)."""
+        self._exported = None
+
+    def __call__(self, module: torch.nn.Module, *inputs: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """``module(*inputs)`` as a tuple of tensors, by the backend (inputs and outputs on the
+        CPU for exported runs; ``module`` returns a tensor or a tuple of tensors).
+        """
+        if self.eager:
+            out = module(*inputs)
+            return out if isinstance(out, tuple) else (out,)
+        if self._exported is None:
+            self._exported = ExportedModel(module.eval(), inputs, self.backend, self.threads)
+        return tuple(torch.from_numpy(o) for o in self._exported(*(t.numpy() for t in inputs)))
+
+
+def backend_runner(config, device: torch.device) -> BackendRunner:
+    """The :class:`BackendRunner` of a mapper's configuration (``MapperConfig``): its backend
+    resolved, its thread count or :func:`~.runtime.inference_threads`.
+    """
+    from .runtime import inference_threads
+
+    return BackendRunner(resolve_backend(config.backend), device, config.threads or inference_threads())
+
+
+__all__ = ["AUTO_ORDER", "BACKENDS", "CACHE_ENV", "TOLERANCE", "BackendRunner", "backend_runner", "ExportedModel", "export_onnx",
+           "installed_backends", "model_key", "resolve_backend"]

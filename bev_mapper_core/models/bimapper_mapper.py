@@ -24,7 +24,7 @@ from ..ipm import LineOfSight
 from ..ipm_occlusion import OcclusionModel, learned_footprints
 from ..mapper import BevPrediction, Mapper, MapperConfig
 from ..rig import Rig
-from .backends import ExportedModel, resolve_backend
+from .backends import backend_runner, resolve_backend
 from .bimapper import BiMapper
 from .runtime import inference_device, inference_threads
 from .segipm_mapper import SegmenterStage, segmenter_path
@@ -139,8 +139,10 @@ class BiMapperMapper(Mapper):
         self._layers = [weight_classes.index(c) for c in config.classes]
         self._weight_classes = weight_classes
         self.device = inference_device(config)
-        #: the inference runtime (``MapperConfig.backend`` resolved; ``auto``: the fastest installed)
-        self.backend = resolve_backend(config.backend)
+        #: runs the model by ``MapperConfig.backend`` (``auto``: the fastest installed)
+        self._runner = backend_runner(config, self.device)
+        #: the inference runtime (``MapperConfig.backend`` resolved)
+        self.backend = self._runner.backend
         self.weights_path = path
         #: the chained first stage (RGB -> labels), None when the model reads the input itself
         self.stage = None if seg is None else SegmenterStage(seg, self.device)
@@ -161,22 +163,18 @@ class BiMapperMapper(Mapper):
                                                    classes=self._weight_classes, device=self.device)
         else:
             self.model.set_rig(rig)
-        self._exported = None  # the model exported for this calibration (first frame, backend != torch)
+        self._runner.reset()  # the model's tables changed: export again on the next frame (backend != torch)
 
     def _run_exported(self, raw: torch.Tensor, cam_mask: torch.Tensor) -> dict[str, torch.Tensor] | None:
         """The model's calibrated logits (and visibility logits) from the ONNX backend, or None
         when the backend is torch or the model runs on a GPU.
         """
-        if self.backend == "torch" or self.device.type != "cpu":
+        if self._runner.eager:
             return None
-        if self._exported is None:
-            wrapper = _Exportable(self.model).eval()
-            self._exported = ExportedModel(wrapper, (raw, cam_mask), self.backend,
-                                           self.config.threads or inference_threads())
-        outs = self._exported(raw.numpy(), cam_mask.numpy())
-        res = {"logits": torch.from_numpy(outs[0])}
+        outs = self._runner(_Exportable(self.model), self.model.preprocess(raw), raw, cam_mask)
+        res = {"logits": outs[0]}
         if len(outs) > 1:
-            res["visibility_logits"] = torch.from_numpy(outs[1])
+            res["visibility_logits"] = outs[1]
         return res
 
     def map(self, images: Mapping[str, np.ndarray], ego_pose=None, stamp_ns=None) -> BevPrediction:
@@ -217,18 +215,23 @@ class BiMapperMapper(Mapper):
 
 
 class _Exportable(torch.nn.Module):
-    """The part of :meth:`BiMapperMapper.map` an ONNX backend runs: raw images ``(1, N, H, W[, 3])``
-    and the camera mask ``(1, N)`` -> calibrated logits (and visibility logits when the weights
-    have the head).
+    """The part of :meth:`BiMapperMapper.map` an ONNX backend runs: the resized model input ``x``
+    ``(1, N, C_in, h, w)`` (:meth:`BiMapper.preprocess`, run in torch: OpenVINO's antialiased
+    resize differs from torch's), the raw images ``(1, N, H, W[, 3])`` (for the full-resolution
+    streams) and the camera mask ``(1, N)`` -> calibrated logits (and visibility logits when the
+    weights have the head).
     """
 
     def __init__(self, model: BiMapper) -> None:
         super().__init__()
         self.model = model
 
-    def forward(self, raw: torch.Tensor, cam_mask: torch.Tensor):
-        out = self.model(raw, cam_mask)
-        logits = self.model.calibrated(out["logits"])
+    def forward(self, x: torch.Tensor, raw: torch.Tensor, cam_mask: torch.Tensor):
+        m = self.model
+        x_lv = m.preprocess(raw, resize=False) if m.config.lv_full_res and m.use_lv else None  # (1, N, C_in, H, W)
+        prior = m.ipm_prior(raw, cam_mask) if m.config.ipm_skip else None
+        out = m.forward_preprocessed(x, cam_mask, x_lv, prior)
+        logits = m.calibrated(out["logits"])
         vis = out.get("visibility_logits")
         return (logits,) if vis is None else (logits, vis)
 

@@ -33,6 +33,7 @@ from ..grid import BevGrid
 from ..mapper import BevPrediction, MapperConfig
 from ..rig import Rig
 from ..temporal import TemporalConfig, drop_reason, pose_problem
+from .backends import backend_runner
 from .focusbev import FocusBEV
 from .focusbev_weights import load_focusbev, read_focusbev_metadata, validate_focusbev
 from .mono_mapper import MonocularMapper, shipped_weights
@@ -79,7 +80,14 @@ class FocusBEVMapper(MonocularMapper):
         self.device = inference_device(config)
         self.model: FocusBEV | None = None
         self._kept: deque[_Kept] = deque()
+        #: runs image -> BEV feature by ``MapperConfig.backend`` (the fusion and head: torch)
+        self._runner = backend_runner(config, self.device)
         super().__init__(rig, grid, config)
+
+    def set_rig(self, rig: Rig) -> None:
+        """The model for this calibration (see :class:`MonocularMapper`); export again if exported."""
+        super().set_rig(rig)
+        self._runner.reset()
 
     def reset(self) -> None:
         """Drop the memory bank."""
@@ -128,7 +136,7 @@ class FocusBEVMapper(MonocularMapper):
         frames = 1
         with torch.inference_mode():
             raw = torch.from_numpy(img)[None, None].to(self.device)  # (1, 1, H, W[, 3])
-            bev = self.model.bev_features(self.model.preprocess(raw))  # (1, C, hb, wb)
+            bev = self._runner(_Features(self.model), self.model.preprocess(raw))[0]  # (1, C, hb, wb)
             fused = bev
             if temporal:
                 hist = []
@@ -146,6 +154,19 @@ class FocusBEVMapper(MonocularMapper):
             known = self.model.known().cpu().numpy()
         return BevPrediction(self.class_names, np.ascontiguousarray(probs, dtype=np.float32), known.astype(bool),
                              frames, note)
+
+
+class _Features(torch.nn.Module):
+    """What a backend runs: the model input ``(1, C_in, h, w)`` -> the frame's BEV feature (the
+    preprocessing stays in torch: OpenVINO's antialiased resize differs from torch's).
+    """
+
+    def __init__(self, model: FocusBEV) -> None:
+        super().__init__()
+        self.model = model
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.model.bev_features(x)
 
 
 __all__ = ["FocusBEVMapper", "shipped_focusbev"]

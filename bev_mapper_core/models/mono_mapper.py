@@ -16,6 +16,7 @@ from ..errors import ConfigError
 from ..grid import BevGrid
 from ..mapper import Mapper, MapperConfig
 from ..rig import Rig
+from .backends import resolve_backend
 from .geometry import check_one_camera
 from .weights import WeightsError
 
@@ -86,9 +87,11 @@ class MonocularMapper(Mapper):
         the stored architecture: a node never starts with weights it cannot run.
 
         Raises:
-            ConfigError: more than one camera; no weights given.
+            ConfigError: more than one camera; no weights given; a ``backend`` named explicitly
+                that is not installed.
             WeightsError: the first mismatch.
         """
+        resolve_backend(config.backend)
         if cameras is not None and len(cameras) != 1:
             raise ConfigError(f"{cls.title} is monocular: rig {rig_name!r} has {len(cameras)} cameras "
                               f"{list(cameras)}; use a one-camera rig (e.g. front1), or method bimapper / ipm")

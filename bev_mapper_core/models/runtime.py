@@ -15,23 +15,49 @@ from ..mapper import MapperConfig
 THREADS_ENV = "BEV_MAPPER_TORCH_THREADS"
 
 
-def inference_threads() -> int:
-    """Torch CPU threads for inference: ``$BEV_MAPPER_TORCH_THREADS`` or the CPUs we may use."""
-    env = os.environ.get(THREADS_ENV)
-    if env:
-        try:
-            return max(1, int(env))
-        except ValueError:
-            raise ConfigError(f"{THREADS_ENV} must be an integer, got {env!r}") from None
+def available_cpus() -> int:
+    """CPUs this process may run on (its affinity mask, e.g. ``taskset`` / a container's cpuset)."""
     try:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # not Linux
         return max(1, os.cpu_count() or 1)
 
 
+def inference_threads() -> int:
+    """Torch (and onnxruntime / OpenVINO) CPU threads for inference: ``$BEV_MAPPER_TORCH_THREADS``,
+    else every CPU but one (at least 1): the same rule in the node, ``bev-bag replay`` and the
+    benchmarks.
+
+    The CPU left over is for what feeds the model: the node's executor and the DDS threads
+    receiving the next set, replay's reading and decoding. On a shared robot computer an
+    oversubscribed torch collapses: its OpenMP threads spin-wait for each other while one of
+    them waits for a core. Measured with ``bench/bench_backends.py --competitor`` (2 cores, one
+    busy competing process) and printed there beside the quiet figures.
+    """
+    env = os.environ.get(THREADS_ENV)
+    if env:
+        try:
+            return max(1, int(env))
+        except ValueError:
+            raise ConfigError(f"{THREADS_ENV} must be an integer, got {env!r}") from None
+    return max(1, available_cpus() - 1)
+
+
+def _one_interop_thread() -> None:
+    """Torch's inter-op pool to 1 thread (the models run no independent ops in parallel; a pool
+    sized to the machine would only compete with the intra-op threads). Settable once, before
+    any inter-op work; later calls keep what is set.
+    """
+    if torch.get_num_interop_threads() != 1:
+        try:
+            torch.set_num_interop_threads(1)
+        except RuntimeError:  # already started (e.g. by the embedding program): leave it
+            pass
+
+
 def inference_device(config: MapperConfig) -> torch.device:
     """The torch device of ``config.device`` for inference; on the CPU, also sets torch's thread
-    count (``config.threads``, else :func:`inference_threads`).
+    count (``config.threads``, else :func:`inference_threads`) and its inter-op pool to 1.
 
     Raises:
         ConfigError: not a torch device, or CUDA requested but not available.
@@ -44,7 +70,8 @@ def inference_device(config: MapperConfig) -> torch.device:
         raise ConfigError(f"device {config.device!r} requested but CUDA is not available")
     if device.type == "cpu":
         torch.set_num_threads(config.threads or inference_threads())
+        _one_interop_thread()
     return device
 
 
-__all__ = ["THREADS_ENV", "inference_device", "inference_threads"]
+__all__ = ["THREADS_ENV", "available_cpus", "inference_device", "inference_threads"]

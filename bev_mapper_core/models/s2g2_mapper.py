@@ -20,6 +20,7 @@ import torch
 from ..grid import BevGrid
 from ..mapper import BevPrediction, MapperConfig
 from ..rig import Rig
+from .backends import backend_runner
 from .mono_mapper import MonocularMapper, shipped_weights
 from .runtime import inference_device
 from .s2g2 import S2G2
@@ -54,7 +55,14 @@ class S2G2Mapper(MonocularMapper):
         self.branch = meta["inference_branch"]
         self.device = inference_device(config)
         self.model: S2G2 | None = None
+        #: runs image -> logits by ``MapperConfig.backend``
+        self._runner = backend_runner(config, self.device)
         super().__init__(rig, grid, config)
+
+    def set_rig(self, rig: Rig) -> None:
+        """The model for this calibration (see :class:`MonocularMapper`); export again if exported."""
+        super().set_rig(rig)
+        self._runner.reset()
 
     def map(self, images: Mapping[str, np.ndarray], ego_pose=None, stamp_ns=None) -> BevPrediction:
         """Map the camera's image (the only camera, so always present)."""
@@ -62,10 +70,23 @@ class S2G2Mapper(MonocularMapper):
         img = np.ascontiguousarray(images[self.rig.names[0]])
         with torch.inference_mode():
             raw = torch.from_numpy(img)[None, None].to(self.device)  # (1, 1, H, W[, 3])
-            logits = self.model.logits(self.model.preprocess(raw), self.branch)  # (1, K, H, W)
+            logits = self._runner(_Logits(self.model, self.branch), self.model.preprocess(raw))[0]  # (1, K, H, W)
             probs = torch.sigmoid(logits[0, self._layers]).float().cpu().numpy()  # (K_wanted, H, W)
             known = self.model.known().cpu().numpy()
         return BevPrediction(self.class_names, np.ascontiguousarray(probs, dtype=np.float32), known.astype(bool))
+
+
+class _Logits(torch.nn.Module):
+    """What a backend runs: the model input ``(1, C_in, h, w)`` -> the branch's logits (the
+    preprocessing stays in torch: OpenVINO's antialiased resize differs from torch's).
+    """
+
+    def __init__(self, model: S2G2, branch: str) -> None:
+        super().__init__()
+        self.model, self.branch = model, branch
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.model.logits(x, self.branch)
 
 
 __all__ = ["S2G2Mapper", "shipped_s2g2"]
