@@ -31,6 +31,7 @@ from bev_mapper_core.errors import BevMapperError
 #: Subcommand name -> module implementing it (add new subcommands here).
 SUBCOMMANDS: dict[str, str] = {
     "synth": "bags.synth_cmd",
+    "synth-many": "bags.synth_many_cmd",
     "info": "bags.info_cmd",
     "replay": "bags.replay_cmd",
     "play": "bags.play_cmd",
