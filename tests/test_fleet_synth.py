@@ -4,6 +4,10 @@ byte-identical with 1 and 2 workers, reruns skip, bev-train's data loading reads
 from __future__ import annotations
 
 import os
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -107,25 +111,78 @@ def test_cache_identical_with_1_and_2_workers_and_bev_train_reads_it(tmp_path, c
 def test_bags_identical_with_1_and_2_workers_and_failures_listed(tmp_path, capsys):
     one, two = tmp_path / "w1", tmp_path / "w2"
     assert main(["synth-many", str(one), "--seeds", "5..7", "--workers", "1", *BAG_ARGS]) == 0
-    assert main(["synth-many", str(two), "--seeds", "5..7", "--workers", "2", *BAG_ARGS]) == 0
     a = files(one)
     assert sorted(a) == [f"drive_{s}/{f}" for s in (5, 6, 7) for f in (f"drive_{s}.mcap", "metadata.yaml")]
-    assert a == files(two)  # bags too: no wall-clock time in them
+    # the bag `bev-bag synth` writes for that seed: the same code path
+    assert main(["synth", str(tmp_path / "single" / "drive_7"), "--seed", "7", *BAG_ARGS[:-1]]) == 0
+    assert files(tmp_path / "single" / "drive_7") == {k[len("drive_7/"):]: v for k, v in a.items()
+                                                      if k.startswith("drive_7/")}
     capsys.readouterr()
 
-    # one drive cannot be placed (--force never replaces what is not a bag): the others complete
-    for s in (5, 7):
-        (two / f"drive_{s}" / "metadata.yaml").write_text("stale")
-    (two / "drive_6").rename(tmp_path / "moved")
+    # 2 workers; one drive cannot be placed (--force never replaces what is not a bag): the others complete
+    two.mkdir()
     (two / "drive_6").write_text("not a bag")
     assert main(["synth-many", str(two), "--seeds", "5..7", "--workers", "2", "--force", *BAG_ARGS]) == 1
     out, err = capsys.readouterr()
     assert "2 drives rendered, 0 already there, 1 failed" in out
     assert "error: seed 6: refusing to overwrite" in err
     assert (two / "drive_6").read_text() == "not a bag"
-    assert {k: v for k, v in files(two).items() if not k.startswith("drive_6")} == \
-        {k: v for k, v in a.items() if not k.startswith("drive_6")}
+    # byte-identical to the drives 1 worker wrote: bags hold no wall-clock time
+    assert {k: v for k, v in files(two).items() if k != "drive_6"} == \
+        {k: v for k, v in a.items() if not k.startswith("drive_6/")}
     assert not [p for p in two.iterdir() if ".partial-" in p.name]
+
+
+def _descendants(pid: int) -> set[int]:
+    """Live processes below ``pid`` (from /proc)."""
+    children: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+    out, todo = set(), [pid]
+    while todo:
+        for c in children.get(todo.pop(), ()):
+            out.add(c)
+            todo.append(c)
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.slow
+def test_sigterm_cancels_the_tasks_and_stops_ray(tmp_path):
+    out = tmp_path / "o"
+    cmd = [sys.executable, "-m", "bags.cli", "synth-many", str(out), "--seeds", "0..200", "--workers", "2",
+           *CACHE_ARGS]
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 40
+        while not list(out.glob("*/drive_*.npz")) and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.1)
+        assert list(out.glob("*/drive_*.npz")), "no drive written"
+        ray_procs = _descendants(proc.pid)
+        assert ray_procs  # the local runtime's processes
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=30)
+    finally:
+        proc.kill()
+    assert proc.returncode == 143 and "error: terminated (SIGTERM)" in err
+    written = list(out.glob("*/drive_*.npz"))
+    assert 0 < len(written) < 201
+    assert not [p for p in out.rglob("*") if "tmp" in p.name or "partial" in p.name]
+    deadline = time.monotonic() + 15
+    while any(_alive(p) for p in ray_procs) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not [p for p in ray_procs if _alive(p)], "Ray processes outlived the command"
 
 
 @pytest.mark.slow
