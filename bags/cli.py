@@ -31,6 +31,7 @@ from bev_mapper_core.errors import BevMapperError
 #: Subcommand name -> module implementing it (add new subcommands here).
 SUBCOMMANDS: dict[str, str] = {
     "synth": "bags.synth_cmd",
+    "synth-many": "bags.synth_many_cmd",
     "info": "bags.info_cmd",
     "replay": "bags.replay_cmd",
     "play": "bags.play_cmd",
@@ -46,8 +47,14 @@ class Terminated(KeyboardInterrupt):
     """Raised in the main thread on SIGTERM, so that it unwinds like Ctrl-C."""
 
 
+#: Set when SIGTERM arrived: a library may re-raise :class:`Terminated` as a plain
+#: ``KeyboardInterrupt`` (Ray does, for a signal handled while it waits in its C++ core).
+_sigterm_seen = threading.Event()
+
+
 def _on_sigterm(signum, frame) -> None:
     signal.signal(signal.SIGTERM, signal.SIG_IGN)  # one unwinding; let the cleanup finish
+    _sigterm_seen.set()
     raise Terminated()
 
 
@@ -59,6 +66,7 @@ def sigterm_unwinds():
     if threading.current_thread() is not threading.main_thread():
         yield
         return
+    _sigterm_seen.clear()
     previous = signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         yield
@@ -100,10 +108,10 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_ERROR
-    except Terminated:
-        print("error: terminated (SIGTERM)", file=sys.stderr)
-        return EXIT_TERMINATED
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
+        if isinstance(exc, Terminated) or _sigterm_seen.is_set():
+            print("error: terminated (SIGTERM)", file=sys.stderr)
+            return EXIT_TERMINATED
         print("error: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
 

@@ -220,19 +220,45 @@ def load_or_render(rig: Rig, grid: BevGrid, spec: DriveSpec, seed: int,
                 pass
     d = render_drive(rig, grid, spec.classes, seed, spec.frames, spec.stride, spec.rgb, spec.style)
     if cache_dir is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        meta = path.parent / "spec.json"
-        if not meta.exists():
-            meta.write_text(json.dumps(asdict(spec), indent=1))
+        write_spec(path.parent, spec)
         _write_cache(path, d)
     return d
 
 
+def write_spec(key_dir: str | os.PathLike, spec: DriveSpec) -> None:
+    """Create the cache key directory ``key_dir`` with its ``spec.json`` (written atomically, once)."""
+    key_dir = Path(key_dir)
+    key_dir.mkdir(parents=True, exist_ok=True)
+    meta = key_dir / "spec.json"
+    if not meta.exists():
+        tmp = meta.with_name(f"spec.{os.getpid()}.tmp.json")
+        tmp.write_text(json.dumps(asdict(spec), indent=1))
+        os.replace(tmp, meta)
+
+
+#: Timestamp of every ``.npz`` member (zip's earliest date): the file's bytes depend on its arrays only.
+ZIP_DATE = (1980, 1, 1, 0, 0, 0)
+
+
 def _write_cache(path: Path, d: dict[str, np.ndarray]) -> None:
-    """Write a drive's arrays atomically (another process may be reading the file)."""
+    """Write a drive's arrays atomically (another process may be reading the file).
+
+    The layout of ``np.savez_compressed`` (deflated zip64 members ``<name>.npy``), but with a
+    fixed member timestamp instead of the wall clock, so that the same arrays always give the
+    same bytes (``bev-bag synth-many`` output does not depend on when or where it ran).
+    """
     tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
-    np.savez_compressed(tmp, **d)
-    os.replace(tmp, path)
+    try:
+        with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED, allowZip64=True) as zf:
+            for name, value in d.items():
+                info = zipfile.ZipInfo(f"{name}.npy", date_time=ZIP_DATE)
+                info.compress_type = zipfile.ZIP_DEFLATED
+                info.external_attr = 0o600 << 16  # what ZipFile.open(name, "w") gives
+                with zf.open(info, "w", force_zip64=True) as f:
+                    np.lib.format.write_array(f, np.asanyarray(value), allow_pickle=False)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def resize_labels(labels: np.ndarray, size: tuple[int, int]) -> np.ndarray:
