@@ -212,13 +212,18 @@ class OcclusionModel:
             margin: slack in metres added to each near edge's footprint depth.
         """
         lab = np.where(valid & (labels < NUM_LABELS), labels, NUM_LABELS).astype(np.uint8)
-        # (H, W) labels -> (rays, samples) labels along each ray; outside the grid: no label
-        polar = cv2.remap(lab, rr.to_cell_x, rr.to_cell_y, cv2.INTER_NEAREST,
-                          borderMode=cv2.BORDER_CONSTANT, borderValue=NUM_LABELS)
-        occ = cv2.LUT(polar, self._occluder_lut)  # (rays, samples) uint8, 1 = occluder
-        n_rays, n_samples = occ.shape
         # the shadow test runs on the cells the camera looks at (all cells if not known)
         cells = np.flatnonzero(valid) if rr.cells is None else rr.cells
+        # occluders only (other cells 0, which is no occluder): the (H, W) cells are far fewer
+        # than the polar samples, so the lookup runs here, before the remap
+        occ_lab = cv2.LUT(lab, self._occluder_lut) * lab  # (H, W) uint8: the label where it occludes
+        if not occ_lab.reshape(-1)[cells].any():
+            return np.zeros(lab.shape, bool)  # nothing the camera sees hides anything
+        # (H, W) -> (rays, samples) along each ray; outside the grid: nothing
+        polar = cv2.remap(occ_lab, rr.to_cell_x, rr.to_cell_y, cv2.INTER_NEAREST,
+                          borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        occ = polar > 0  # (rays, samples) bool, True = occluder (polar holds its label)
+        n_rays, n_samples = occ.shape
         dist, ray = rr.dist.reshape(-1)[cells], rr.ray.reshape(-1)[cells]  # (n,) each
         hidden = np.zeros(len(cells), bool)
         rays = np.arange(n_rays)  # rays still searched for a near edge
@@ -226,7 +231,7 @@ class OcclusionModel:
         for _ in range(MAX_EDGES):
             part = occ if len(rays) == n_rays else occ[rays]  # the first pass reads every ray in place
             if j_from.any():  # samples before the previous shadow's end do not count
-                part = part * (np.arange(n_samples)[None, :] >= j_from[:, None])
+                part = part & (np.arange(n_samples)[None, :] >= j_from[:, None])
             j0 = part.argmax(axis=1)  # (rays,) first occluder sample
             has = part[np.arange(len(rays)), j0] > 0
             rays, j0 = rays[has], j0[has]
