@@ -58,6 +58,7 @@ from . import topics as T
 from .errors import BagContentError, BagCorruptError, BagError, BagExistsError
 from .frame_scores import FrameScores
 from .pictures import comparison_picture, encode_gif, encode_png, partial_name, write_atomic
+from .prefetch import Prefetch
 from .reader import BagReader
 from .reliability import reliability_picture
 from .report import render_report
@@ -96,6 +97,8 @@ class ReplayOptions:
         temporal: method-independent temporal fusion of the mapper's output over the last
             frames, aligned by the bag's odometry (:mod:`bev_mapper_core.temporal`; window 1 =
             off). Frames without odometry are mapped alone and counted.
+        prefetch: frames read and decoded ahead by a thread while the current one is mapped,
+            scored and written (:mod:`bags.prefetch`); 0 = read in turn.
     """
 
     bag: Path
@@ -112,12 +115,15 @@ class ReplayOptions:
     force: bool = False
     progress: bool = False
     temporal: TemporalConfig = field(default_factory=TemporalConfig)
+    prefetch: int = 4
 
     def __post_init__(self) -> None:
         if self.scope not in SCOPES:
             raise BagError(f"scope must be one of {list(SCOPES)}, got {self.scope!r}")
         if self.max_frames is not None and self.max_frames < 1:
             raise BagError(f"--max-frames must be >= 1, got {self.max_frames}")
+        if self.prefetch < 0:
+            raise BagError(f"prefetch must be >= 0, got {self.prefetch}")
         if self.frames_every < 1:
             raise BagError(f"--frames-every must be >= 1, got {self.frames_every}")
         if self.storage not in STORAGES:
@@ -287,8 +293,11 @@ def _run(options, reader, rig, grid, mapper, out, tmp_frames, notes) -> ReplayRe
              "classes": list(mapper.class_names)})
         for k, v in custom.items():
             bw.set_custom_data(k, v)
+        # the next frames are read and decoded by a thread while this one maps, scores, writes
         frames = reader.frames(rgb=kind == "rgb", labels=kind == "labels",
                                label_map=label_map(options.mapper.label_map))
+        if options.prefetch:
+            frames = Prefetch(frames, options.prefetch)
         fusion = TemporalFusion(grid, options.temporal) if options.temporal.window > 1 else None
         temporal = {"window": options.temporal.window, "fused_frames": 0, "resets": 0, "frames_without_pose": 0}
         try:

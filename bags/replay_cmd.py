@@ -75,7 +75,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--weights", default=MapperConfig.weights, help="safetensors weights (learned methods)")
     p.add_argument("--device", default=MapperConfig.device, help="torch device of learned methods")
     p.add_argument("--backend", default=MapperConfig.backend, choices=BACKENDS,
-                   help="inference runtime of Bi-Mapper: torch, onnxruntime or openvino (the model exported to "
+                   help="inference runtime of learned methods: torch, onnxruntime or openvino (the model exported to "
                         "ONNX, cached), auto = the fastest installed (default %(default)s)")
     p.add_argument("--input", dest="input_kind", default=MapperConfig.input_kind, choices=INPUT_KINDS,
                    help="camera images to map: semantic labels or RGB")
@@ -109,6 +109,9 @@ def configure(p: argparse.ArgumentParser) -> None:
                         f"(default {ReplayOptions.frames_every}; --picture-every is an old name)")
     p.add_argument("--gif", action="store_true", help="also write an animated replay.gif")
     p.add_argument("--no-report", action="store_true", help="write no report.html")
+    p.add_argument("--prefetch", type=int, default=ReplayOptions.prefetch, metavar="N",
+                   help="frames read and decoded ahead by a thread while one is mapped (0 = none; "
+                        "default: %(default)s)")
     p.add_argument("--storage", choices=STORAGES, default=ReplayOptions.storage, help="storage of bev_bag/")
     p.add_argument("--force", action="store_true", help="replace existing outputs in DIR")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -130,7 +133,7 @@ def options_from_args(args: argparse.Namespace) -> ReplayOptions:
         frames_every=args.frames_every, gif=args.gif, report=not args.no_report,
         storage=args.storage, force=args.force,
         progress=not args.quiet and sys.stderr.isatty(),
-        temporal=TemporalConfig(window=args.temporal_window),
+        temporal=TemporalConfig(window=args.temporal_window), prefetch=args.prefetch,
     )
 
 

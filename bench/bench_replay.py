@@ -73,12 +73,19 @@ def main() -> None:
         marginal = (wall - (time.perf_counter() - t0)) / (m["frames"] - few) if m["frames"] > few \
             else float("nan")
         fps = m["frames"] / wall
+        # the reference, same run: frames read and decoded in turn, not ahead by the thread
+        t0 = time.perf_counter()
+        replay(ReplayOptions(bag=bag, out=tmp / "in_turn", mapper=MapperConfig(method="ipm"), prefetch=0,
+                             pictures=not args.no_pictures, frames_every=args.frames_every))
+        fps_in_turn = m["frames"] / (time.perf_counter() - t0)
         print(f"bag: {bag} ({size / 1e6:.1f} MB, {n} frames at {rate:.2f} Hz)")
         print(f"replay (ipm, pictures {'off' if args.no_pictures else f'every {args.frames_every}'}): "
               f"{m['frames']} frames in {wall:.2f} s (best of {args.repeat}: "
               f"{', '.join(f'{w:.2f}' for w in walls)})")
         print(f"throughput     : {fps:7.1f} frames/s = {1000.0 / fps:6.1f} ms/frame end to end")
         print(f"vs real time   : {fps / rate:7.1f}x real time (drive at {rate:.1f} Hz)")
+        print(f"read in turn   : {fps_in_turn:7.1f} frames/s = {fps_in_turn / rate:.1f}x real time (--prefetch 0, "
+              f"same run): reading ahead is {fps / fps_in_turn:.2f}x")
         print(f"steady state   : {marginal * 1000.0:6.1f} ms/frame = {1.0 / marginal / rate:.1f}x real "
               f"time, without the fixed cost (opening the bag, IPM tables: "
               f"{wall - marginal * m['frames']:.2f} s)")

@@ -67,7 +67,7 @@ _DECLARATIONS: dict[str, tuple] = {
     "weights": (_T.PARAMETER_STRING, "safetensors weights ('' = shipped default)"),
     "device": (_T.PARAMETER_STRING, "torch device of learned methods"),
     "threads": (_T.PARAMETER_INTEGER, "CPU threads of learned methods; 0 = all CPUs but one (left to the callbacks)"),
-    "backend": (_T.PARAMETER_STRING, f"inference runtime of Bi-Mapper, one of {list(BACKENDS)}: torch, or the model "
+    "backend": (_T.PARAMETER_STRING, f"inference runtime of learned methods, one of {list(BACKENDS)}: torch, or the model "
                 "exported to ONNX (cached) for onnxruntime / openvino (the 'fast' extra); auto = the fastest installed"),
     "ipm_occlusion": (_T.PARAMETER_BOOL, "occlusion reasoning on label images: cells hidden behind an object a "
                       "camera sees are unknown to it (IPM: not the flat-ground smear; learned "

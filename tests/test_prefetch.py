@@ -1,0 +1,60 @@
+"""Reading ahead (bags/prefetch.py): items and the source's exception arrive in order, closing
+stops the thread and runs the source's ``finally``; a replay reading ahead equals one reading in
+turn."""
+
+from __future__ import annotations
+
+import json
+import threading
+
+import pytest
+
+from bags.prefetch import Prefetch
+from bags.replay import ReplayOptions, replay
+from bev_mapper_core.mapper import MapperConfig
+
+
+def test_items_then_the_sources_exception_in_order():
+    def source():
+        yield from range(10)
+        raise ValueError("damaged at 10")
+
+    got = []
+    with pytest.raises(ValueError, match="damaged at 10"):
+        for x in Prefetch(source(), depth=2):
+            got.append(x)
+    assert got == list(range(10))
+
+
+def test_close_stops_reading_and_runs_the_sources_finally():
+    read, closed = [], threading.Event()
+
+    def source():
+        try:
+            for i in range(1000):
+                read.append(i)
+                yield i
+        finally:
+            closed.set()
+
+    p = Prefetch(source(), depth=3)
+    it = iter(p)
+    assert [next(it) for _ in range(5)] == [0, 1, 2, 3, 4]
+    p.close()
+    assert closed.is_set()
+    assert len(read) <= 5 + 3 + 1  # taken + queued + the one waiting for room
+    with pytest.raises(ValueError):
+        Prefetch(iter(()), depth=0)
+
+
+@pytest.mark.slow
+def test_replay_reading_ahead_equals_reading_in_turn(small_drive_mcap, tmp_path):
+    docs = []
+    for n in (0, 4):
+        out = tmp_path / f"prefetch{n}"
+        replay(ReplayOptions(bag=small_drive_mcap[0], out=out, mapper=MapperConfig(method="ipm"), prefetch=n,
+                             pictures=False, report=False))
+        docs.append(json.loads((out / "metrics.json").read_text()))
+    for d in docs:
+        d.pop("latency_ms")
+    assert docs[0] == docs[1] and docs[0]["frames"] > 0
