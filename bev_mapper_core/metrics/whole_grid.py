@@ -27,9 +27,11 @@ def _calibration_counts(probs: np.ndarray, truth: np.ndarray, mask: np.ndarray, 
     cls = np.repeat(np.arange(C), np.count_nonzero(mask.reshape(C, -1), axis=1))  # class of each scored cell
     flat = np.minimum((p * bins).astype(np.int64), bins - 1) + bins * cls  # class-major bin ids
     size = C * bins
-    count = np.bincount(flat, minlength=size).reshape(C, bins)
     conf = np.bincount(flat, weights=p, minlength=size).reshape(C, bins)
-    pos = np.bincount(flat, weights=truth[mask].astype(np.float64), minlength=size).reshape(C, bins)
+    # one count of (bin, present) pairs gives both the cells and the present cells per bin
+    pairs = np.bincount(2 * flat + truth[mask], minlength=2 * size).reshape(C, bins, 2)
+    count = pairs.sum(axis=2)
+    pos = pairs[..., 1].astype(np.float64)
     return count, conf, pos
 
 
