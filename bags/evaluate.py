@@ -229,5 +229,9 @@ def _entry(r: dict) -> dict:
     return {"name": r["name"], "bag": r["bag"], "status": r["status"], "error": r["error"],
             "out": f"{BAGS_DIR}/{r['name']}", "frames": m.get("frames"),
             "frames_scored": m.get("frames_scored"), "miou": m.get("miou"),
-            "latency_p50_ms": lat.get("p50"), "seconds": None if r["seconds"] is None else round(r["seconds"], 3),
-            "resumed": r["resumed"]}
+            "latency_p50_ms": lat.get("p50"), "seconds": _round(r["seconds"]),
+            "cpu_seconds": _round(r.get("cpu_seconds")), "resumed": r["resumed"]}
+
+
+def _round(v: float | None) -> float | None:
+    return None if v is None else round(v, 3)

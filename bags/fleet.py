@@ -143,9 +143,10 @@ def evaluate_bag(options: ReplayOptions, name: str, board=None) -> dict:
     Never raises for a problem of the bag: any exception becomes a ``failed`` record.
     """
     record = {"name": name, "bag": str(options.bag), "status": FAILED, "error": None,
-              "metrics": None, "scoring": None, "latencies_ms": [], "seconds": None}
+              "metrics": None, "scoring": None, "latencies_ms": [], "seconds": None,
+              "cpu_seconds": None}
     progress = None if board is None else (lambda total: _ReportedBar(board, name, total))
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
         result = replay(options, progress=progress)
     except (BevMapperError, OSError) as exc:
@@ -157,6 +158,7 @@ def evaluate_bag(options: ReplayOptions, name: str, board=None) -> dict:
                       metrics=result.metrics, scoring=result.scoring,
                       latencies_ms=[float(v) for v in result.latencies_ms])
     record["seconds"] = time.perf_counter() - t0
+    record["cpu_seconds"] = time.process_time() - c0
     return record
 
 
@@ -232,7 +234,8 @@ def run_tasks(jobs: list[tuple[str, ReplayOptions]], workers: int, *, show_progr
                 except ray.exceptions.RayError as exc:  # the worker died, the task was cancelled ...
                     record = {"name": name, "bag": str(options.bag), "status": FAILED,
                               "error": f"{type(exc).__name__}: {exc}", "metrics": None,
-                              "scoring": None, "latencies_ms": [], "seconds": None}
+                              "scoring": None, "latencies_ms": [], "seconds": None,
+                              "cpu_seconds": None}
                 on_record(record)
                 bags_bar.update(1)
             if board is not None:

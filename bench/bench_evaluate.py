@@ -101,7 +101,8 @@ def main() -> None:
     ap.add_argument("--sim-sleep", type=float, default=0.25)
     ap.add_argument("--keep", type=Path, default=None)
     args = ap.parse_args()
-    print(f"machine: {machine()} (shared with other jobs: figures are noisy)")
+    print(f"machine: {machine()} (shared with other jobs: figures are noisy); load average "
+          f"{os.getloadavg()[0]:.2f}")
     tmp = Path(tempfile.mkdtemp(prefix="bench_evaluate_"))
     try:
         bags = []
@@ -126,6 +127,15 @@ def main() -> None:
         frames = args.bags * args.frames
         print(f"in-process replay(): {seq:.2f} s, {frames / seq:.2f} frames/s, "
               f"{seq / args.bags:.3f} s per bag ({min(seconds):.3f}..{max(seconds):.3f})")
+        t = time.perf_counter()
+        for i, bag in enumerate(bags):
+            replay(replace(base, bag=bag, out=tmp / "seq2" / f"b{i}", max_frames=2))
+        short = (time.perf_counter() - t) / args.bags
+        per_frame = (seq / args.bags - short) / (args.frames - 2)
+        out_size = sum(p.stat().st_size for p in (tmp / "seq").rglob("*") if p.is_file()) / args.bags
+        print(f"in-process, the same bags stopped after 2 frames: {short:.3f} s per bag: a bag costs "
+              f"{short - 2 * per_frame:.3f} s + {per_frame * 1000:.0f} ms per frame; outputs "
+              f"{out_size / 1e6:.2f} MB per {args.frames}-frame bag")
 
         # 2. evaluate with 1 and 2 workers (and 1 worker on half the bags, for the per-bag gap)
         runs = {}
@@ -138,12 +148,13 @@ def main() -> None:
             tm = res.summary["timing"]
             assert res.summary["complete"], res.summary["per_bag"]
             in_task = sum(e["seconds"] for e in res.summary["per_bag"])
+            cpu = sum(e["cpu_seconds"] for e in res.summary["per_bag"])
             runs[key] = (wall, tm, in_task)
             n = len(these) * args.frames
             print(f"evaluate --workers {w} on {len(these)} bags: {wall:.2f} s wall = Ray start "
                   f"{tm['ray_start_s']:.2f} + tasks {tm['tasks_s']:.2f} + Ray stop {tm['ray_stop_s']:.2f} "
                   f"+ rest; {n / wall:.2f} frames/s wall, {n / tm['tasks_s']:.2f} frames/s in the task "
-                  f"phase; replay() inside the tasks {in_task:.2f} s")
+                  f"phase; replay() inside the tasks {in_task:.2f} s ({cpu:.2f} s CPU)")
         r_wall = runs["1"][0] / runs["2"][0]
         r_tasks = runs["1"][1]["tasks_s"] / runs["2"][1]["tasks_s"]
         print(f"2 workers / 1 worker: x{r_wall:.2f} on wall time, x{r_tasks:.2f} in the task phase")
@@ -186,6 +197,7 @@ def main() -> None:
             wall, _ = simulated(n, 4 * args.sim_tasks, 0.0, payload)
             print(f"simulated {n} node(s), 0 s tasks: {4 * args.sim_tasks / wall:.0f} tasks/s "
                   f"through the driver ({wall / (4 * args.sim_tasks) * 1000:.1f} ms per task)")
+        print(f"load average at the end: {os.getloadavg()[0]:.2f}")
         if args.keep:
             shutil.copytree(tmp, args.keep, dirs_exist_ok=True)
     finally:
