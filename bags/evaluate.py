@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import os
+import socket
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -137,8 +138,7 @@ def evaluate(options: EvaluateOptions) -> EvaluateResult:
             timing["tasks_s"] = time.perf_counter() - t
         finally:
             t = time.perf_counter()
-            if own:
-                ray.shutdown()
+            ray.shutdown()  # stops the local runtime; from a cluster, just disconnects
             timing["ray_stop_s"] = time.perf_counter() - t
     ordered = [records[n] for n in names]
     t = time.perf_counter()
@@ -204,7 +204,7 @@ def _connect(options: EvaluateOptions):
     try:
         import ray  # noqa: PLC0415 - the fleet extra
     except ImportError as exc:
-        raise BagError("bev-bag evaluate needs Ray: pip install 'bev_mapper[fleet]'") from exc
+        raise BagError("bev-bag evaluate needs Ray: pip install -e '.[fleet]' (the fleet extra)") from exc
     import logging  # noqa: PLC0415
 
     kwargs = {"include_dashboard": False, "log_to_driver": False, "logging_level": logging.WARNING}
@@ -213,14 +213,25 @@ def _connect(options: EvaluateOptions):
             # the workers import this same checkout, whatever the driver's working directory
             root = str(Path(__file__).resolve().parents[1])
             path = os.pathsep.join([root] + [p for p in [os.environ.get("PYTHONPATH")] if p])
-            ray.init(num_cpus=options.workers or _cpus(),
+            ray.init(address="local", num_cpus=options.workers or _cpus(),  # never a running one
                      runtime_env={"env_vars": {"PYTHONPATH": path}}, **kwargs)
             return ray, True
+        if options.ray_address != "auto" and not options.ray_address.startswith("ray://"):
+            _check_reachable(options.ray_address)  # ray.init would retry for minutes
         ray.init(address=options.ray_address, **kwargs)
         return ray, False
     except (ConnectionError, RuntimeError, ValueError, TimeoutError, ImportError) as exc:
         where = options.ray_address or "a local Ray runtime"
         raise BagError(f"cannot start or join {where}: {exc}") from exc
+
+
+def _check_reachable(address: str, timeout_s: float = 10.0) -> None:
+    """Raise :class:`BagError` unless a TCP connection to ``HOST:PORT`` opens."""
+    host, _, port = address.rpartition(":")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
+    except OSError as exc:
+        raise BagError(f"cannot join the Ray cluster at {address}: {exc}") from exc
 
 
 def _entry(r: dict) -> dict:

@@ -202,6 +202,27 @@ def test_resume_skips_finished_bags(fleet, capsys, monkeypatch):
     assert "other options" in capsys.readouterr().err
 
 
+@pytest.mark.slow
+def test_joining_an_existing_cluster(fleet, tmp_path):
+    """--ray-address HOST:PORT: the tasks run on a cluster started beforehand, which stays up."""
+    import ray  # noqa: PLC0415
+    from ray.cluster_utils import Cluster  # noqa: PLC0415
+
+    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 2, "include_dashboard": False})
+    try:
+        out = tmp_path / "eval"
+        assert main(["evaluate", *map(str, fleet["inputs"]), "--out", str(out), "--ray-address",
+                     cluster.address, *FAST]) == 1
+        s = json.loads((out / SUMMARY_FILE).read_text())
+        assert s["ray"] == {"address": cluster.address, "workers": 2}  # the cluster's CPUs
+        same = {k: v for k, v in fleet["summary"]["aggregate"].items() if k != "latency_ms"}
+        assert s["bags"]["ok"] == 3 and {k: s["aggregate"][k] for k in same} == same
+        assert not ray.is_initialized()  # disconnected ...
+        assert cluster.head_node.remaining_processes_alive()  # ... and the cluster is still up
+    finally:
+        cluster.shutdown()
+
+
 @pytest.mark.parametrize("extra, message", [
     (["--workers", "0"], "--workers"),
     (["--ray-address", "nowhere"], "--ray-address"),
