@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import socket
 import time
 from dataclasses import dataclass, field, replace
@@ -114,6 +115,7 @@ def evaluate(options: EvaluateOptions) -> EvaluateResult:
         if done is not None:
             records[name] = {**done, "resumed": True}
         else:
+            _remove_partials(bag_out)
             jobs.append((name, replace(options.replay, bag=bag, out=bag_out, force=True, progress=False)))
 
     def on_record(record: dict) -> None:
@@ -174,6 +176,17 @@ def _check_out(out: Path, options: EvaluateOptions) -> None:
     if earlier and not (options.resume or options.force):
         raise BagExistsError(f"{out} holds an earlier evaluation: pass --resume to continue it "
                              "or --force to start over")
+
+
+def _remove_partials(bag_out: Path) -> None:
+    """Remove what an interrupted earlier run left under temporary names (a killed worker
+    cannot clean up; the bag is replayed again now and nothing else writes there).
+    """
+    for p in bag_out.glob(".*.partial-*"):
+        if p.is_dir():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            p.unlink(missing_ok=True)
 
 
 def _finished(bag: Path, bag_out: Path, wanted: dict) -> dict | None:

@@ -188,6 +188,7 @@ def test_resume_skips_finished_bags(fleet, capsys, monkeypatch):
     argv = ["evaluate", *map(str, fleet["inputs"]), "--out", str(out), "--workers", "2", *FAST]
     assert main(argv) == 1  # an earlier evaluation is there
     assert "--resume" in capsys.readouterr().err
+    (out / "bags" / "cut" / ".bev_bag.partial-99999").mkdir()  # as a killed worker leaves it
     argv.remove("--quiet")  # with the progress bars (through the progress actor)
     monkeypatch.setattr(sys.stderr, "isatty", lambda: True)
     assert main([*argv, "--resume"]) == 1  # the damaged bags are tried again and fail again
@@ -197,6 +198,7 @@ def test_resume_skips_finished_bags(fleet, capsys, monkeypatch):
     assert s["bags"] == {"total": 5, "ok": 3, "damaged": 1, "failed": 1, "resumed": 3}
     assert {n: (out / n / METRICS_FILE).stat().st_mtime_ns for n in ok} == stamps
     assert s["aggregate"] == fleet["summary"]["aggregate"]
+    assert list(out.rglob("*partial*")) == []
     # resuming with other options is refused, not mixed
     assert main([*argv, "--resume", "--scope", "ground", "--quiet"]) == 1
     assert "other options" in capsys.readouterr().err
