@@ -35,6 +35,7 @@ SUBCOMMANDS: dict[str, str] = {
     "info": "bags.info_cmd",
     "replay": "bags.replay_cmd",
     "play": "bags.play_cmd",
+    "evaluate": "bags.evaluate_cmd",
 }
 
 EXIT_ERROR = 1

@@ -39,7 +39,7 @@ import json
 import logging
 import shutil
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -148,6 +148,9 @@ class ReplayResult:
     frame_scores: FrameScores = field(default_factory=FrameScores)
     report: Path | None = None
     reliability: Path | None = None
+    #: the mergeable scoring state (:meth:`ReplayScorer.state`; ``None``: nothing scored), so
+    #: that several replays add up exactly (``bev-bag evaluate``)
+    scoring: dict | None = None
 
 
 def _check_outputs(out: Path, force: bool) -> None:
@@ -217,8 +220,12 @@ def _frame_time(frame) -> int:
     return max(stamps + [frame.stamp_ns])
 
 
-def replay(options: ReplayOptions) -> ReplayResult:
+def replay(options: ReplayOptions, progress: Callable | None = None) -> ReplayResult:
     """Replay ``options.bag`` through the mapper and write the outputs (see module docstring).
+
+    ``progress(total)``, when given, replaces the tqdm bar of ``options.progress``: it is called
+    once with the number of frames expected (``None``: unknown) and returns an object with
+    ``update(n)`` (``n`` more frames mapped) and ``close()``, like a tqdm bar.
 
     Raises:
         BagExistsError: outputs exist and ``options.force`` is false.
@@ -243,13 +250,13 @@ def replay(options: ReplayOptions) -> ReplayResult:
         tmp_frames = partial_name(out / FRAMES_DIR)
         shutil.rmtree(tmp_frames, ignore_errors=True)
         try:
-            result = _run(options, reader, rig, grid, mapper, out, tmp_frames, notes)
+            result = _run(options, reader, rig, grid, mapper, out, tmp_frames, notes, progress)
         finally:
             shutil.rmtree(tmp_frames, ignore_errors=True)
     return result
 
 
-def _run(options, reader, rig, grid, mapper, out, tmp_frames, notes) -> ReplayResult:
+def _run(options, reader, rig, grid, mapper, out, tmp_frames, notes, progress=None) -> ReplayResult:
     kind = options.mapper.input_kind
     gt_names = reader.gt_classes
     has_ground = T.GROUND_VISIBILITY in reader.topics
@@ -270,8 +277,8 @@ def _run(options, reader, rig, grid, mapper, out, tmp_frames, notes) -> ReplayRe
         total = min(total or options.max_frames, options.max_frames)
     from tqdm import tqdm  # noqa: PLC0415 - only the replay needs it
 
-    bar = tqdm(total=total, unit="frame", disable=not options.progress, leave=False,
-               dynamic_ncols=True)
+    bar = progress(total) if progress is not None else tqdm(
+        total=total, unit="frame", disable=not options.progress, leave=False, dynamic_ncols=True)
     latencies: list[float] = []
     pictures: list[Path] = []
     gif_frames: list[np.ndarray] = []
@@ -367,7 +374,7 @@ def _run(options, reader, rig, grid, mapper, out, tmp_frames, notes) -> ReplayRe
     metrics.update(reader.issues.to_metrics())
     metrics["temporal"] = temporal
     result = ReplayResult(metrics, out, out / BAG_DIR, pictures, gif_path, gif_note, damage, notes,
-                          latencies, scores)
+                          latencies, scores, scoring=scorer.state())
     if metrics["frames_scored"]:
         result.reliability = write_atomic(out / RELIABILITY_FILE, encode_png(
             reliability_picture(metrics["calibration"], title=options.mapper.method)))
@@ -500,6 +507,21 @@ class ReplayScorer:
         self.whole.update(published, pred.known, seen, gt, truth, masks)
         return gt, visible
 
+    def state(self) -> dict | None:
+        """The mergeable state ``{"metrics": MetricAccumulator state, "whole":
+        WholeGridAccumulator state}`` (see :mod:`bev_mapper_core.metrics`), ``None`` when no
+        class is scored.
+        """
+        if self.acc is None:
+            return None
+        return {"metrics": self.acc.state(), "whole": self.whole.state()}
+
+    @staticmethod
+    def result_of(state: dict) -> dict:
+        """:meth:`result` of a (merged) :meth:`state`."""
+        return _scorer_result(MetricAccumulator.from_state(state["metrics"]),
+                              WholeGridAccumulator.from_state(state["whole"]))
+
     def result(self) -> dict:
         """:meth:`MetricAccumulator.result` over the scored classes, in mapper order, plus the
         ``occlusion`` and ``calibration`` parts of :meth:`WholeGridAccumulator.result` (``None``
@@ -508,7 +530,11 @@ class ReplayScorer:
         if self.acc is None:
             return {"frames": 0, "classes": {}, "miou": None, "map": None, "iou_by_range": {},
                     "occlusion": None, "calibration": None}
-        whole = self.whole.result()
-        whole["occlusion"]["frames_with_truth"] = whole["frames_with_truth"]
-        return {**self.acc.result(), "occlusion": whole["occlusion"],
-                "calibration": whole["calibration"]}
+        return _scorer_result(self.acc, self.whole)
+
+
+def _scorer_result(acc: MetricAccumulator, whole: WholeGridAccumulator) -> dict:
+    """The scores of :meth:`ReplayScorer.result` from its two accumulators."""
+    w = whole.result()
+    w["occlusion"]["frames_with_truth"] = w["frames_with_truth"]
+    return {**acc.result(), "occlusion": w["occlusion"], "calibration": w["calibration"]}

@@ -70,6 +70,13 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.epilog = _EPILOG.format(every=ReplayOptions.frames_every)
     p.add_argument("bag", type=Path, help="input bag: rosbag2 directory, .mcap or .db3")
     p.add_argument("--out", type=Path, required=True, help="output directory")
+    add_replay_args(p)
+
+
+def add_replay_args(p: argparse.ArgumentParser) -> None:
+    """The flags of one bag's replay (method, scoring, outputs) but not the bag and ``--out``:
+    shared by ``bev-bag replay`` and ``bev-bag evaluate``, read back by :func:`options_from_args`.
+    """
     p.add_argument("--method", default=MapperConfig.method, choices=available_methods(),
                    help=f"mapping method (default {MapperConfig.method}: the shipped weights of the bag's rig)")
     p.add_argument("--weights", default=MapperConfig.weights, help="safetensors weights (learned methods)")

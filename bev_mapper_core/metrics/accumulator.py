@@ -13,6 +13,7 @@ from ..classes import resolve_classes
 from ..errors import ConfigError, InputError
 from ..grid import BevGrid
 from ._checks import _check_bool, _check_mask, _nan_to_none, _safe_div
+from ._state import Mergeable, _from_json_number, _json_number
 from .functional import DEFAULT_CLIP_M, _chamfer_terms, mean_iou
 
 # ----------------------------------------------------------------------------- scopes
@@ -61,7 +62,7 @@ def _band_label(lo: float, hi: float) -> str:
     return f"{lo:g}-{hi:g}"
 
 
-class MetricAccumulator:
+class MetricAccumulator(Mergeable):
     """Accumulates BEV segmentation metrics frame by frame over a whole drive.
 
     Args:
@@ -92,8 +93,13 @@ class MetricAccumulator:
               are always clipped.)
 
     Counts (intersection, union, TP, FP) are summed over frames and divided once in
-    :meth:`result`, i.e. dataset-level IoU and precision.
+    :meth:`result`, i.e. dataset-level IoU and precision. Accumulators of several drives merge
+    exactly (:meth:`merge`, :meth:`state` / :meth:`from_state`, see :mod:`._state`): the merged
+    result is that of all their frames in one accumulator.
     """
+
+    _COUNTS = ("frames", "_inter", "_union", "_tp", "_fp", "_band_inter", "_band_union",
+               "_cd_p_sum", "_cd_l_sum", "_cd_p_n", "_cd_l_n")
 
     def __init__(
         self,
@@ -169,6 +175,23 @@ class MetricAccumulator:
         self._cd_l_sum = np.zeros(C, np.float64)
         self._cd_p_n = np.zeros(C, np.int64)
         self._cd_l_n = np.zeros(C, np.int64)
+
+    def _config(self) -> dict:
+        return {"grid": self.grid.to_dict(), "class_names": list(self.class_names),
+                "range_bands": [[lo, _json_number(hi)] for lo, hi in self.range_bands],
+                "threshold": self.threshold, "clip": self.clip,
+                "use_visibility": self.use_visibility, "chamfer_reduction": self.chamfer_reduction}
+
+    @classmethod
+    def _from_config(cls, config: dict) -> "MetricAccumulator":
+        try:
+            return cls(BevGrid.from_dict(config["grid"]), config["class_names"],
+                       range_bands=[(lo, _from_json_number(hi)) for lo, hi in config["range_bands"]],
+                       threshold=config["threshold"], clip=config["clip"],
+                       use_visibility=config["use_visibility"],
+                       chamfer_reduction=config["chamfer_reduction"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ConfigError(f"invalid MetricAccumulator state configuration: {exc!r}") from exc
 
     # ------------------------------------------------------------------------- update
     def _check_frame(self, probs, gt, visibility, known):

@@ -9,6 +9,7 @@ import numpy as np
 from ..errors import ConfigError, InputError
 from ..grid import BevGrid
 from ._checks import _check_bool, _check_mask, _nan_to_none, _safe_div
+from ._state import Mergeable
 from .functional import mean_iou
 
 #: Equal-width probability bins of the expected calibration error (see the package docstring).
@@ -65,7 +66,7 @@ def expected_calibration_error(probs, truth, mask=None, bins: int = ECE_BINS) ->
     return _ece_from_counts(*_calibration_counts(probs, truth, mask, int(bins)))
 
 
-class WholeGridAccumulator:
+class WholeGridAccumulator(Mergeable):
     """What a method publishes over the whole grid, frame by frame (see the package docstring of `bev_mapper_core.metrics`):
     occluded claims, unknown recall, known precision and calibration (ECE).
 
@@ -76,7 +77,11 @@ class WholeGridAccumulator:
         bins: equal-width bins of the ECE (default :data:`ECE_BINS`).
 
     It never changes :class:`MetricAccumulator`'s scores; the replay runs both on each frame.
+    Like it, accumulators of several drives merge exactly (:meth:`merge`, :meth:`state`).
     """
+
+    _COUNTS = ("frames", "frames_with_truth", "_cells", "_hidden", "_known", "_known_visible",
+               "_unknown_hidden", "_claims", "_claims_t", "_false", "_count", "_conf", "_pos")
 
     def __init__(self, grid: BevGrid, class_names: Sequence[str], threshold: float = 0.5,
                  bins: int = ECE_BINS) -> None:
@@ -108,6 +113,18 @@ class WholeGridAccumulator:
         self._count = np.zeros((C, B), np.int64)
         self._conf = np.zeros((C, B), np.float64)
         self._pos = np.zeros((C, B), np.float64)
+
+    def _config(self) -> dict:
+        return {"grid": self.grid.to_dict(), "class_names": list(self.class_names),
+                "threshold": self.threshold, "bins": self.bins}
+
+    @classmethod
+    def _from_config(cls, config: dict) -> "WholeGridAccumulator":
+        try:
+            return cls(BevGrid.from_dict(config["grid"]), config["class_names"],
+                       threshold=config["threshold"], bins=config["bins"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ConfigError(f"invalid WholeGridAccumulator state configuration: {exc!r}") from exc
 
     def update(self, probs, known, visible, gt, truth=None, calib_mask=None) -> None:
         """Add one frame.

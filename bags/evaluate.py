@@ -1,0 +1,261 @@
+"""``bev-bag evaluate``: many bags replayed as Ray tasks, scored together (see :mod:`bags.fleet`).
+
+:func:`evaluate` writes into ``options.out``:
+
+* ``bags/<name>/``: what ``bev-bag replay`` writes for that bag (``metrics.json`` last), and
+  ``evaluate.json``: the bag's record (status, error, the options that define its results, its
+  mergeable scoring state and per-frame latencies), written when its task is done;
+* ``summary.json``: the aggregate over the complete bags (dataset-level IoU from the summed
+  intersections and unions, Chamfer weighted by frames, latency percentiles over all frames),
+  one entry per bag (status ``ok`` / ``damaged`` / ``failed`` with its error), the options and
+  timings. Written last.
+
+Every file is written under a temporary name and renamed. With ``resume`` the bags whose
+``evaluate.json`` says ``ok`` for the same bag and options are not replayed again (their
+records are read back); a bag recorded with other options is an error, not a silent mix.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import socket
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+from .errors import BagError, BagExistsError
+from .fleet import OK, aggregate, bag_names, find_bags, options_record, run_tasks
+from .pictures import write_atomic
+from .replay import METRICS_FILE, ReplayOptions
+
+SUMMARY_FILE, RECORD_FILE, BAGS_DIR = "summary.json", "evaluate.json", "bags"
+#: ``--ray-address`` forms: ``auto`` (the cluster this machine is part of), ``ray://HOST:PORT``
+#: (Ray client, needs ``ray[client]``) or ``HOST:PORT`` of a head node's GCS.
+ADDRESS_HELP = "auto | ray://HOST:PORT | HOST:PORT"
+
+
+@dataclass(frozen=True)
+class EvaluateOptions:
+    """Everything :func:`evaluate` needs.
+
+    Args:
+        bags: bags (rosbag2 directories, ``.mcap`` / ``.db3`` files) or directories holding bags.
+        out: output directory.
+        replay: the replay of each bag (its ``bag`` / ``out`` / ``force`` / ``progress`` are set
+            per bag).
+        ray_address: join this Ray cluster (:data:`ADDRESS_HELP`); ``None`` = start a local Ray
+            runtime of ``workers`` CPUs for the command and stop it at the end.
+        workers: bags replayed at once (``None`` = the CPUs of this machine, or of the cluster).
+        resume: keep the bags an earlier run of the same options completed.
+        force: start over in an ``out`` that holds an earlier evaluation.
+        progress: tqdm bars over bags and frames on stderr.
+    """
+
+    bags: tuple[Path, ...]
+    out: Path
+    replay: ReplayOptions
+    ray_address: str | None = None
+    workers: int | None = None
+    resume: bool = False
+    force: bool = False
+    progress: bool = False
+
+    def __post_init__(self) -> None:
+        if not self.bags:
+            raise BagError("no bags given")
+        if self.workers is not None and self.workers < 1:
+            raise BagError(f"--workers must be >= 1, got {self.workers}")
+        if self.resume and self.force:
+            raise BagError("--resume keeps earlier results and --force discards them: pass one")
+        a = self.ray_address
+        if a is not None and not (a == "auto" or a.startswith("ray://") or _host_port(a)):
+            raise BagError(f"--ray-address must be {ADDRESS_HELP}, got {a!r}")
+
+
+def _host_port(a: str) -> bool:
+    host, _, port = a.rpartition(":")
+    return bool(host) and port.isdigit()
+
+
+@dataclass
+class EvaluateResult:
+    """The summary (as written to ``summary.json``) and every bag's record, in input order."""
+
+    summary: dict
+    records: list[dict] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        """Every bag replayed completely and is in the aggregate."""
+        return self.summary["complete"]
+
+
+def evaluate(options: EvaluateOptions) -> EvaluateResult:
+    """Replay every bag as a Ray task and write the outputs (see module docstring).
+
+    Raises:
+        BagError: no bags, a path that is no bag, ``out`` holding an earlier evaluation
+            without ``resume`` / ``force``, a resumed bag recorded with other options, no Ray
+            or no cluster at ``ray_address``. A problem of a single bag is not raised: it is
+            that bag's ``failed`` / ``damaged`` record.
+    """
+    t0 = time.perf_counter()
+    out = Path(options.out)
+    bags = find_bags(options.bags)
+    names = bag_names(bags)
+    _check_out(out, options)
+    wanted = options_record(options.replay)
+    records: dict[str, dict] = {}
+    jobs = []
+    for bag, name in zip(bags, names):
+        bag_out = out / BAGS_DIR / name
+        done = _finished(bag, bag_out, wanted) if options.resume else None
+        if done is not None:
+            records[name] = {**done, "resumed": True}
+        else:
+            _remove_partials(bag_out)
+            jobs.append((name, replace(options.replay, bag=bag, out=bag_out, force=True, progress=False)))
+
+    def on_record(record: dict) -> None:
+        bag_out = out / BAGS_DIR / record["name"]
+        record = {**record, "bag": str(Path(record["bag"]).resolve()), "options": wanted,
+                  "resumed": False}
+        bag_out.mkdir(parents=True, exist_ok=True)
+        write_atomic(bag_out / RECORD_FILE, _json(record))
+        records[record["name"]] = record
+
+    timing = {"ray_start_s": 0.0, "tasks_s": 0.0, "ray_stop_s": 0.0}
+    workers = options.workers
+    if jobs:
+        t = time.perf_counter()
+        ray, own = _connect(options)
+        timing["ray_start_s"] = time.perf_counter() - t
+        try:
+            if workers is None:
+                workers = int(ray.cluster_resources().get("CPU", 1)) if not own else _cpus()
+            t = time.perf_counter()
+            run_tasks(jobs, workers, show_progress=options.progress, on_record=on_record)
+            timing["tasks_s"] = time.perf_counter() - t
+        finally:
+            t = time.perf_counter()
+            ray.shutdown()  # stops the local runtime; from a cluster, just disconnects
+            timing["ray_stop_s"] = time.perf_counter() - t
+    ordered = [records[n] for n in names]
+    t = time.perf_counter()
+    agg = aggregate(ordered)
+    timing["aggregate_s"] = time.perf_counter() - t
+    counts = {s: sum(r["status"] == s for r in ordered) for s in ("ok", "damaged", "failed")}
+    timing["total_s"] = time.perf_counter() - t0
+    summary = {
+        "complete": counts["ok"] == len(ordered) and not agg["excluded"],
+        "bags": {"total": len(ordered), **counts, "resumed": sum(r["resumed"] for r in ordered)},
+        "aggregate": agg,
+        "per_bag": [_entry(r) for r in ordered],
+        "options": wanted,
+        "ray": {"address": options.ray_address or "local", "workers": workers},
+        "timing": {k: round(v, 3) for k, v in timing.items()},
+    }
+    write_atomic(out / SUMMARY_FILE, _json(summary))
+    return EvaluateResult(summary, ordered)
+
+
+def _json(d: dict) -> bytes:
+    return (json.dumps(d, indent=1, allow_nan=False) + "\n").encode()
+
+
+def _cpus() -> int:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def _check_out(out: Path, options: EvaluateOptions) -> None:
+    if out.exists() and not out.is_dir():
+        raise BagExistsError(f"{out} exists and is not a directory")
+    earlier = (out / SUMMARY_FILE).exists() or any((out / BAGS_DIR).glob("*"))
+    if earlier and not (options.resume or options.force):
+        raise BagExistsError(f"{out} holds an earlier evaluation: pass --resume to continue it "
+                             "or --force to start over")
+
+
+def _remove_partials(bag_out: Path) -> None:
+    """Remove what an interrupted earlier run left under temporary names (a killed worker
+    cannot clean up; the bag is replayed again now and nothing else writes there).
+    """
+    for p in bag_out.glob(".*.partial-*"):
+        if p.is_dir():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            p.unlink(missing_ok=True)
+
+
+def _finished(bag: Path, bag_out: Path, wanted: dict) -> dict | None:
+    """The record of a bag an earlier run completed with the same options, else ``None``.
+
+    Raises:
+        BagError: the bag was completed with other options.
+    """
+    try:
+        record = json.loads((bag_out / RECORD_FILE).read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(record, dict) or record.get("status") != OK or \
+            record.get("bag") != str(bag.resolve()) or not (bag_out / METRICS_FILE).exists():
+        return None
+    if record.get("options") != wanted:
+        theirs = record.get("options") or {}
+        diff = sorted(k for k in set(wanted) | set(theirs) if wanted.get(k) != theirs.get(k))
+        raise BagError(f"{bag_out} was evaluated with other options (they differ in {diff}); "
+                       "pass the same options to resume, or --force to start over")
+    return record
+
+
+def _connect(options: EvaluateOptions):
+    """``(ray, own)``: connected to the cluster at ``ray_address``, or to a local runtime
+    started here (``own``: stop it at the end).
+    """
+    try:
+        import ray  # noqa: PLC0415 - the fleet extra
+    except ImportError as exc:
+        raise BagError("bev-bag evaluate needs Ray: pip install -e '.[fleet]' (the fleet extra)") from exc
+    import logging  # noqa: PLC0415
+
+    kwargs = {"include_dashboard": False, "log_to_driver": False, "logging_level": logging.WARNING}
+    try:
+        if options.ray_address is None:
+            # the workers import this same checkout, whatever the driver's working directory
+            root = str(Path(__file__).resolve().parents[1])
+            path = os.pathsep.join([root] + [p for p in [os.environ.get("PYTHONPATH")] if p])
+            ray.init(address="local", num_cpus=options.workers or _cpus(),  # never a running one
+                     runtime_env={"env_vars": {"PYTHONPATH": path}}, **kwargs)
+            return ray, True
+        if options.ray_address != "auto" and not options.ray_address.startswith("ray://"):
+            _check_reachable(options.ray_address)  # ray.init would retry for minutes
+        ray.init(address=options.ray_address, **kwargs)
+        return ray, False
+    except (ConnectionError, RuntimeError, ValueError, TimeoutError, ImportError) as exc:
+        where = options.ray_address or "a local Ray runtime"
+        raise BagError(f"cannot start or join {where}: {exc}") from exc
+
+
+def _check_reachable(address: str, timeout_s: float = 10.0) -> None:
+    """Raise :class:`BagError` unless a TCP connection to ``HOST:PORT`` opens."""
+    host, _, port = address.rpartition(":")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
+    except OSError as exc:
+        raise BagError(f"cannot join the Ray cluster at {address}: {exc}") from exc
+
+
+def _entry(r: dict) -> dict:
+    m = r.get("metrics") or {}
+    lat = m.get("latency_ms") or {}
+    return {"name": r["name"], "bag": r["bag"], "status": r["status"], "error": r["error"],
+            "out": f"{BAGS_DIR}/{r['name']}", "frames": m.get("frames"),
+            "frames_scored": m.get("frames_scored"), "miou": m.get("miou"),
+            "latency_p50_ms": lat.get("p50"), "seconds": _round(r["seconds"]),
+            "cpu_seconds": _round(r.get("cpu_seconds")), "resumed": r["resumed"]}
+
+
+def _round(v: float | None) -> float | None:
+    return None if v is None else round(v, 3)
