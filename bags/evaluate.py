@@ -18,9 +18,7 @@ records are read back); a bag recorded with other options is an error, not a sil
 from __future__ import annotations
 
 import json
-import os
 import shutil
-import socket
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -28,12 +26,10 @@ from pathlib import Path
 from .errors import BagError, BagExistsError
 from .fleet import OK, aggregate, bag_names, find_bags, options_record, run_tasks
 from .pictures import write_atomic
+from .ray_tasks import RayOptions, cluster_cpus, ray_runtime
 from .replay import METRICS_FILE, ReplayOptions
 
 SUMMARY_FILE, RECORD_FILE, BAGS_DIR = "summary.json", "evaluate.json", "bags"
-#: ``--ray-address`` forms: ``auto`` (the cluster this machine is part of), ``ray://HOST:PORT``
-#: (Ray client, needs ``ray[client]``) or ``HOST:PORT`` of a head node's GCS.
-ADDRESS_HELP = "auto | ray://HOST:PORT | HOST:PORT"
 
 
 @dataclass(frozen=True)
@@ -45,8 +41,9 @@ class EvaluateOptions:
         out: output directory.
         replay: the replay of each bag (its ``bag`` / ``out`` / ``force`` / ``progress`` are set
             per bag).
-        ray_address: join this Ray cluster (:data:`ADDRESS_HELP`); ``None`` = start a local Ray
-            runtime of ``workers`` CPUs for the command and stop it at the end.
+        ray_address: join this Ray cluster (:data:`~bags.ray_tasks.ADDRESS_HELP`; the code and
+            the shipped weights are uploaded with the job); ``None`` = start a local Ray runtime
+            of ``workers`` CPUs for the command and stop it at the end.
         workers: bags replayed at once (``None`` = the CPUs of this machine, or of the cluster).
         resume: keep the bags an earlier run of the same options completed.
         force: start over in an ``out`` that holds an earlier evaluation.
@@ -65,18 +62,14 @@ class EvaluateOptions:
     def __post_init__(self) -> None:
         if not self.bags:
             raise BagError("no bags given")
-        if self.workers is not None and self.workers < 1:
-            raise BagError(f"--workers must be >= 1, got {self.workers}")
         if self.resume and self.force:
             raise BagError("--resume keeps earlier results and --force discards them: pass one")
-        a = self.ray_address
-        if a is not None and not (a == "auto" or a.startswith("ray://") or _host_port(a)):
-            raise BagError(f"--ray-address must be {ADDRESS_HELP}, got {a!r}")
+        RayOptions(self.ray_address, self.workers)  # checks workers and the address
 
-
-def _host_port(a: str) -> bool:
-    host, _, port = a.rpartition(":")
-    return bool(host) and port.isdigit()
+    @property
+    def ray(self) -> RayOptions:
+        """Where the tasks run."""
+        return RayOptions(self.ray_address, self.workers)
 
 
 @dataclass
@@ -130,17 +123,17 @@ def evaluate(options: EvaluateOptions) -> EvaluateResult:
     workers = options.workers
     if jobs:
         t = time.perf_counter()
-        ray, own = _connect(options)
-        timing["ray_start_s"] = time.perf_counter() - t
+        runtime = ray_runtime(options.ray, weights=True)
+        ray = runtime.__enter__()
         try:
-            if workers is None:
-                workers = int(ray.cluster_resources().get("CPU", 1)) if not own else _cpus()
+            timing["ray_start_s"] = time.perf_counter() - t
+            workers = workers or cluster_cpus(ray)
             t = time.perf_counter()
-            run_tasks(jobs, workers, show_progress=options.progress, on_record=on_record)
+            run_tasks(ray, jobs, workers, show_progress=options.progress, on_record=on_record)
             timing["tasks_s"] = time.perf_counter() - t
         finally:
             t = time.perf_counter()
-            ray.shutdown()  # stops the local runtime; from a cluster, just disconnects
+            runtime.__exit__(None, None, None)  # stops the local runtime; from a cluster, disconnects
             timing["ray_stop_s"] = time.perf_counter() - t
     ordered = [records[n] for n in names]
     t = time.perf_counter()
@@ -163,10 +156,6 @@ def evaluate(options: EvaluateOptions) -> EvaluateResult:
 
 def _json(d: dict) -> bytes:
     return (json.dumps(d, indent=1, allow_nan=False) + "\n").encode()
-
-
-def _cpus() -> int:
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 def _check_out(out: Path, options: EvaluateOptions) -> None:
@@ -208,43 +197,6 @@ def _finished(bag: Path, bag_out: Path, wanted: dict) -> dict | None:
         raise BagError(f"{bag_out} was evaluated with other options (they differ in {diff}); "
                        "pass the same options to resume, or --force to start over")
     return record
-
-
-def _connect(options: EvaluateOptions):
-    """``(ray, own)``: connected to the cluster at ``ray_address``, or to a local runtime
-    started here (``own``: stop it at the end).
-    """
-    try:
-        import ray  # noqa: PLC0415 - the fleet extra
-    except ImportError as exc:
-        raise BagError("bev-bag evaluate needs Ray: pip install -e '.[fleet]' (the fleet extra)") from exc
-    import logging  # noqa: PLC0415
-
-    kwargs = {"include_dashboard": False, "log_to_driver": False, "logging_level": logging.WARNING}
-    try:
-        if options.ray_address is None:
-            # the workers import this same checkout, whatever the driver's working directory
-            root = str(Path(__file__).resolve().parents[1])
-            path = os.pathsep.join([root] + [p for p in [os.environ.get("PYTHONPATH")] if p])
-            ray.init(address="local", num_cpus=options.workers or _cpus(),  # never a running one
-                     runtime_env={"env_vars": {"PYTHONPATH": path}}, **kwargs)
-            return ray, True
-        if options.ray_address != "auto" and not options.ray_address.startswith("ray://"):
-            _check_reachable(options.ray_address)  # ray.init would retry for minutes
-        ray.init(address=options.ray_address, **kwargs)
-        return ray, False
-    except (ConnectionError, RuntimeError, ValueError, TimeoutError, ImportError) as exc:
-        where = options.ray_address or "a local Ray runtime"
-        raise BagError(f"cannot start or join {where}: {exc}") from exc
-
-
-def _check_reachable(address: str, timeout_s: float = 10.0) -> None:
-    """Raise :class:`BagError` unless a TCP connection to ``HOST:PORT`` opens."""
-    host, _, port = address.rpartition(":")
-    try:
-        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
-    except OSError as exc:
-        raise BagError(f"cannot join the Ray cluster at {address}: {exc}") from exc
 
 
 def _entry(r: dict) -> dict:

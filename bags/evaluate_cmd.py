@@ -10,7 +10,8 @@ from pathlib import Path
 
 from bev_mapper_core.metrics import format_table, format_whole_grid_table
 
-from .evaluate import ADDRESS_HELP, EvaluateOptions, evaluate
+from .evaluate import EvaluateOptions, evaluate
+from .ray_tasks import add_ray_args
 from .replay_cmd import add_replay_args
 from .replay_cmd import options_from_args as replay_options_from_args
 
@@ -48,10 +49,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("bags", nargs="+", type=Path, metavar="BAG_OR_DIR",
                    help="bags (rosbag2 directories, .mcap, .db3) or directories searched for bags")
     p.add_argument("--out", type=Path, required=True, help="output directory")
-    p.add_argument("--ray-address", default=EvaluateOptions.ray_address, metavar="ADDR",
-                   help=f"join this Ray cluster: {ADDRESS_HELP} (default: a local runtime)")
-    p.add_argument("--workers", type=int, default=EvaluateOptions.workers, metavar="N",
-                   help="bags replayed at once (default: the CPUs of this machine, or of the cluster)")
+    add_ray_args(p.add_argument_group("Ray"), "bags replayed")
     p.add_argument("--resume", action="store_true",
                    help="keep the bags an earlier run with the same options completed in DIR")
     add_replay_args(p)

@@ -25,6 +25,7 @@ from pathlib import Path
 from bev_mapper_core.errors import BevMapperError
 from bev_mapper_core.metrics import MetricAccumulator, WholeGridAccumulator
 
+from . import ray_tasks
 from .errors import BagError
 from .replay import ReplayOptions, ReplayScorer, _percentiles, replay
 
@@ -203,51 +204,47 @@ def aggregate(records: list[dict]) -> dict:
 
 
 # ------------------------------------------------------------------ Ray
-def run_tasks(jobs: list[tuple[str, ReplayOptions]], workers: int, *, show_progress: bool,
+def run_tasks(ray, jobs: list[tuple[str, ReplayOptions]], workers: int, *, show_progress: bool,
               on_record: Callable[[dict], None]) -> None:
     """Run :func:`evaluate_bag` for every ``(name, options)`` as Ray tasks of one CPU each, at
-    most ``workers`` at a time, on the Ray runtime this process is connected to. Each record is
-    handed to ``on_record`` as it arrives (in completion order), also for a task whose worker
-    died (a ``failed`` record). With ``show_progress``: tqdm bars over bags and frames.
+    most ``workers`` at a time (:func:`bags.ray_tasks.run_tasks`), on the runtime ``ray`` is
+    connected to. Each record is handed to ``on_record`` as it arrives (in completion order),
+    also for a task whose worker died (a ``failed`` record). With ``show_progress``: tqdm bars
+    over bags and frames.
     """
-    import ray  # noqa: PLC0415 - the fleet extra
     from tqdm import tqdm  # noqa: PLC0415
 
-    task = ray.remote(num_cpus=1, max_retries=0)(evaluate_bag)
     board = _progress_board(ray) if show_progress else None
     bags_bar = tqdm(total=len(jobs), unit="bag", disable=not show_progress, position=0,
                     dynamic_ncols=True, desc="bags")
     frames_bar = tqdm(total=0, unit="frame", disable=not show_progress, position=1,
                       dynamic_ncols=True, desc="frames")
-    queue = list(reversed(jobs))
-    pending: dict = {}
+
+    def refresh() -> None:
+        if board is not None:
+            done, total = ray.get(board.totals.remote())
+            frames_bar.total = max(total, done)
+            frames_bar.n = done
+            frames_bar.refresh()
+
     try:
-        while queue or pending:
-            while queue and len(pending) < workers:
-                name, options = queue.pop()
-                pending[task.remote(options, name, board)] = (name, options)
-            ready, _ = ray.wait(list(pending), num_returns=1, timeout=PROGRESS_EVERY_S)
-            for ref in ready:
-                name, options = pending.pop(ref)
-                try:
-                    record = ray.get(ref)
-                except ray.exceptions.RayError as exc:  # the worker died, the task was cancelled ...
-                    record = {"name": name, "bag": str(options.bag), "status": FAILED,
-                              "error": f"{type(exc).__name__}: {exc}", "metrics": None,
-                              "scoring": None, "latencies_ms": [], "seconds": None,
-                              "cpu_seconds": None}
-                on_record(record)
-                bags_bar.update(1)
-            if board is not None:
-                done, total = ray.get(board.totals.remote())
-                frames_bar.total = max(total, done)
-                frames_bar.n = done
-                frames_bar.refresh()
+        for (name, options), record in ray_tasks.run_tasks(ray, _evaluate_job, jobs, board, max_in_flight=workers,
+                                                           poll=refresh, poll_every_s=PROGRESS_EVERY_S):
+            if isinstance(record, ray_tasks.TaskFailure):  # the worker died, the task was cancelled ...
+                record = {"name": name, "bag": str(options.bag), "status": FAILED,
+                          "error": record.message, "metrics": None, "scoring": None, "latencies_ms": [],
+                          "seconds": None, "cpu_seconds": None}
+            on_record(record)
+            bags_bar.update(1)
     finally:
-        for ref in pending:
-            ray.cancel(ref, force=True)
         bags_bar.close()
         frames_bar.close()
+
+
+def _evaluate_job(job: tuple[str, ReplayOptions], board) -> dict:
+    """The task body: :func:`evaluate_bag` of one ``(name, options)`` job."""
+    name, options = job
+    return evaluate_bag(options, name, board)
 
 
 def _progress_board(ray):

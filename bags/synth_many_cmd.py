@@ -38,7 +38,7 @@ from bev_mapper_core.training.data import DriveSpec, drive_path, drive_spec, loa
 
 from .errors import BagError
 from .grid_args import add_grid_args, grid_from_args
-from .ray_tasks import RayOptions, TaskFailure, ray_runtime, run_tasks
+from .ray_tasks import RayOptions, TaskFailure, add_ray_args, ray_runtime, run_tasks
 from .synth_cmd import SynthBagOptions, synth_bag
 from .writer import STORAGES, check_output
 
@@ -230,12 +230,7 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="also store the RGB images at this size, as bev-train does for methods that read RGB "
                         "(their input size; camera: the camera's size); default: labels only")
     g = p.add_argument_group("Ray")
-    g.add_argument("--workers", type=int, default=None,
-                   help="local runtime: its CPUs = tasks at once (default: all of the machine's); "
-                        "with --ray-address: the most tasks in flight")
-    g.add_argument("--ray-address", default=None, metavar="ADDR",
-                   help="join an existing Ray cluster instead of starting a local runtime: auto, host:port "
-                        "or ray://host:port (the nodes need this package's dependencies; its code is uploaded)")
+    add_ray_args(g, "drives rendered")
     p.add_argument("--force", action="store_true", help="render drives already in OUT again")
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
 
