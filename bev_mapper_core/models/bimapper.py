@@ -53,7 +53,7 @@ class BevDecoder(nn.Module):
     """
 
     def __init__(self, cin: int, channels: int, num_classes: int, in_hw: tuple[int, int], out_hw: tuple[int, int],
-                 skip_channels: int = 0, visibility_head: bool = False) -> None:
+                 skip_channels: int = 0, visibility_head: bool = False, min_channels: int = 16) -> None:
         super().__init__()
         self.out_hw = tuple(out_hw)
         self.stem = nn.Sequential(conv_bn_relu(cin, channels), conv_bn_relu(channels, channels))
@@ -61,8 +61,8 @@ class BevDecoder(nn.Module):
         h, w = in_hw
         c = channels
         while h * 2 <= out_hw[0] and w * 2 <= out_hw[1]:
-            ups.append(conv_bn_relu(c, max(16, c // 2)))
-            c = max(16, c // 2)
+            ups.append(conv_bn_relu(c, max(min_channels, c // 2)))
+            c = max(min_channels, c // 2)
             h, w = h * 2, w * 2
         self.ups = nn.ModuleList(ups)
         self.skip_channels = skip_channels
@@ -128,7 +128,8 @@ class BiMapper(nn.Module):
         self.raw_hw = self._raw_hw(geo, rig)
         self.prior_channels = cin + 1 if config.ipm_skip else 0  # averaged input + coverage
         self.decoder = BevDecoder(dec_in, config.decoder_channels, self.num_classes, self.feat_hw, grid.shape,
-                                  skip_channels=self.prior_channels, visibility_head=config.visibility_head)
+                                  skip_channels=self.prior_channels, visibility_head=config.visibility_head,
+                                  min_channels=config.decoder_min_channels)
         if config.ipm_skip:
             self.ipm_proj = nn.Conv2d(self.prior_channels, self.num_classes, 1)
             with torch.no_grad():

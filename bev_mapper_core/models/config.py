@@ -82,6 +82,9 @@ class BiMapperConfig:
             range) instead of re-deriving 0.15 m detail from 1.2 m features.
         unet_channels: U-Net expanding-path width.
         decoder_channels: BEV decoder width at the feature resolution.
+        decoder_min_channels: **not in the paper** (issue #15). The decoder halves its width at
+            each 2x upsampling down to this; the last stages and the head run at the full grid
+            resolution at this width (16 = 1.4 of the shipped surround6 model's 3.3 GFLOP).
         visibility_head: **not in the paper** (issue #11). One extra logit per BEV cell, a small
             head (3x3 conv + BN + ReLU, 16 channels, then 1x1) on the decoder head's input (the
             upsampled features and, with ``ipm_skip``, the IPM prior), trained with BCE on the visibility mask
@@ -116,6 +119,7 @@ class BiMapperConfig:
     ipm_skip: bool = False
     unet_channels: int = 32
     decoder_channels: int = 64
+    decoder_min_channels: int = 16
     visibility_head: bool = False
     temperature: tuple[float, ...] | None = None
 
@@ -141,7 +145,8 @@ class BiMapperConfig:
         if self.fusion not in FUSIONS:
             raise ConfigError(f"fusion must be one of {FUSIONS}, got {self.fusion!r}")
         limits = {"input_width": MAX_WIDTH_PX, "neck_channels": MAX_CHANNELS, "bev_channels": MAX_CHANNELS,
-                  "bev_downsample": MAX_DOWNSAMPLE, "unet_channels": MAX_CHANNELS, "decoder_channels": MAX_CHANNELS}
+                  "bev_downsample": MAX_DOWNSAMPLE, "unet_channels": MAX_CHANNELS, "decoder_channels": MAX_CHANNELS,
+                  "decoder_min_channels": MAX_CHANNELS}
         for name, hi in limits.items():
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= hi:

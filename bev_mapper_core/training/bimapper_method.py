@@ -176,6 +176,8 @@ class BiMapperMethod(TrainMethod):
         CliFlag("--pos-weight", "pos_weight", choices=POS_WEIGHTS, help="BCE class weights (none = paper)"),
         CliFlag("--input-width", "input_width", min_value=1),
         CliFlag("--gv-hidden", "gv_hidden", min_value=1),
+        CliFlag("--decoder-min-channels", "decoder_min_channels", min_value=1,
+                help="decoder width at the full grid resolution (a lighter head: 8)"),
         CliFlag("--visibility-head", "visibility_head", action="store_true",
                 help="extra per-cell visibility logit (issue #11; not in the paper)"),
         CliFlag("--visibility-weight", "visibility_weight", number=True, help="BCE weight of the visibility head"),
