@@ -24,6 +24,8 @@ import subprocess
 import sys
 import time
 
+from bench_rows import row, write_rows
+
 
 @contextlib.contextmanager
 def busy_competitor(on: bool):
@@ -47,6 +49,7 @@ def main() -> None:
     ap.add_argument("--threads", default="1,2", help="comma list of thread counts")
     ap.add_argument("--competitor", action="store_true",
                     help="also measure every row with a busy process on one CPU")
+    ap.add_argument("--json", default=None, help="also write the rows for bench/bench_table.py here")
     args = ap.parse_args()
 
     import torch
@@ -67,6 +70,7 @@ def main() -> None:
 
     print(f"default threads (every CPU but one): {inference_threads()}")
     quiet: dict[tuple[int, str], float] = {}
+    loaded: dict[tuple[int, str], float] = {}
     for load in (False, True) if args.competitor else (False,):
         print("with one busy competing process:" if load else "quiet:")
         with busy_competitor(load):
@@ -79,9 +83,25 @@ def main() -> None:
                         print(f"  {threads} thread(s) {backend:12s}: not installed")
                         continue
                     extra = "" if not load else f"; {med / quiet[threads, backend]:4.2f}x its quiet median"
-                    quiet.setdefault((threads, backend), med)
+                    (loaded if load else quiet)[threads, backend] = med
                     print(f"  {threads} thread(s) {backend:12s}: {best:7.1f} ms/frame (best of {args.repeat}; median "
                           f"{med:.1f}) = {ref / best:4.2f}x torch eager; first frame {first_s:.1f} s{extra}")
+    rows = []
+    for (threads, backend), med in quiet.items():
+        if backend != "torch" and (threads, "torch") in quiet:
+            rows.append(row(f"Bi-Mapper, {backend}, {threads} thread(s)", f"{med:.1f} ms",
+                            f"{quiet[threads, 'torch']:.1f} ms (torch eager)", quiet[threads, "torch"] / med,
+                            "median of the repeats"))
+    default = inference_threads()
+    for backend in ("torch",) + AUTO_ORDER:
+        others = [t for t, b in loaded if b == backend and t != default]
+        if (default, backend) in loaded and others:
+            t = others[-1]
+            rows.append(row(f"Bi-Mapper, {backend}, one busy competing process", f"{loaded[default, backend]:.1f} ms "
+                            f"({default} thread(s), the default)", f"{loaded[t, backend]:.1f} ms ({t} threads)",
+                            loaded[t, backend] / loaded[default, backend],
+                            f"quiet: {quiet[default, backend]:.1f} / {quiet[t, backend]:.1f} ms"))
+    write_rows(args.json, "bench_backends.py", rows)
 
 
 def measure(backend, threads, have, rig, grid, frames, repeat):

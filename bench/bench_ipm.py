@@ -23,6 +23,7 @@ import statistics
 import time
 
 import numpy as np
+from bench_rows import row, write_rows
 
 from bev_mapper_core.classes import label_lut
 from bev_mapper_core.grid import BevGrid
@@ -72,6 +73,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--json", default=None, help="also write the rows for bench/bench_table.py here")
     args = ap.parse_args()
     rig, grid = preset_rig("surround6"), BevGrid()
     frames = [
@@ -117,6 +119,17 @@ def main() -> None:
     for name, (best, med) in rows:
         print(f"{name:26s}: {best:8.2f} ms/frame (best of {args.repeat}; median {med:.2f}) = "
               f"{best / ref_ms:6.2f}x the six cv2.remap warps alone")
+    ms = {name: best for name, (best, _) in rows}
+    classical, default = ms["IPM, classical (ours)"], ms["IPM, occlusion (default)"]
+    write_rows(args.json, "bench_ipm.py", [
+        row("IPM, classical (6 x 400x225 labels -> 400x200)", f"{classical:.2f} ms",
+            f"{ms['IPM, classical, warps']:.2f} ms (whole-image warps + masked sums, same output)",
+            ms["IPM, classical, warps"] / classical,
+            f"{classical / ms['cv2.remap x6 alone']:.1f}x the six cv2.remap alone, {classical / ms['gathers alone']:.0f}x "
+            "the bare gathers"),
+        row("IPM, default (occlusion reasoning on)", f"{default:.2f} ms", f"{classical:.2f} ms (classical)",
+            classical / default, "the occluders' ray search per camera"),
+    ])
 
 if __name__ == "__main__":
     main()

@@ -21,6 +21,8 @@ import subprocess
 import sys
 import time
 
+from bench_rows import row, write_rows
+
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
 
@@ -35,6 +37,7 @@ def main() -> None:
                          "stays auto: it follows them)")
     ap.add_argument("--node-arg", action="append", default=[], metavar="NAME:=VALUE",
                     help="another node parameter, e.g. backend:=openvino (repeatable)")
+    ap.add_argument("--json", default=None, help="also write the row for bench/bench_table.py here")
     ap.add_argument("--domain-id", type=int, default=150 + os.getpid() % 50)
     args = ap.parse_args()
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
@@ -114,11 +117,17 @@ def main() -> None:
         print(f"{args.params}.yaml, method {method} {' '.join(args.node_arg)}: input {args.hz:.1f} sets/s of "
               f"{len(rig.cameras)} x {w}x{h} {kind} for {args.seconds:.0f} s, {args.publishers} publishers")
         print(f"output rate      : {rate:.1f} grids/s on /bev/drivable ({len(steady)} after warm-up)")
-        print(f"latency (recv - stamp): p50 {statistics.median(lat):.1f} ms, "
-              f"p95 {sorted(lat)[int(0.95 * (len(lat) - 1))]:.1f} ms")
+        p95 = sorted(lat)[int(0.95 * (len(lat) - 1))]
+        print(f"latency (recv - stamp): p50 {statistics.median(lat):.1f} ms, p95 {p95:.1f} ms")
         print(f"sets published {k}, grids received {len(received)} ({end_wall - steady[0][0]:.1f} s steady)")
         keys = ("mapped_sets", "dropped_sets", "sets_with_missing_cameras", "bad_input", "processing_ms")
         print("node diagnostics : " + ", ".join(f"{key} {diag.get(key, '?')}" for key in keys))
+        extra = f" {' '.join(args.node_arg)}" if args.node_arg else ""
+        write_rows(args.json, "bench_node_rate.py", [row(
+            f"node, {method}{extra}, {len(rig.cameras)} cameras at {args.hz:.0f} Hz, {args.publishers} publishers",
+            f"{rate:.1f} sets/s mapped, p95 latency {p95:.0f} ms", f"{args.hz:.1f} sets/s published", rate / args.hz,
+            f"fraction mapped; sets with a camera missing: {diag.get('sets_with_missing_cameras', '?')}, "
+            f"processing {diag.get('processing_ms', '?')} ms")])
     finally:
         node.destroy_node()
         rclpy.shutdown()

@@ -19,6 +19,8 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
+from bench_rows import row, write_rows  # noqa: E402
+
 from bags.reader import BagReader  # noqa: E402
 from bags.replay import ReplayOptions, replay  # noqa: E402
 from bags.synth_cmd import SynthBagOptions, synth_bag  # noqa: E402
@@ -44,6 +46,7 @@ def main() -> None:
     ap.add_argument("--frames-every", type=int, default=ReplayOptions.frames_every)
     ap.add_argument("--repeat", type=int, default=2, help="replays; the best is reported")
     ap.add_argument("--keep", type=Path, default=None, help="keep the outputs here")
+    ap.add_argument("--json", default=None, help="also write the rows for bench/bench_table.py here")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench_replay_"))
     try:
@@ -93,6 +96,10 @@ def main() -> None:
         print(f"mapping only   : p50 {lat['p50']} ms, p95 {lat['p95']} ms per frame "
               f"(the rest is reading, decoding, scoring and writing)")
         print(f"drivable IoU {m['classes']['drivable']['iou']:.3f}, mIoU {m['miou']:.3f}")
+        write_rows(args.json, "bench_replay.py", [row(
+            f"bev-bag replay, IPM, surround6 drive at {rate:.0f} Hz", f"{fps / rate:.1f}x real time ({fps:.1f} frames/s)",
+            f"{fps_in_turn / rate:.1f}x real time (frames read in turn, --prefetch 0)", fps / fps_in_turn,
+            f"steady state {1.0 / marginal / rate:.1f}x; mapping p50 {lat['p50']} ms of {1000.0 / fps:.0f} ms a frame")])
         if args.keep:
             shutil.copytree(out, args.keep, dirs_exist_ok=True)
     finally:

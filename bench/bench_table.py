@@ -1,0 +1,93 @@
+"""The README's speed table, generated: runs the benchmarks one after another on this machine,
+each printing ours next to its reference measured in the same run, and collects their rows.
+
+    .venv/bin/python bench/bench_table.py            # print the table (a few minutes)
+    .venv/bin/python bench/bench_table.py --readme   # ... and write it into README.md
+
+Rows: IPM against its earlier algorithm (``bench_ipm.py``); Bi-Mapper by inference backend
+against torch eager, and by thread count with a competing process (``bench_backends.py
+--competitor``); the node at 10 and 20 Hz with reliable publishers and at 10 Hz with
+best-effort ones (``bench_node_rate.py``); replay against reading in turn (``bench_replay.py``).
+Run it on a quiet machine: every figure is a wall-clock time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import pathlib
+import subprocess
+import sys
+import tempfile
+
+from bench_rows import machine
+
+BENCH = pathlib.Path(__file__).resolve().parent
+README = BENCH.parent / "README.md"
+START, END = "<!-- bench-table:start -->", "<!-- bench-table:end -->"
+
+#: (script, arguments) in the order the table shows them
+RUNS = (
+    ("bench_ipm.py", []),
+    ("bench_backends.py", ["--competitor", "--frames", "6"]),
+    ("bench_node_rate.py", ["--hz", "10", "--seconds", "15"]),
+    ("bench_node_rate.py", ["--hz", "20", "--seconds", "15"]),
+    ("bench_node_rate.py", ["--hz", "10", "--seconds", "15", "--publishers", "best_effort"]),
+    ("bench_node_rate.py", ["--hz", "10", "--seconds", "15", "--node-arg", "backend:=auto"]),
+    ("bench_replay.py", []),
+)
+
+
+def run_all(log) -> list[dict]:
+    """Run every benchmark of :data:`RUNS`; their rows, in order."""
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="bench_table_") as tmp:
+        for k, (script, args) in enumerate(RUNS):
+            out = pathlib.Path(tmp) / f"{k}.json"
+            cmd = [sys.executable, str(BENCH / script), *args, "--json", str(out)]
+            log(f"$ {' '.join(['.venv/bin/python', f'bench/{script}', *args])}")
+            proc = subprocess.run(cmd, cwd=BENCH.parent, capture_output=True, text=True)
+            log(proc.stdout.rstrip())
+            if proc.returncode != 0 or not out.exists():
+                raise SystemExit(f"error: bench/{script} failed (status {proc.returncode}):\n{proc.stderr[-2000:]}")
+            for r in json.loads(out.read_text())["rows"]:
+                rows.append({**r, "command": f"bench/{script} {' '.join(args)}".strip()})
+    return rows
+
+
+def markdown(rows: list[dict]) -> str:
+    """The table, with the machine, the date and the command that made it."""
+    lines = [f"Measured by `.venv/bin/python bench/bench_table.py --readme` on {machine()}, "
+             f"{datetime.date.today().isoformat()} (every row: ours and its reference in the same run).",
+             "",
+             "| path | ours | reference, same run | ratio | note | command |",
+             "|---|---|---|---|---|---|"]
+    for r in rows:
+        ratio = "" if r["ratio"] is None else f"{r['ratio']:.2f}"
+        lines.append(f"| {r['path']} | {r['ours']} | {r['reference']} | {ratio} | {r['note']} | `{r['command']}` |")
+    return "\n".join(lines)
+
+
+def write_readme(table: str) -> None:
+    """Replace the text between the README's table markers."""
+    text = README.read_text()
+    if START not in text or END not in text:
+        raise SystemExit(f"error: {README} has no {START} ... {END} block")
+    head, rest = text.split(START, 1)
+    _, tail = rest.split(END, 1)
+    README.write_text(f"{head}{START}\n{table}\n{END}{tail}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--readme", action="store_true", help="write the table into README.md")
+    args = ap.parse_args()
+    table = markdown(run_all(lambda s: print(s, file=sys.stderr, flush=True)))
+    print(table)
+    if args.readme:
+        write_readme(table)
+
+
+if __name__ == "__main__":
+    main()
