@@ -152,7 +152,9 @@ def train(cfg: TrainConfig, log: Callable[[str], None] = print,
 
     Data-parallel (:mod:`.distributed`): under ``torchrun`` this process is one rank of its
     world; else ``cfg.nproc`` > 1 spawns that many local ranks (``data`` is pickled to them) and
-    returns rank 0's result. One process (``nproc`` 1, no torchrun) is the plain loop.
+    returns rank 0's result (a script doing so needs the ``if __name__ == "__main__":`` guard:
+    the spawned processes import its main module). One process (``nproc`` 1, no torchrun) is
+    the plain loop.
     """
     ranks = torchrun_ranks(cfg)
     if ranks is not None:
