@@ -26,6 +26,7 @@ from bev_mapper_core.training.config import TrainConfig  # noqa: E402
 from bev_mapper_core.training.data import FrameSet, shard_slice  # noqa: E402
 from bev_mapper_core.training.distributed import DistributedError  # noqa: E402
 from bev_mapper_core.training.method import TrainMethod, register_train_method  # noqa: E402
+from bev_mapper_core.training.sources import TrainData  # noqa: E402
 from bev_mapper_core.training.trainer import TrainingError, train  # noqa: E402
 
 pytestmark = pytest.mark.slow
@@ -89,7 +90,18 @@ class DdpToyMethod(TrainMethod):
         return loss, {"bce": float(loss.detach()), "total": float(loss.detach())}
 
     def after_step(self, step):
+        """Every rank holds the very same parameters after each step (what keeps an after-step
+        state such as S2G2's EMA branch the same on every rank): checked bit for bit."""
+        import torch.distributed as dist
+
         self.steps = step
+        if dist.is_initialized():
+            flat = torch.cat([p.detach().flatten() for p in self.model.parameters()])
+            lo, hi = flat.clone(), flat.clone()
+            dist.all_reduce(lo, op=dist.ReduceOp.MIN)
+            dist.all_reduce(hi, op=dist.ReduceOp.MAX)
+            if not torch.equal(lo, hi):
+                raise TrainingError(f"the ranks' parameters differ after step {step}")
 
     def predict(self, batch):
         probs = torch.sigmoid(self._logits(batch["images"])).numpy()
@@ -151,6 +163,22 @@ def test_shards_cover_the_batch():
             assert max(p.stop - p.start for p in parts) - min(p.stop - p.start for p in parts) <= 1
 
 
+def test_sharded_batches_are_the_batch():
+    """The ranks' parts of every batch, labeled and unlabeled frames alike, are the batch of one
+    process; a short last batch with fewer frames than ranks is skipped by every rank."""
+    lab, unl = frames(7, (4, 6), 1), frames(3, (4, 6), 2)
+    data = TrainData(lab, lab, unl)
+    whole = list(data.batches(4, 3, 1))
+    parts = [list(data.batches(4, 3, 1, shard=(r, 2))) for r in range(2)]
+    assert len(whole) == 2 and len(parts[0]) == len(parts[1]) == 2
+    for w, a, b in zip(whole, *parts):
+        for kind in ("labeled", "unlabeled"):
+            for k in w[kind]:
+                assert torch.equal(torch.cat([a[kind][k], b[kind][k]]), w[kind][k]), (kind, k)
+    assert [len(b["target"]) for b in lab.batches(3, 0, 0, shard=(1, 2))] == [1, 1]  # 3, 3, then 1 < 2 ranks
+    assert len(list(lab.batches(3, 0, 0))) == 3
+
+
 def test_two_processes_give_the_loss_curve_and_weights_of_one(tmp_path, toy):
     """4 frames, global batch 4: one step per epoch, so the history is the per-step loss curve."""
     data = (frames(4, (16, 24), 1), frames(2, (16, 24), 2))
@@ -188,7 +216,7 @@ def test_bimapper_loss_curve_on_two_processes(tmp_path):
     Every cell visible (its masked means are then means over the frames, see
     ``training.distributed``) and no stochastic depth (random draws differ per rank).
     """
-    base = dict(rig=RIG, classes="cam2bev", epochs=3, batch=4, lr=1e-3, seed=3, threads=2, input_width=48,
+    base = dict(rig=RIG, classes="cam2bev", epochs=3, batch=4, lr=1e-3, seed=3, threads=1, input_width=48,
                 gv_hidden=16, grid=TINY_GRID, progress=False, cache=None, drop_connect_rate=0.0, val_frames=2)
     cfg = TrainConfig.from_dict({**base, "out": str(tmp_path / "one")})
     size = BiMapper(cfg.model, preset_rig(RIG), cfg.grid).input_size
