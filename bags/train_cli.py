@@ -5,10 +5,14 @@ Training::
     bev-train --method bimapper --rig surround6 --input labels --out runs/NAME \\
         [--config run.yaml] [--epochs E] [--frames-per-epoch F] [--batch B] [--lr 1e-3] [--seed S]
         [--val-seeds 900000000,900000001 | --val-drives N] [--cache DIR | --no-cache]
-        [--device cpu|cuda] [--resume] [--bag PATH ... --val-bag PATH ... [--label-map PRESET|YAML]]
+        [--device cpu|cuda] [--threads T] [--nproc N] [--resume] [--bag PATH ... --val-bag PATH ... [--label-map PRESET|YAML]]
         [--unlabeled-drives N [--unlabeled-style STYLE] | --unlabeled BAG ...]   (semi-supervised: s2g2)
         [method flags, Bi-Mapper's: --streams both|gv|lv|none --fusion sum|concat --no-asl
          --mutual async|sync|lv|gv|none --pos-weight auto|none --ipm-skip --lv-full-res ...]
+
+Data-parallel: ``--nproc N`` trains in N local processes (``--batch`` stays the global batch);
+``torchrun --nproc-per-node N -m bags.train_cli ...`` runs one rank per torchrun worker (see
+``bev_mapper_core.training.distributed``).
 
 Flags override the YAML file, which overrides the :class:`TrainConfig` defaults. The method's
 flags come from its plug-in (:attr:`TrainMethod.cli_flags`), choices and defaults from the
@@ -182,7 +186,11 @@ def train_parser(method: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--cache", help="drive cache directory")
     p.add_argument("--no-cache", dest="cache", action="store_const", const=None)
     p.add_argument("--device", help="cpu | cuda[:N]")
-    p.add_argument("--threads", type=_pos_int)
+    p.add_argument("--threads", type=_pos_int, help="CPU threads of the run (shared by its --nproc processes)")
+    p.add_argument("--nproc", type=_pos_int,
+                   help=f"data-parallel processes (DistributedDataParallel: gloo on CPU, nccl on CUDA), each "
+                        f"taking batch/nproc frames of every batch; rank 0 writes the run (default {DEFAULTS['nproc']}; "
+                        f"under torchrun its world size)")
     p.add_argument("--resume", action="store_true", default=argparse.SUPPRESS)
     p.add_argument("--time-budget", dest="time_budget_min", type=_pos_float, help="minutes; stop (resumable) after")
     p.add_argument("--bag", nargs="+", help="rosbag2 paths with GT topics to train on")
@@ -312,6 +320,7 @@ def run_calibrate(argv: list[str]) -> int:
 def run_train(argv: list[str]) -> int:
     """``bev-train [train]``: build the TrainConfig (YAML + flags), pick the data source, train."""
     a = vars(train_parser(_method_name(argv)).parse_args(argv))
+    from bev_mapper_core.training.distributed import is_main_process
     from bev_mapper_core.training.trainer import train
 
     path = a.pop("config", None)
@@ -328,6 +337,8 @@ def run_train(argv: list[str]) -> int:
 
         source = UnlabeledBagSource(source or SynthSource())
     doc = train(cfg, log=lambda m: print(m, flush=True), data=source)
+    if not is_main_process():  # a torchrun worker of rank > 0: rank 0 reports
+        return 0
     print(json.dumps({"out": cfg.out, "epoch": doc["epoch"] + 1, "step": doc["step"],
                       "best_val_miou": doc["best_val_miou"], "train_seconds": round(doc["train_seconds"], 1)}))
     return 0

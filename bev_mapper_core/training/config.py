@@ -107,7 +107,12 @@ class TrainConfig:
         val_seeds: explicit held-out drive seeds (default: ``val_seeds(val_drives)``).
         val_frames: frames of the held-out set scored after each epoch (None = all).
         cache: drive cache directory (None = render in memory every run).
-        device, threads: torch device and CPU threads.
+        device, threads: torch device and CPU threads (with ``nproc`` > 1: the threads of all
+            processes together, each taking ``max(1, threads // nproc)``).
+        nproc: data-parallel processes (:mod:`~.distributed`: DistributedDataParallel, gloo on
+            CPU, nccl on CUDA); each takes ``batch / nproc`` frames of every batch (``batch``
+            stays the global batch, so it must be a multiple of ``nproc``). 1 = one process.
+            Under ``torchrun`` the world size comes from torchrun (``nproc`` 1 or equal to it).
         resume: continue ``out``'s last checkpoint.
         time_budget_min: stop (checkpointed, resumable) once this much wall time has passed.
         bag, val_bag: rosbag2 paths with GT topics to train / validate on instead of drives.
@@ -156,6 +161,7 @@ class TrainConfig:
     cache: str | None = "data/cache"
     device: str = "cpu"
     threads: int = 2
+    nproc: int = 1
     resume: bool = False
     time_budget_min: float | None = None
     bag: tuple[str, ...] | None = None
@@ -188,7 +194,7 @@ class TrainConfig:
             if not isinstance(getattr(self, name), typ):
                 raise ConfigError(f"{name} of method {self.method!r} must be a {typ.__name__}, "
                                   f"got {type(getattr(self, name)).__name__}")
-        for name in ("epochs", "batch", "train_drives", "val_drives", "frames_per_drive", "stride", "threads"):
+        for name in ("epochs", "batch", "train_drives", "val_drives", "frames_per_drive", "stride", "threads", "nproc"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ConfigError(f"{name} must be an integer >= 1, got {v!r}")
@@ -196,6 +202,9 @@ class TrainConfig:
             v = getattr(self, name)
             if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
                 raise ConfigError(f"{name} must be an integer >= 1, got {v!r}")
+        if self.batch % self.nproc:
+            raise ConfigError(f"batch {self.batch} is the global batch of the {self.nproc} processes: it must be a "
+                              f"multiple of nproc")
         if not (isinstance(self.lr, (int, float)) and math.isfinite(self.lr) and self.lr > 0):
             raise ConfigError(f"lr must be a finite number > 0, got {self.lr!r}")
         if not (0 < self.lr_gamma <= 1):
@@ -339,7 +348,8 @@ class TrainConfig:
 
     # ------------------------------------------------------------ what resumes
     #: fields that may change between a run and its resumption
-    RESUMABLE_CHANGES = ("epochs", "resume", "time_budget_min", "progress", "device", "threads", "val_frames", "cache")
+    RESUMABLE_CHANGES = ("epochs", "resume", "time_budget_min", "progress", "device", "threads", "nproc", "val_frames",
+                         "cache")
 
     def resume_compatible(self, other: "TrainConfig") -> list[str]:
         """Fields (``model.streams`` for nested ones) that differ from ``other`` and would make

@@ -347,15 +347,44 @@ class FrameSet:
             out["drives"] = torch.from_numpy(self.drives[idx])
         return out
 
-    def batches(self, batch_size: int, seed: int, epoch: int, limit: int | None = None,
-                shuffle: bool = True) -> Iterator[dict]:
-        """Batches of one epoch, order a function of ``(seed, epoch)``; at most ``limit`` frames."""
+    def batch_indices(self, batch_size: int, seed: int, epoch: int, limit: int | None = None,
+                      shuffle: bool = True) -> Iterator[np.ndarray]:
+        """Frame ids of each batch of one epoch, order a function of ``(seed, epoch)``; at most
+        ``limit`` frames (the last batch may be shorter).
+        """
         n = len(self)
         order = np.random.default_rng([seed, epoch, 17]).permutation(n) if shuffle else np.arange(n)
         if limit is not None and limit < n:
             order = order[:limit]
         for i in range(0, len(order), batch_size):
-            yield self.batch(order[i:i + batch_size])
+            yield order[i:i + batch_size]
+
+    def batches(self, batch_size: int, seed: int, epoch: int, limit: int | None = None,
+                shuffle: bool = True, shard: tuple[int, int] = (0, 1)) -> Iterator[dict]:
+        """Batches of one epoch, order a function of ``(seed, epoch)``; at most ``limit`` frames.
+
+        ``shard = (rank, world)``: rank ``rank``'s part of each batch (:func:`shard_slice`; the
+        ranks' parts together are the batch); a batch of fewer than ``world`` frames (a short
+        last one) is skipped, so that every rank takes the same steps.
+        """
+        for idx in self.batch_indices(batch_size, seed, epoch, limit, shuffle):
+            part = shard_slice(len(idx), *shard)
+            if part is not None:
+                yield self.batch(idx[part])
+
+
+def shard_slice(n: int, rank: int, world: int) -> slice | None:
+    """Rank ``rank``'s contiguous part of a batch of ``n`` frames split over ``world`` ranks
+    (sizes differ by at most one, larger parts first), or None when ``n < world`` (some rank
+    would get nothing: the batch is skipped by every rank).
+    """
+    if world == 1:
+        return slice(0, n)
+    if n < world:
+        return None
+    base, extra = divmod(n, world)
+    lo = rank * base + min(rank, extra)
+    return slice(lo, lo + base + (rank < extra))
 
 
 def synth_frameset(rig: Rig, grid: BevGrid, classes: Sequence[str], seeds: Sequence[int], frames: int,

@@ -25,7 +25,7 @@ from typing_extensions import override
 from ..errors import ConfigError
 from ..grid import BevGrid
 from ..rig import Rig, preset_rig
-from .data import FrameSet, synth_frameset, train_seeds
+from .data import FrameSet, shard_slice, synth_frameset, train_seeds
 
 if TYPE_CHECKING:  # typing only: config imports the method registry, not this module
     from .config import TrainConfig
@@ -81,27 +81,35 @@ class TrainData:
         """Batches in one epoch of :meth:`batches` (one per ``batch`` labeled frames)."""
         return math.ceil(min(limit or len(self.train), len(self.train)) / batch)
 
-    def batches(self, batch: int, seed: int, epoch: int, limit: int | None = None) -> Iterator[dict]:
+    def batches(self, batch: int, seed: int, epoch: int, limit: int | None = None,
+                shard: tuple[int, int] = (0, 1)) -> Iterator[dict]:
         """One epoch of training batches, order a function of ``(seed, epoch)`` (see FrameSet.batches).
 
         Without unlabeled frames: the labeled FrameSet's batches. With them: ``{"labeled":
         <labeled batch>, "unlabeled": <batch of as many unlabeled frames>}`` (S2G2: 2 + 2), the
         unlabeled frames in their own seeded order, cycled when there are fewer of them; an
         unlabeled batch holds only the inputs (:data:`UNLABELED_KEYS`).
+
+        ``shard = (rank, world)`` (data-parallel training): rank ``rank``'s part of every batch,
+        labeled and unlabeled frames alike (see :meth:`~.data.FrameSet.batches`); the parts of
+        all ranks together are the batch of ``shard = (0, 1)``.
         """
         if self.unlabeled is None:
-            yield from self.train.batches(batch, seed, epoch, limit=limit)
+            yield from self.train.batches(batch, seed, epoch, limit=limit, shard=shard)
             return
         n = len(self.unlabeled)
         if n == 0:
             raise ConfigError("the unlabeled frame set is empty")
         order = np.random.default_rng([seed, epoch, 29]).permutation(n)
         pos = 0
-        for lab in self.train.batches(batch, seed, epoch, limit=limit):
-            take = len(lab["target"])
+        for lab_idx in self.train.batch_indices(batch, seed, epoch, limit=limit):
+            take = len(lab_idx)
             idx = order[np.arange(pos, pos + take) % n]
             pos += take
-            unl = self.unlabeled.batch(idx)
+            part = shard_slice(take, *shard)
+            if part is None:
+                continue
+            lab, unl = self.train.batch(lab_idx[part]), self.unlabeled.batch(idx[part])
             yield {"labeled": lab, "unlabeled": {k: unl[k] for k in UNLABELED_KEYS if k in unl}}
 
 

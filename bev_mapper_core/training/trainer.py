@@ -22,6 +22,7 @@ the same steps as an uninterrupted one.
 from __future__ import annotations
 
 import json
+import math
 import os
 import time
 from collections.abc import Callable
@@ -36,9 +37,10 @@ from ..errors import BevMapperError, ConfigError
 from ..grid import BevGrid
 from .config import TrainConfig
 from .data import FrameSet
+from .distributed import Ranks, batch_frames, launch, no_log, torchrun_ranks
 from .evaluate import score_frameset
 from .method import TrainMethod, method_class
-from .sources import DataSource, InMemorySource, SynthSource
+from .sources import DataSource, InMemorySource, SynthSource, TrainData
 
 
 class TrainingError(BevMapperError):
@@ -147,11 +149,35 @@ def train(cfg: TrainConfig, log: Callable[[str], None] = print,
     ``data``: where the frames come from: a :class:`~.sources.DataSource` (the ``bev-train``
     command passes the bag source for ``--bag``), ``(train, val[, unlabeled])`` FrameSets already
     at the size the method needs (tests), or None for the synthetic drives of ``cfg``.
+
+    Data-parallel (:mod:`.distributed`): under ``torchrun`` this process is one rank of its
+    world; else ``cfg.nproc`` > 1 spawns that many local ranks (``data`` is pickled to them) and
+    returns rank 0's result (a script doing so needs the ``if __name__ == "__main__":`` guard:
+    the spawned processes import its main module). One process (``nproc`` 1, no torchrun) is
+    the plain loop.
     """
-    torch.set_num_threads(cfg.threads)
+    ranks = torchrun_ranks(cfg)
+    if ranks is not None:
+        ranks.init("env://")
+        try:
+            return _train(cfg, log, data, ranks)
+        finally:
+            ranks.close()
+    if cfg.nproc > 1:
+        return launch(cfg, log, data, _train)
+    return _train(cfg, log, data, Ranks())
+
+
+def _train(cfg: TrainConfig, log: Callable[[str], None], data: DataSource | tuple[FrameSet, ...] | None,
+           ranks: Ranks) -> dict:
+    """The training loop of one rank (see :func:`train`); rank 0 logs, validates and writes."""
+    torch.set_num_threads(ranks.threads(cfg.threads))
     if cfg.device.startswith("cuda") and not torch.cuda.is_available():
         raise ConfigError(f"device {cfg.device!r} requested but CUDA is not available")
-    device = torch.device(cfg.device)
+    device = ranks.device(cfg.device)
+    main = ranks.is_main
+    if not main:
+        log = no_log  # under torchrun every rank gets the command's log
     source = SynthSource() if data is None else InMemorySource(*data) if isinstance(data, tuple) else data
     out = Path(cfg.out)
     last_json = out / "last.json"
@@ -166,35 +192,48 @@ def train(cfg: TrainConfig, log: Callable[[str], None] = print,
         log(f"resumed {out} after epoch {state.epoch + 1} (step {state.step})")
     elif last_json.exists():
         raise TrainingError(f"{out} already holds a run; use --resume or another --out")
-    out.mkdir(parents=True, exist_ok=True)
-    frames = source.load(cfg, rig, grid, method.data_needs(), log)
+    if main:
+        out.mkdir(parents=True, exist_ok=True)
+    frames = ranks.in_turn(lambda: source.load(cfg, rig, grid, method.data_needs(), log))
     method.prepare(frames, log)
     n_params = sum(p.numel() for p in method.model.parameters())
     schedule = method.schedule()
     log(f"model: {n_params / 1e6:.2f} M parameters, {method.describe()}; lr {cfg.lr} x{cfg.lr_gamma} from epoch "
         f"{cfg.lr_step + 1}" + (f", {schedule}" if schedule else ""))
+    if ranks.world > 1:
+        log(f"data-parallel: {ranks.world} processes of {cfg.batch // ranks.world} frames per batch, "
+            f"{ranks.threads(cfg.threads)} threads each")
+    step_loss = ranks.wrap(method)  # method.loss, or through DistributedDataParallel
     t_start = time.time()
     budget_s = None if cfg.time_budget_min is None else cfg.time_budget_min * 60.0
     stopped = False
     for epoch in range(state.epoch + 1, cfg.epochs):
         for g in opt.param_groups:
             g["lr"] = cfg.lr_at(epoch)
-        torch.manual_seed(cfg.seed * 100_003 + epoch)
+        torch.manual_seed(ranks.epoch_seed(cfg.seed * 100_003 + epoch))
         method.model.train()
         method.start_epoch(epoch)
         t0 = time.time()
         sums: dict[str, float] = {}
         n = 0
-        batches = frames.batches(cfg.batch, cfg.seed, epoch, limit=cfg.frames_per_epoch)
+        batches = frames.batches(cfg.batch, cfg.seed, epoch, limit=cfg.frames_per_epoch, shard=ranks.shard)
         total = frames.steps(cfg.batch, cfg.frames_per_epoch)
-        if cfg.progress:
+        if cfg.progress and main:
             from tqdm import tqdm
 
             batches = tqdm(batches, total=total, desc=f"epoch {epoch + 1}/{cfg.epochs}", unit="batch", mininterval=5)
         for b in batches:
-            loss, parts = method.loss(b, epoch, state.step)
-            if not torch.isfinite(loss):
-                raise TrainingError(f"loss became {float(loss)} at step {state.step}")
+            loss, parts = step_loss(b, epoch, state.step)
+            if ranks.world > 1:  # the global batch's parts on every rank; the loss scaled for DDP's mean
+                parts, scale = ranks.reduce_parts(parts, batch_frames(b))
+                if scale != 1.0:
+                    loss = loss * scale
+                finite = math.isfinite(parts["total"])
+            else:
+                finite = bool(torch.isfinite(loss))
+            if not finite:
+                raise TrainingError(f"loss became {parts['total'] if ranks.world > 1 else float(loss)} "
+                                    f"at step {state.step}")
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -205,41 +244,51 @@ def train(cfg: TrainConfig, log: Callable[[str], None] = print,
                 sums[k] = sums.get(k, 0.0) + v
             if cfg.progress and hasattr(batches, "set_postfix"):
                 batches.set_postfix(loss=f"{parts['total']:.3f}")
-            if budget_s is not None and time.time() - t_start > budget_s:
+            if budget_s is not None and ranks.any(time.time() - t_start > budget_s):
                 stopped = True
                 break
         train_s = time.time() - t0
-        if stopped and n < total:
-            # the cut epoch is validated and checkpointed like a finished one (a resume starts
-            # with the next epoch); its history record says ``partial``
-            log(f"time budget reached inside epoch {epoch + 1} after {n}/{total} batches")
-        tv = time.time()
-        res = validate(method, frames.val, grid, cfg.batch, cfg.val_frames)
-        val_s = time.time() - tv
-        miou = res["miou"]
         state.train_seconds += train_s
-        rec = {"epoch": epoch, "step": state.step, "lr": cfg.lr_at(epoch), "batches": n, "train_s": round(train_s, 1),
-               "val_s": round(val_s, 1), **{f"loss_{k}": v / max(n, 1) for k, v in sums.items()},
-               "val_miou": miou, "val_iou": {k: v["iou"] for k, v in res["classes"].items()}, "partial": stopped and n < total}
-        state.history.append(rec)
-        with open(out / "metrics.jsonl", "a") as f:
-            f.write(json.dumps(rec) + "\n")
-        terms = " ".join(f"{k} {v / max(n, 1):.4f}" for k, v in sums.items() if k != "total")
-        log(f"epoch {epoch + 1}/{cfg.epochs}: loss {rec.get('loss_total', float('nan')):.4f} ({terms}) "
-            f"val mIoU {100 * (miou or 0):.1f} [{train_s:.0f} s train, {val_s:.0f} s val]")
         state.epoch = epoch
-        if miou is not None and (state.best_miou is None or miou > state.best_miou):
-            state.best_miou, state.best_epoch = miou, epoch
-            method.save(out / "best.safetensors")
-            _write_json(out / "best.json", {**state.to_json(cfg, method), "val": res})
-        method.save(out / "last.safetensors")
-        save_optimizer(opt, out / "last_optim.safetensors")
-        _write_json(last_json, state.to_json(cfg, method))
+        if main:
+            _end_epoch(cfg, log, method, opt, frames, grid, state, epoch, n, total, sums, train_s, stopped)
+        ranks.barrier()  # the others wait while rank 0 validates and writes
         if stopped:
             log(f"stopped by the time budget ({cfg.time_budget_min} min) after epoch {epoch + 1}; --resume continues")
             break
     doc = json.loads(last_json.read_text()) if last_json.exists() else state.to_json(cfg, method)
     return doc
+
+
+def _end_epoch(cfg: TrainConfig, log: Callable[[str], None], method: TrainMethod, opt: torch.optim.Optimizer,
+               frames: TrainData, grid: BevGrid, state: TrainState, epoch: int, n: int, total: int,
+               sums: dict[str, float], train_s: float, stopped: bool) -> None:
+    """Validate, log, and write ``metrics.jsonl`` and the checkpoints of a finished epoch."""
+    out = Path(cfg.out)
+    if stopped and n < total:
+        # the cut epoch is validated and checkpointed like a finished one (a resume starts
+        # with the next epoch); its history record says ``partial``
+        log(f"time budget reached inside epoch {epoch + 1} after {n}/{total} batches")
+    tv = time.time()
+    res = validate(method, frames.val, grid, cfg.batch, cfg.val_frames)
+    val_s = time.time() - tv
+    miou = res["miou"]
+    rec = {"epoch": epoch, "step": state.step, "lr": cfg.lr_at(epoch), "batches": n, "train_s": round(train_s, 1),
+           "val_s": round(val_s, 1), **{f"loss_{k}": v / max(n, 1) for k, v in sums.items()},
+           "val_miou": miou, "val_iou": {k: v["iou"] for k, v in res["classes"].items()}, "partial": stopped and n < total}
+    state.history.append(rec)
+    with open(out / "metrics.jsonl", "a") as f:
+        f.write(json.dumps(rec) + "\n")
+    terms = " ".join(f"{k} {v / max(n, 1):.4f}" for k, v in sums.items() if k != "total")
+    log(f"epoch {epoch + 1}/{cfg.epochs}: loss {rec.get('loss_total', float('nan')):.4f} ({terms}) "
+        f"val mIoU {100 * (miou or 0):.1f} [{train_s:.0f} s train, {val_s:.0f} s val]")
+    if miou is not None and (state.best_miou is None or miou > state.best_miou):
+        state.best_miou, state.best_epoch = miou, epoch
+        method.save(out / "best.safetensors")
+        _write_json(out / "best.json", {**state.to_json(cfg, method), "val": res})
+    method.save(out / "last.safetensors")
+    save_optimizer(opt, out / "last_optim.safetensors")
+    _write_json(out / "last.json", state.to_json(cfg, method))
 
 
 __all__ = ["TrainState", "TrainingError", "load_optimizer", "save_optimizer", "train", "validate"]
