@@ -116,8 +116,9 @@ class Ranks:
                                     world_size=self.world, timeout=timedelta(seconds=COLLECTIVE_TIMEOUT_S))
 
     def close(self) -> None:
-        """Leave the process group."""
+        """Leave the process group (after every rank is done with its collectives)."""
         if self.world > 1 and dist.is_initialized():
+            dist.barrier()
             dist.destroy_process_group()
 
     def barrier(self) -> None:
@@ -322,6 +323,7 @@ def launch(cfg: "TrainConfig", log: Callable[[str], None], data: Any, run: Calla
                               start_method="spawn")
     result: dict[str, Any] = {}
     errors: list[tuple[int, str, bool]] = []
+    finished: set[int] = set()  # ranks that completed their run and left the group
 
     def drain(wait: float = 0.0) -> None:
         while True:
@@ -333,6 +335,8 @@ def launch(cfg: "TrainConfig", log: Callable[[str], None], data: Any, run: Calla
                 log(msg[1])
             elif msg[0] == "done":
                 result["doc"] = msg[1]
+            elif msg[0] == "finished":
+                finished.add(msg[1])
             else:
                 errors.append(msg[1:])
 
@@ -344,6 +348,8 @@ def launch(cfg: "TrainConfig", log: Callable[[str], None], data: Any, run: Calla
                     break
             except Exception as e:  # torch's ProcessExitedException / ProcessRaisedException
                 drain(wait=0.5)
+                if not errors and len(finished) == cfg.nproc and "doc" in result:
+                    break  # every rank had finished: a crash in the interpreter's teardown loses nothing
                 if errors:  # the rank's own error first, then errors of ranks that lost a peer
                     rank, msg, _ = sorted(errors, key=lambda x: not x[2])[0]
                     raise DistributedError(f"rank {rank}: {msg}") from None
@@ -368,6 +374,9 @@ def _worker(rank: int, world: int, init: str, cfg: "TrainConfig", data: Any, q, 
         ranks.close()
         if ranks.is_main:
             q.put(("done", doc))
+        q.put(("finished", rank))
+        q.close()
+        q.join_thread()
     except BaseException as e:  # noqa: BLE001 - every failure must reach the launcher
         own = isinstance(e, (BevMapperError, OSError))
         if not own and not isinstance(e, KeyboardInterrupt):
