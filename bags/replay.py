@@ -58,7 +58,7 @@ from . import topics as T
 from .errors import BagContentError, BagCorruptError, BagError, BagExistsError
 from .frame_scores import FrameScores
 from .pictures import comparison_picture, encode_gif, encode_png, partial_name, write_atomic
-from .prefetch import Prefetch
+from .pipeline import InOrder, Prefetch
 from .reader import BagReader
 from .reliability import reliability_picture
 from .report import render_report
@@ -97,8 +97,10 @@ class ReplayOptions:
         temporal: method-independent temporal fusion of the mapper's output over the last
             frames, aligned by the bag's odometry (:mod:`bev_mapper_core.temporal`; window 1 =
             off). Frames without odometry are mapped alone and counted.
-        prefetch: frames read and decoded ahead by a thread while the current one is mapped,
-            scored and written (:mod:`bags.prefetch`); 0 = read in turn.
+        pipeline: frames in flight between the stages of the replay's pipeline
+            (:mod:`bags.pipeline`: one thread reads and decodes the next frames, this one maps,
+            one scores and writes the frames mapped before); 0 = one thread, every stage in turn.
+            The outputs are the same either way.
     """
 
     bag: Path
@@ -115,15 +117,15 @@ class ReplayOptions:
     force: bool = False
     progress: bool = False
     temporal: TemporalConfig = field(default_factory=TemporalConfig)
-    prefetch: int = 4
+    pipeline: int = 4
 
     def __post_init__(self) -> None:
         if self.scope not in SCOPES:
             raise BagError(f"scope must be one of {list(SCOPES)}, got {self.scope!r}")
         if self.max_frames is not None and self.max_frames < 1:
             raise BagError(f"--max-frames must be >= 1, got {self.max_frames}")
-        if self.prefetch < 0:
-            raise BagError(f"prefetch must be >= 0, got {self.prefetch}")
+        if self.pipeline < 0:
+            raise BagError(f"--pipeline must be >= 0, got {self.pipeline}")
         if self.frames_every < 1:
             raise BagError(f"--frames-every must be >= 1, got {self.frames_every}")
         if self.storage not in STORAGES:
@@ -303,10 +305,33 @@ def _run(options, reader, rig, grid, mapper, out, tmp_frames, notes, progress=No
         # the next frames are read and decoded by a thread while this one maps, scores, writes
         frames = reader.frames(rgb=kind == "rgb", labels=kind == "labels",
                                label_map=label_map(options.mapper.label_map))
-        if options.prefetch:
-            frames = Prefetch(frames, options.prefetch)
+        if options.pipeline:
+            frames = Prefetch(frames, options.pipeline)
         fusion = TemporalFusion(grid, options.temporal) if options.temporal.window > 1 else None
         temporal = {"window": options.temporal.window, "fused_frames": 0, "resets": 0, "frames_without_pose": 0}
+
+        def finish_frame(frame, pred, index: int) -> None:
+            """Copy the calibration up to the frame, write its grids, score it, draw it."""
+            copier.upto(_frame_time(frame))
+            _write_frame(bw, grid, mapper, pred, frame.stamp_ns, ego)
+            gt, mask = scorer.update(frame, pred)
+            score = None if gt is None else scores.add(
+                frame.index, frame.stamp_ns, pred.probs, pred.known, mapper.class_names, gt,
+                [c.name for c in scorer.classes], mask, frame.ground_visibility,
+                scorer.scope_used, scorer.acc.threshold)
+            if options.pictures and index % options.frames_every == 0:
+                pic = comparison_picture(
+                    grid, pred.probs, pred.known, mapper.classes, gt, mask, scorer.classes,
+                    method=options.mapper.method, caption=_caption(frame, score),
+                    ious=None if score is None else score.ious)
+                name = f"frame_{frame.index:04d}.png"
+                write_atomic(tmp_frames / name, encode_png(pic))
+                pictures.append(frames_dir / name)
+                if options.gif:
+                    gif_frames.append(pic)
+
+        finish = InOrder(options.pipeline) if options.pipeline else None
+        finished = False
         try:
             for frame in frames:
                 images = frame.labels if kind == "labels" else frame.rgb
@@ -328,31 +353,22 @@ def _run(options, reader, rig, grid, mapper, out, tmp_frames, notes, progress=No
                     damage = f"frame {frame.index} could not be mapped: {exc}"
                     break
                 latencies.append((time.perf_counter() - t0) * 1000.0)
-                copier.upto(_frame_time(frame))
-                _write_frame(bw, grid, mapper, pred, frame.stamp_ns, ego)
-                gt, mask = scorer.update(frame, pred)
-                score = None if gt is None else scores.add(
-                    frame.index, frame.stamp_ns, pred.probs, pred.known, mapper.class_names, gt,
-                    [c.name for c in scorer.classes], mask, frame.ground_visibility,
-                    scorer.scope_used, scorer.acc.threshold)
-                if options.pictures and mapped % options.frames_every == 0:
-                    pic = comparison_picture(
-                        grid, pred.probs, pred.known, mapper.classes, gt, mask, scorer.classes,
-                        method=options.mapper.method, caption=_caption(frame, score),
-                        ious=None if score is None else score.ious)
-                    name = f"frame_{frame.index:04d}.png"
-                    write_atomic(tmp_frames / name, encode_png(pic))
-                    pictures.append(frames_dir / name)
-                    if options.gif:
-                        gif_frames.append(pic)
+                if finish is None:
+                    finish_frame(frame, pred, mapped)
+                else:  # scored and written by the in-order thread while the next frame maps
+                    finish.submit(finish_frame, frame, pred, mapped)
                 mapped += 1
                 bar.update(1)
                 if options.max_frames is not None and mapped >= options.max_frames:
                     break  # before reading further (and maybe meeting damage we don't need)
+            finished = True
         except BagCorruptError as exc:
             damage = str(exc)
+            finished = True
         finally:
             frames.close()
+            if finish is not None:
+                finish.close(abandon=not finished)  # the frames mapped so far are scored and written
             bar.close()
             copier.close()
         bag_counts = dict(bw.counts)

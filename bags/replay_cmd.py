@@ -116,9 +116,9 @@ def add_replay_args(p: argparse.ArgumentParser) -> None:
                         f"(default {ReplayOptions.frames_every}; --picture-every is an old name)")
     p.add_argument("--gif", action="store_true", help="also write an animated replay.gif")
     p.add_argument("--no-report", action="store_true", help="write no report.html")
-    p.add_argument("--prefetch", type=int, default=ReplayOptions.prefetch, metavar="N",
-                   help="frames read and decoded ahead by a thread while one is mapped (0 = none; "
-                        "default: %(default)s)")
+    p.add_argument("--pipeline", type=int, default=ReplayOptions.pipeline, metavar="N",
+                   help="frames in flight between the threads that read, map, and score and write (0 = one "
+                        "thread, every stage in turn; the outputs are the same; default: %(default)s)")
     p.add_argument("--storage", choices=STORAGES, default=ReplayOptions.storage, help="storage of bev_bag/")
     p.add_argument("--force", action="store_true", help="replace existing outputs in DIR")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -140,7 +140,7 @@ def options_from_args(args: argparse.Namespace) -> ReplayOptions:
         frames_every=args.frames_every, gif=args.gif, report=not args.no_report,
         storage=args.storage, force=args.force,
         progress=not args.quiet and sys.stderr.isatty(),
-        temporal=TemporalConfig(window=args.temporal_window), prefetch=args.prefetch,
+        temporal=TemporalConfig(window=args.temporal_window), pipeline=args.pipeline,
     )
 
 

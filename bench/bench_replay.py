@@ -78,7 +78,7 @@ def main() -> None:
         fps = m["frames"] / wall
         # the reference, same run: frames read and decoded in turn, not ahead by the thread
         t0 = time.perf_counter()
-        replay(ReplayOptions(bag=bag, out=tmp / "in_turn", mapper=MapperConfig(method="ipm"), prefetch=0,
+        replay(ReplayOptions(bag=bag, out=tmp / "in_turn", mapper=MapperConfig(method="ipm"), pipeline=0,
                              pictures=not args.no_pictures, frames_every=args.frames_every))
         fps_in_turn = m["frames"] / (time.perf_counter() - t0)
         print(f"bag: {bag} ({size / 1e6:.1f} MB, {n} frames at {rate:.2f} Hz)")
@@ -87,8 +87,8 @@ def main() -> None:
               f"{', '.join(f'{w:.2f}' for w in walls)})")
         print(f"throughput     : {fps:7.1f} frames/s = {1000.0 / fps:6.1f} ms/frame end to end")
         print(f"vs real time   : {fps / rate:7.1f}x real time (drive at {rate:.1f} Hz)")
-        print(f"read in turn   : {fps_in_turn:7.1f} frames/s = {fps_in_turn / rate:.1f}x real time (--prefetch 0, "
-              f"same run): reading ahead is {fps / fps_in_turn:.2f}x")
+        print(f"one thread     : {fps_in_turn:7.1f} frames/s = {fps_in_turn / rate:.1f}x real time (--pipeline 0, "
+              f"same run): the pipeline is {fps / fps_in_turn:.2f}x")
         print(f"steady state   : {marginal * 1000.0:6.1f} ms/frame = {1.0 / marginal / rate:.1f}x real "
               f"time, without the fixed cost (opening the bag, IPM tables: "
               f"{wall - marginal * m['frames']:.2f} s)")
@@ -98,7 +98,7 @@ def main() -> None:
         print(f"drivable IoU {m['classes']['drivable']['iou']:.3f}, mIoU {m['miou']:.3f}")
         write_rows(args.json, "bench_replay.py", [row(
             f"bev-bag replay, IPM, surround6 drive at {rate:.0f} Hz", f"{fps / rate:.1f}x real time ({fps:.1f} frames/s)",
-            f"{fps_in_turn / rate:.1f}x real time (frames read in turn, --prefetch 0)", fps / fps_in_turn,
+            f"{fps_in_turn / rate:.1f}x real time (one thread, --pipeline 0)", fps / fps_in_turn,
             f"steady state {1.0 / marginal / rate:.1f}x; mapping p50 {lat['p50']} ms of {1000.0 / fps:.0f} ms a frame")])
         if args.keep:
             shutil.copytree(out, args.keep, dirs_exist_ok=True)

@@ -1,6 +1,6 @@
-"""Reading ahead (bags/prefetch.py): items and the source's exception arrive in order, closing
-stops the thread and runs the source's ``finally``; a replay reading ahead equals one reading in
-turn."""
+"""The replay pipeline (bags/pipeline.py): read-ahead items and the source's exception arrive in order, closing
+stops the thread and runs the source's ``finally``, in-order calls run in order and hand back the first error; a replay through the pipeline
+equals one in a single thread."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import threading
 
 import pytest
 
-from bags.prefetch import Prefetch
+from bags.pipeline import InOrder, Prefetch
 from bags.replay import ReplayOptions, replay
 from bev_mapper_core.mapper import MapperConfig
 
@@ -48,13 +48,36 @@ def test_close_stops_reading_and_runs_the_sources_finally():
 
 
 @pytest.mark.slow
-def test_replay_reading_ahead_equals_reading_in_turn(small_drive_mcap, tmp_path):
+def test_replay_through_the_pipeline_equals_one_thread(small_drive_mcap, tmp_path):
     docs = []
     for n in (0, 4):
-        out = tmp_path / f"prefetch{n}"
-        replay(ReplayOptions(bag=small_drive_mcap[0], out=out, mapper=MapperConfig(method="ipm"), prefetch=n,
+        out = tmp_path / f"pipeline{n}"
+        replay(ReplayOptions(bag=small_drive_mcap[0], out=out, mapper=MapperConfig(method="ipm"), pipeline=n,
                              pictures=False, report=False))
         docs.append(json.loads((out / "metrics.json").read_text()))
     for d in docs:
         d.pop("latency_ms")
     assert docs[0] == docs[1] and docs[0]["frames"] > 0
+
+
+def test_in_order_runs_calls_in_order_and_hands_back_the_first_error():
+    done = []
+    w = InOrder(depth=2)
+    for i in range(20):
+        w.submit(done.append, i)
+    w.close()
+    assert done == list(range(20))
+
+    def fail(i):
+        if i == 3:
+            raise OSError("disk full at 3")
+        done.append(i)
+
+    done.clear()
+    w = InOrder(depth=1)
+    with pytest.raises(OSError, match="disk full at 3"):
+        for i in range(50):
+            w.submit(fail, i)
+        w.close()
+    assert done == [0, 1, 2]  # nothing after the failed call ran
+    w.close(abandon=True)
