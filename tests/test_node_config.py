@@ -130,7 +130,10 @@ def test_inference_threads_leave_a_core_to_the_callbacks(monkeypatch):
 
     cpus = len(os.sched_getaffinity(0))
     monkeypatch.delenv(THREADS_ENV, raising=False)
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     assert inference_threads() == max(1, cpus - 1)
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")  # e.g. a Ray task of one CPU
+    assert inference_threads() == 1
     monkeypatch.setenv(THREADS_ENV, "3")
     assert inference_threads() == 3
     assert node_config_from_params({"cameras": ["a"]}).mapper.threads == 0

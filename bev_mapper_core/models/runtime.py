@@ -25,8 +25,9 @@ def available_cpus() -> int:
 
 def inference_threads() -> int:
     """Torch (and onnxruntime / OpenVINO) CPU threads for inference: ``$BEV_MAPPER_TORCH_THREADS``,
-    else every CPU but one (at least 1): the same rule in the node, ``bev-bag replay`` and the
-    benchmarks.
+    else ``$OMP_NUM_THREADS`` when set (a Ray task of ``bev-bag evaluate`` gets its ``num_cpus``
+    there, so N tasks on a node use N cores), else every CPU but one (at least 1): the same rule
+    in the node, ``bev-bag replay`` and the benchmarks.
 
     The CPU left over is for what feeds the model: the node's executor and the DDS threads
     receiving the next set, replay's reading and decoding. On a shared robot computer an
@@ -40,6 +41,9 @@ def inference_threads() -> int:
             return max(1, int(env))
         except ValueError:
             raise ConfigError(f"{THREADS_ENV} must be an integer, got {env!r}") from None
+    omp = os.environ.get("OMP_NUM_THREADS", "")
+    if omp.isdigit() and int(omp) >= 1:  # set by a scheduler (a Ray task: its num_cpus) or the user
+        return int(omp)
     return max(1, available_cpus() - 1)
 
 
