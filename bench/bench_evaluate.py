@@ -34,6 +34,8 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
+from bench_rows import machine  # noqa: E402
+
 from bags.evaluate import EvaluateOptions, evaluate  # noqa: E402
 from bags.fleet import aggregate, evaluate_bag  # noqa: E402
 from bags.pictures import write_atomic  # noqa: E402
@@ -41,19 +43,6 @@ from bags.replay import ReplayOptions, replay  # noqa: E402
 from bags.synth_cmd import SynthBagOptions, synth_bag  # noqa: E402
 from bev_mapper_core.mapper import MapperConfig  # noqa: E402
 from bev_mapper_core.synth.config import SynthConfig  # noqa: E402
-
-
-def machine() -> str:
-    """One line naming this machine."""
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{cpu}, {len(os.sched_getaffinity(0))} CPU(s) usable, Python {platform.python_version()}"
 
 
 def simulated(nodes: int, tasks: int, sleep_s: float, payload: dict) -> tuple[float, float]:
@@ -101,7 +90,7 @@ def main() -> None:
     ap.add_argument("--sim-sleep", type=float, default=0.25)
     ap.add_argument("--keep", type=Path, default=None)
     args = ap.parse_args()
-    print(f"machine: {machine()} (shared with other jobs: figures are noisy); load average "
+    print(f"machine: {machine()} usable, Python {platform.python_version()}; load average "
           f"{os.getloadavg()[0]:.2f}")
     tmp = Path(tempfile.mkdtemp(prefix="bench_evaluate_"))
     try:
