@@ -60,7 +60,7 @@ def markdown(rows: list[dict]) -> str:
     """The table, with the machine, the date and the command that made it."""
     lines = [f"Measured by `.venv/bin/python bench/bench_table.py --readme` on {machine()}, "
              f"{datetime.date.today().isoformat()}. Ratio: the reference's time over ours (above 1: ours is "
-             "faster); for the node, sets mapped over sets published; for replay, its speed over reading in turn.",
+             "faster); for the node, sets mapped over sets published; for replay, the pipeline's speed over one thread.",
              "",
              "| path | ours | reference, same run | ratio | note | command |",
              "|---|---|---|---|---|---|"]
