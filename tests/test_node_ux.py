@@ -226,8 +226,12 @@ def test_rig_alone_configures_the_preset_and_typos_are_named(session):
     client = AsyncParameterClient(s.node, "mapper_node")
     assert client.wait_for_services(timeout_sec=30)
     names = ["cameras", "extrinsics.left", "extrinsics.front", "classes", "method"]
-    fut = client.get_parameters(names)
-    rclpy.spin_until_future_complete(s.node, fut, timeout_sec=30)
+    for _ in range(3):  # the first request of a fresh client can be lost while DDS still matches
+        fut = client.get_parameters(names)  # the service's reply endpoints: ask again
+        rclpy.spin_until_future_complete(s.node, fut, timeout_sec=10)
+        if fut.result() is not None:
+            break
+    assert fut.result() is not None, f"no reply to get_parameters:\n{s.log.read_text()}"
     got = dict(zip(names, (parameter_value_to_python(v) for v in fut.result().values)))
     preset = preset_parameters("cam2bev4")
     assert list(got["cameras"]) == preset["cameras"] == ["front", "rear", "left", "right"]
