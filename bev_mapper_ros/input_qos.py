@@ -1,11 +1,11 @@
 """QoS of the camera subscriptions (images and CameraInfo): ``image_reliability``.
 
 A synchronized set is a burst: every camera publishes an image of the same instant at once (six
-400x225 rgb8 images are 1.6 MB). Over a best-effort subscription DDS drops the fragments that
-do not fit the socket buffers, and what it drops is most often the first image of the burst:
-measured with six cameras at 10 Hz on 2 cores, 28-51 % of Bi-Mapper's sets and 8-12 % of
-IPM's lost a camera that way, and a reliable subscription to reliable publishers took IPM from
-9.0-9.3 to 10.0 complete sets per second (``bench/bench_node_rate.py``).
+400x225 rgb8 images are 1.6 MB). Over a best-effort subscription DDS drops what does not fit its
+buffers while the node's CPU is busy mapping, and the set is then mapped without that camera or
+lost. Measured with Bi-Mapper, six cameras at 10 Hz on 2 cores (``bench/bench_table.py``, two
+runs): best-effort publishers 8.9 / 9.2 sets/s mapped, reliable ones (``auto`` follows them)
+10.0 / 10.1 sets/s with no set missing a camera.
 
 But a reliable subscription does not match a best-effort publisher at all (DDS's request/offer
 rule): nothing arrives. Camera drivers differ (``sensor_data`` QoS is best effort; most drivers
