@@ -123,18 +123,14 @@ def evaluate(options: EvaluateOptions) -> EvaluateResult:
     workers = options.workers
     if jobs:
         t = time.perf_counter()
-        runtime = ray_runtime(options.ray, weights=True)
-        ray = runtime.__enter__()
-        try:
+        with ray_runtime(options.ray, weights=True) as ray:  # leaving stops a local runtime
             timing["ray_start_s"] = time.perf_counter() - t
             workers = workers or cluster_cpus(ray)
             t = time.perf_counter()
             run_tasks(ray, jobs, workers, show_progress=options.progress, on_record=on_record)
-            timing["tasks_s"] = time.perf_counter() - t
-        finally:
-            t = time.perf_counter()
-            runtime.__exit__(None, None, None)  # stops the local runtime; from a cluster, disconnects
-            timing["ray_stop_s"] = time.perf_counter() - t
+            t_stop = time.perf_counter()
+            timing["tasks_s"] = t_stop - t
+        timing["ray_stop_s"] = time.perf_counter() - t_stop
     ordered = [records[n] for n in names]
     t = time.perf_counter()
     agg = aggregate(ordered)

@@ -28,10 +28,9 @@ from bev_mapper_core.metrics import MetricAccumulator, WholeGridAccumulator
 from . import ray_tasks
 from .errors import BagError
 from .replay import ReplayOptions, ReplayScorer, _percentiles, replay
+from .sources import BAG_SUFFIXES
 
 OK, DAMAGED, FAILED = "ok", "damaged", "failed"
-#: suffixes of bag files (a rosbag2 bag is a directory holding ``metadata.yaml``)
-BAG_SUFFIXES = (".mcap", ".db3")
 #: seconds between two progress reports of a task
 PROGRESS_EVERY_S = 0.2
 

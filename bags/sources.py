@@ -30,6 +30,9 @@ from .errors import BagCorruptError, BagFormatError
 from .integrity import check_mcap, check_sqlite
 from .metadata import MetadataError, read_metadata
 
+#: suffixes of bag files (a rosbag2 bag is a directory holding ``metadata.yaml`` or MCAP files)
+BAG_SUFFIXES = (".mcap", ".db3")
+
 log = logging.getLogger(__name__)
 
 
@@ -237,7 +240,7 @@ def open_source(path: str | Path):
     path = Path(path)
     if not path.exists():
         raise BagFormatError(f"{path}: no such file or directory")
-    if path.is_file() and path.suffix not in (".mcap", ".db3"):
+    if path.is_file() and path.suffix not in BAG_SUFFIXES:
         raise BagFormatError(f"{path}: not a bag (expected a rosbag2 directory, .mcap or .db3)")
     meta: dict = {}
     if path.is_dir():

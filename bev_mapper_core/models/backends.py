@@ -178,6 +178,7 @@ class BackendRunner:
 
     def __init__(self, backend: str, device: torch.device, threads: int) -> None:
         self.backend, self.device, self.threads = backend, device, threads
+        self.module: torch.nn.Module | None = None
         self._exported: ExportedModel | None = None
 
     @property
@@ -185,19 +186,24 @@ class BackendRunner:
         """True when torch runs the part itself."""
         return self.backend == "torch" or self.device.type != "cpu"
 
-    def reset(self) -> None:
-        """Forget the exported graph (a new calibration: the model's tables changed)."""
+    def reset(self, module: torch.nn.Module) -> None:
+        """The part to run from now on, for a (new) calibration: exported again on the next
+        call. ``module`` returns a tensor or a tuple of tensors.
+        """
+        self.module = module
         self._exported = None
 
-    def __call__(self, module: torch.nn.Module, *inputs: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """``module(*inputs)`` as a tuple of tensors, by the backend (inputs and outputs on the
-        CPU for exported runs; ``module`` returns a tensor or a tuple of tensors).
+    def __call__(self, *inputs: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """The part (:meth:`reset`) on ``inputs`` as a tuple of tensors, by the backend (inputs
+        and outputs on the CPU for exported runs).
         """
+        if self.module is None:
+            raise RuntimeError("BackendRunner: no part to run yet (reset(module) first)")
         if self.eager:
-            out = module(*inputs)
+            out = self.module(*inputs)
             return out if isinstance(out, tuple) else (out,)
         if self._exported is None:
-            self._exported = ExportedModel(module.eval(), inputs, self.backend, self.threads)
+            self._exported = ExportedModel(self.module.eval(), inputs, self.backend, self.threads)
         return tuple(torch.from_numpy(o) for o in self._exported(*(t.numpy() for t in inputs)))
 
 

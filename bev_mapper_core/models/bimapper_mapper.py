@@ -163,7 +163,7 @@ class BiMapperMapper(Mapper):
                                                    classes=self._weight_classes, device=self.device)
         else:
             self.model.set_rig(rig)
-        self._runner.reset()  # the model's tables changed: export again on the next frame (backend != torch)
+        self._runner.reset(_Exportable(self.model))  # tables changed: export again on the next frame
 
     def _run_exported(self, raw: torch.Tensor, cam_mask: torch.Tensor) -> dict[str, torch.Tensor] | None:
         """The model's calibrated logits (and visibility logits) from the ONNX backend, or None
@@ -171,7 +171,7 @@ class BiMapperMapper(Mapper):
         """
         if self._runner.eager:
             return None
-        outs = self._runner(_Exportable(self.model), self.model.preprocess(raw), raw, cam_mask)
+        outs = self._runner(self.model.preprocess(raw), raw, cam_mask)
         res = {"logits": outs[0]}
         if len(outs) > 1:
             res["visibility_logits"] = outs[1]

@@ -87,7 +87,7 @@ class FocusBEVMapper(MonocularMapper):
     def set_rig(self, rig: Rig) -> None:
         """The model for this calibration (see :class:`MonocularMapper`); export again if exported."""
         super().set_rig(rig)
-        self._runner.reset()
+        self._runner.reset(_Features(self.model))
 
     def reset(self) -> None:
         """Drop the memory bank."""
@@ -136,7 +136,7 @@ class FocusBEVMapper(MonocularMapper):
         frames = 1
         with torch.inference_mode():
             raw = torch.from_numpy(img)[None, None].to(self.device)  # (1, 1, H, W[, 3])
-            bev = self._runner(_Features(self.model), self.model.preprocess(raw))[0]  # (1, C, hb, wb)
+            bev = self._runner(self.model.preprocess(raw))[0]  # (1, C, hb, wb)
             fused = bev
             if temporal:
                 hist = []

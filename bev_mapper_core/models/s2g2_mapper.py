@@ -62,7 +62,7 @@ class S2G2Mapper(MonocularMapper):
     def set_rig(self, rig: Rig) -> None:
         """The model for this calibration (see :class:`MonocularMapper`); export again if exported."""
         super().set_rig(rig)
-        self._runner.reset()
+        self._runner.reset(_Logits(self.model, self.branch))
 
     def map(self, images: Mapping[str, np.ndarray], ego_pose=None, stamp_ns=None) -> BevPrediction:
         """Map the camera's image (the only camera, so always present)."""
@@ -70,7 +70,7 @@ class S2G2Mapper(MonocularMapper):
         img = np.ascontiguousarray(images[self.rig.names[0]])
         with torch.inference_mode():
             raw = torch.from_numpy(img)[None, None].to(self.device)  # (1, 1, H, W[, 3])
-            logits = self._runner(_Logits(self.model, self.branch), self.model.preprocess(raw))[0]  # (1, K, H, W)
+            logits = self._runner(self.model.preprocess(raw))[0]  # (1, K, H, W)
             probs = torch.sigmoid(logits[0, self._layers]).float().cpu().numpy()  # (K_wanted, H, W)
             known = self.model.known().cpu().numpy()
         return BevPrediction(self.class_names, np.ascontiguousarray(probs, dtype=np.float32), known.astype(bool))
