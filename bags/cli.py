@@ -102,7 +102,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     try:
         with sigterm_unwinds():
-            return int(args._run(args) or 0)
+            status = int(args._run(args) or 0)
+        if _sigterm_seen.is_set():  # a library swallowed the unwinding (e.g. as its tasks' failure)
+            raise Terminated()
+        return status
     except BevMapperError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_ERROR

@@ -227,8 +227,9 @@ def run_tasks(ray, jobs: list[tuple[str, ReplayOptions]], workers: int, *, show_
             frames_bar.refresh()
 
     try:
+        # a bag that kills its worker fails alone at once, not after retries
         for (name, options), record in ray_tasks.run_tasks(ray, _evaluate_job, jobs, board, max_in_flight=workers,
-                                                           poll=refresh, poll_every_s=PROGRESS_EVERY_S):
+                                                           max_retries=0, poll=refresh, poll_every_s=PROGRESS_EVERY_S):
             if isinstance(record, ray_tasks.TaskFailure):  # the worker died, the task was cancelled ...
                 record = {"name": name, "bag": str(options.bag), "status": FAILED,
                           "error": record.message, "metrics": None, "scoring": None, "latencies_ms": [],

@@ -179,17 +179,17 @@ def failure_message(exc: BaseException) -> str:
 
 
 def run_tasks(ray, fn: Callable, items: Iterable, *args, max_in_flight: int | None = None,
-              num_cpus: float = 1, poll: Callable[[], None] | None = None,
+              num_cpus: float = 1, max_retries: int = 3, poll: Callable[[], None] | None = None,
               poll_every_s: float = 0.2) -> Iterator[tuple[Any, Any]]:
-    """Run ``fn(item, *args)`` as one Ray task per item (``num_cpus`` each, never retried: a
-    task's side effects are not repeated behind the caller's back); yield ``(item, result)`` in
+    """Run ``fn(item, *args)`` as one Ray task per item (``num_cpus`` each; a task whose worker
+    dies is run again up to ``max_retries`` times, Ray's default); yield ``(item, result)`` in
     completion order, ``result`` a :class:`TaskFailure` when the task failed. At most
     ``max_in_flight`` tasks are submitted at once (``None``: all). ``poll()`` is called at least
     every ``poll_every_s`` while tasks run (e.g. to refresh progress bars).
 
     Leaving early (an exception in the consumer, Ctrl-C) cancels the tasks still running.
     """
-    remote = ray.remote(num_cpus=num_cpus, max_retries=0)(fn)
+    remote = ray.remote(num_cpus=num_cpus, max_retries=max_retries)(fn)
     shared = [ray.put(a) for a in args]  # once, not once per task
     todo = list(items)
     todo.reverse()

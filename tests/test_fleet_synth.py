@@ -175,7 +175,7 @@ def test_sigterm_cancels_the_tasks_and_stops_ray(tmp_path):
         _, err = proc.communicate(timeout=30)
     finally:
         proc.kill()
-    assert proc.returncode == 143 and "error: terminated (SIGTERM)" in err
+    assert proc.returncode == 143 and "error: terminated (SIGTERM)" in err, err
     written = list(out.glob("*/drive_*.npz"))
     assert 0 < len(written) < 201
     assert not [p for p in out.rglob("*") if "tmp" in p.name or "partial" in p.name]
