@@ -69,8 +69,8 @@ class CameraSubscription:
         self.node, self.msg_type, self.topic, self.callback = node, msg_type, topic, callback
         self.setting = setting
         self._on_change, self._on_incompatible = on_change, on_incompatible
-        self.reliability = "best_effort" if setting == "auto" else setting
-        if setting == "auto":
+        self.reliability = setting
+        if setting == "auto":  # what the publishers there now offer; none yet: best effort matches all
             self.reliability = offered_reliability(node.get_publishers_info_by_topic(topic)) or "best_effort"
         self.sub = self._create()
 

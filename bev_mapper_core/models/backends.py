@@ -42,6 +42,7 @@ import torch
 
 from ..errors import ConfigError
 from ..mapper import BACKENDS
+from .runtime import inference_threads
 
 #: Python module of each optional backend.
 _MODULES = {"onnxruntime": "onnxruntime", "openvino": "openvino"}
@@ -211,8 +212,6 @@ def backend_runner(config, device: torch.device) -> BackendRunner:
     """The :class:`BackendRunner` of a mapper's configuration (``MapperConfig``): its backend
     resolved, its thread count or :func:`~.runtime.inference_threads`.
     """
-    from .runtime import inference_threads
-
     return BackendRunner(resolve_backend(config.backend), device, config.threads or inference_threads())
 
 
