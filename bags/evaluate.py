@@ -24,7 +24,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from .errors import BagError, BagExistsError
-from .fleet import OK, aggregate, bag_names, find_bags, options_record, run_tasks
+from .fleet import OK, aggregate, bag_names, evaluate_bags, find_bags, options_record
 from .pictures import write_atomic
 from .ray_tasks import RayOptions, cluster_cpus, ray_runtime
 from .replay import METRICS_FILE, ReplayOptions
@@ -127,7 +127,7 @@ def evaluate(options: EvaluateOptions) -> EvaluateResult:
             timing["ray_start_s"] = time.perf_counter() - t
             workers = workers or cluster_cpus(ray)
             t = time.perf_counter()
-            run_tasks(ray, jobs, workers, show_progress=options.progress, on_record=on_record)
+            evaluate_bags(ray, jobs, workers, show_progress=options.progress, on_record=on_record)
             t_stop = time.perf_counter()
             timing["tasks_s"] = t_stop - t
         timing["ray_stop_s"] = time.perf_counter() - t_stop

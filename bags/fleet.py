@@ -11,7 +11,8 @@ same as replaying every frame through one accumulator.
 A bag that raises (unreadable, unusable calibration, a crash of its worker) fails alone:
 its record says ``failed`` with the error. A bag replayed up to damage is ``damaged``: its
 outputs cover the frames before the damage, and it stays out of the aggregate, which is over
-complete drives only. Ray is imported only here and only when tasks run (the ``fleet`` extra).
+complete drives only. Ray itself is imported by :mod:`bags.ray_tasks` only when tasks run
+(the ``fleet`` extra).
 """
 
 from __future__ import annotations
@@ -138,7 +139,7 @@ class _ReportedBar:
 
 
 def evaluate_bag(options: ReplayOptions, name: str, board=None) -> dict:
-    """Replay one bag (the body of a Ray task) and return its record (see :func:`run_tasks`).
+    """Replay one bag (the body of a Ray task) and return its record (see :func:`evaluate_bags`).
 
     Never raises for a problem of the bag: any exception becomes a ``failed`` record.
     """
@@ -203,8 +204,8 @@ def aggregate(records: list[dict]) -> dict:
 
 
 # ------------------------------------------------------------------ Ray
-def run_tasks(ray, jobs: list[tuple[str, ReplayOptions]], workers: int, *, show_progress: bool,
-              on_record: Callable[[dict], None]) -> None:
+def evaluate_bags(ray, jobs: list[tuple[str, ReplayOptions]], workers: int, *, show_progress: bool,
+                  on_record: Callable[[dict], None]) -> None:
     """Run :func:`evaluate_bag` for every ``(name, options)`` as Ray tasks of one CPU each, at
     most ``workers`` at a time (:func:`bags.ray_tasks.run_tasks`), on the runtime ``ray`` is
     connected to. Each record is handed to ``on_record`` as it arrives (in completion order),
