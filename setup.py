@@ -48,8 +48,8 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            "bev-bag = bags.cli:main",
-            "bev-train = bags.train_cli:main",
+            "bev-bag = bags.cli.main:main",
+            "bev-train = bags.cli.train:main",
             "mapper_node = bev_mapper_ros.mapper_node:main",
         ],
     },

@@ -8,7 +8,7 @@ model (or reads it from the cache, ``$BEV_MAPPER_CACHE``); that time is printed 
 
 ``--competitor``: every row again while another process keeps one CPU busy (a shared robot
 computer), beside the quiet figures of the same run: what the thread default
-(:func:`~bev_mapper_core.models.runtime.inference_threads`, every CPU but one) is chosen for.
+(:func:`~bev_mapper_core.nn.runtime.inference_threads`, every CPU but one) is chosen for.
 
     .venv/bin/python bench/bench_backends.py [--frames 10] [--repeat 3] [--threads 1,2] [--competitor]
 """
@@ -54,9 +54,9 @@ def main() -> None:
 
     import torch
 
-    from bev_mapper_core.grid import BevGrid
-    from bev_mapper_core.models.backends import AUTO_ORDER, installed_backends
-    from bev_mapper_core.rig import preset_rig
+    from bev_mapper_core.geometry.grid import BevGrid
+    from bev_mapper_core.geometry.rig import preset_rig
+    from bev_mapper_core.nn.backends import AUTO_ORDER, installed_backends
     from bev_mapper_core.synth import SynthConfig, generate_drive
 
     rig, grid = preset_rig("surround6"), BevGrid()
@@ -66,7 +66,7 @@ def main() -> None:
     print(f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, torch {torch.__version__}; "
           f"installed backends: {', '.join(have)}")
     print(f"Bi-Mapper (shipped surround6) Mapper.map, {len(frames)} frames, batch 1")
-    from bev_mapper_core.models.runtime import inference_threads
+    from bev_mapper_core.nn.runtime import inference_threads
 
     print(f"default threads (every CPU but one): {inference_threads()}")
     quiet: dict[tuple[int, str], float] = {}

@@ -25,11 +25,11 @@ import time
 import numpy as np
 from bench_rows import row, write_rows
 
-from bev_mapper_core.classes import label_lut
-from bev_mapper_core.grid import BevGrid
-from bev_mapper_core.ipm import IpmMapper
+from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.geometry.rig import preset_rig
+from bev_mapper_core.labels.classes import label_lut
 from bev_mapper_core.mapper import MapperConfig
-from bev_mapper_core.rig import preset_rig
+from bev_mapper_core.methods.ipm.mapper import IpmMapper
 from bev_mapper_core.synth import SynthConfig, generate_drive
 
 

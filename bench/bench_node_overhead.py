@@ -32,12 +32,12 @@ from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
 from sensor_msgs.msg import Image  # noqa: E402
 
-from bev_mapper_core.classes import bev_picture  # noqa: E402
-from bev_mapper_core.grid import BevGrid  # noqa: E402
+from bev_mapper_core.geometry.grid import BevGrid  # noqa: E402
+from bev_mapper_core.geometry.rig import preset_rig  # noqa: E402
+from bev_mapper_core.geometry.transforms import rot_to_quat  # noqa: E402
+from bev_mapper_core.labels.classes import bev_picture  # noqa: E402
 from bev_mapper_core.mapper import BevPrediction, Mapper, register_method  # noqa: E402
-from bev_mapper_core.rig import preset_rig  # noqa: E402
 from bev_mapper_core.synth import SynthConfig, generate_drive  # noqa: E402
-from bev_mapper_core.transforms import rot_to_quat  # noqa: E402
 from msg_adapters import RclpyFactory, image_to_labels, make_camera_info, make_image, make_occupancy_grid  # noqa: E402
 
 

@@ -50,8 +50,8 @@ def main() -> None:
     from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data  # noqa: PLC0415
     from sensor_msgs.msg import CameraInfo, Image  # noqa: PLC0415
 
-    from bev_mapper_core.grid import BevGrid  # noqa: PLC0415
-    from bev_mapper_core.rig import preset_rig  # noqa: PLC0415
+    from bev_mapper_core.geometry.grid import BevGrid  # noqa: PLC0415
+    from bev_mapper_core.geometry.rig import preset_rig  # noqa: PLC0415
     from bev_mapper_core.synth import SynthConfig, generate_drive  # noqa: PLC0415
     from msg_adapters import RclpyFactory, make_camera_info, make_image  # noqa: PLC0415
 

@@ -31,9 +31,9 @@ def main() -> None:
 
     import torch
 
-    from bev_mapper_core.grid import grid_preset
+    from bev_mapper_core.geometry.grid import grid_preset
+    from bev_mapper_core.geometry.rig import preset_rig
     from bev_mapper_core.mapper import MapperConfig, create_mapper
-    from bev_mapper_core.rig import preset_rig
     from bev_mapper_core.synth import SynthConfig, generate_drive
 
     rig, grid = preset_rig("front1"), grid_preset("ahead")

@@ -16,8 +16,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bev_mapper_core.grid import BevGrid  # noqa: E402
-from bev_mapper_core.rig import preset_rig  # noqa: E402
+from bev_mapper_core.geometry.grid import BevGrid  # noqa: E402
+from bev_mapper_core.geometry.rig import preset_rig  # noqa: E402
 from bev_mapper_core.synth import DriveRenderer, SynthConfig, build_world  # noqa: E402
 from bev_mapper_core.synth.styles import STYLE_CHOICES  # noqa: E402
 

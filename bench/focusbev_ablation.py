@@ -50,9 +50,9 @@ COMMON = ["--rig", "front1", "--grid", "ahead", "--style", "mixed"]
 
 def _render(args) -> int:
     seed, rgb, cache = args
-    from bev_mapper_core.classes import BEV_CLASS_NAMES
-    from bev_mapper_core.grid import grid_preset
-    from bev_mapper_core.rig import preset_rig
+    from bev_mapper_core.geometry.grid import grid_preset
+    from bev_mapper_core.geometry.rig import preset_rig
+    from bev_mapper_core.labels.classes import BEV_CLASS_NAMES
     from bev_mapper_core.training.data import drive_spec, load_or_render
 
     rig, grid = preset_rig("front1"), grid_preset("ahead")
@@ -81,7 +81,7 @@ def train(rows, a) -> None:
         out = Path(a.out) / name
         out.mkdir(parents=True, exist_ok=True)
         extra = ROWS[name]
-        cmd = [sys.executable, "-m", "bags.train_cli", "--method", "focusbev", *COMMON, "--out", str(out),
+        cmd = [sys.executable, "-m", "bags.cli.train", "--method", "focusbev", *COMMON, "--out", str(out),
                "--epochs", str(a.epochs), "--frames-per-epoch", str(a.frames_per_epoch), "--batch", str(a.batch),
                "--lr", str(a.lr), "--lr-step-epoch", str(a.lr_step_epoch), "--train-drives", str(a.train_drives),
                "--val-frames", "60", "--seed", str(a.seed), "--cache", a.cache, "--device", a.device, "--threads", str(a.threads),
@@ -103,7 +103,7 @@ def score(name: str, a) -> dict:
     if out.is_file() and out.stat().st_mtime > (run / "best.safetensors").stat().st_mtime:
         return json.loads(out.read_text())
     kind = "labels" if "--input" in ROWS[name] else "rgb"
-    cmd = [sys.executable, "-m", "bags.train_cli", "eval", "--method", "focusbev", "--weights",
+    cmd = [sys.executable, "-m", "bags.cli.train", "eval", "--method", "focusbev", "--weights",
            str(run / "best.safetensors"), "--rig", "front1", "--grid", "ahead", "--input", kind, "--style", "mixed",
            "--val-seeds", ",".join(map(str, TEST_SEEDS)), "--cache", a.cache, "--device", a.device,
            "--threads", str(a.threads), "--json", str(out), "--name", name]
@@ -113,7 +113,7 @@ def score(name: str, a) -> dict:
 
 def table(results: dict) -> str:
     """Markdown: per-class IoU, mIoU, static / dynamic mIoU, mIoU by range (percent)."""
-    from bev_mapper_core.classes import bev_class
+    from bev_mapper_core.labels.classes import bev_class
 
     first = next(iter(results.values()))
     classes = list(first["classes"])

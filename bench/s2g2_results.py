@@ -30,9 +30,9 @@ def score(run: Path, split: str, style: str, branch: str, cache: str) -> dict:
     out = run / f"eval_{split}_{style}_{branch}.json"
     if out.is_file() and out.stat().st_mtime > (run / "best.safetensors").stat().st_mtime:
         return json.loads(out.read_text())
-    from bev_mapper_core.grid import BevGrid
-    from bev_mapper_core.models.s2g2_weights import load_s2g2, read_s2g2_metadata, save_s2g2
-    from bev_mapper_core.rig import preset_rig
+    from bev_mapper_core.geometry.grid import BevGrid
+    from bev_mapper_core.geometry.rig import preset_rig
+    from bev_mapper_core.methods.s2g2.weights import load_s2g2, read_s2g2_metadata, save_s2g2
     from bev_mapper_core.training.evaluate import evaluate, save_result
 
     meta = read_s2g2_metadata(run / "best.safetensors")
@@ -49,8 +49,8 @@ def score(run: Path, split: str, style: str, branch: str, cache: str) -> dict:
 
 def reference(method: str, style: str, grid_name: str, classes, cache: str, out_dir: Path) -> dict:
     """IPM on the true label images, or segipm on the RGB images, on the test drives."""
-    from bev_mapper_core.grid import grid_preset
-    from bev_mapper_core.rig import preset_rig
+    from bev_mapper_core.geometry.grid import grid_preset
+    from bev_mapper_core.geometry.rig import preset_rig
     from bev_mapper_core.training.evaluate import evaluate, save_result
 
     out = out_dir / f"ref_{method}_{style}.json"
@@ -88,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
         test = {st: score(run, "test", st, branch, a.cache) for st in STYLES}
         classes = classes or list(test["dusk"]["classes"])
         rows.append((run.name, branch, val, test))
-    from bev_mapper_core.grid import GRID_PRESETS, BevGrid
+    from bev_mapper_core.geometry.grid import GRID_PRESETS, BevGrid
 
     grid = BevGrid.from_dict(rows[0][3]["dusk"]["grid"])
     grid_name = next(n for n, g in GRID_PRESETS.items() if g.isclose(grid))

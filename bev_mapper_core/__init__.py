@@ -4,7 +4,7 @@ Imports no ROS package; the ROS layers (``msg_adapters``, ``bev_mapper_ros``, ``
 """
 
 from .errors import BevMapperError, CalibrationError, ConfigError, GridError, InputError
-from .grid import BevGrid
+from .geometry.grid import BevGrid
 
 __all__ = ["BevGrid", "BevMapperError", "CalibrationError", "ConfigError", "GridError", "InputError"]
 __version__ = "0.1.0"

@@ -1,6 +1,6 @@
 """Readable pictures of BEV layers: class colours, unknown hatch, ego footprint, legend, scale.
 
-:class:`BevPainter` draws class layers on a :class:`~bev_mapper_core.grid.BevGrid` in display
+:class:`BevPainter` draws class layers on a :class:`~bev_mapper_core.geometry.grid.BevGrid` in display
 orientation (:meth:`BevGrid.to_display`: forward up, left on the left), ``scale`` display pixels
 per cell:
 
@@ -29,8 +29,8 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from .classes import EMPTY_COLOR, HATCH_PERIOD, HATCH_WIDTH, UNKNOWN_COLORS, BevClass
-from .grid import BevGrid
+from .geometry.grid import BevGrid
+from .labels.classes import EMPTY_COLOR, HATCH_PERIOD, HATCH_WIDTH, UNKNOWN_COLORS, BevClass
 
 #: Ego vehicle footprint drawn in pictures (and used by the synthetic world): a mid-size car,
 #: 4.6 m long and 1.9 m wide, its centre 1.3 m ahead of ``base_link`` (the rear axle), so it

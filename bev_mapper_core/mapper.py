@@ -1,7 +1,7 @@
 """The one interface every BEV mapping method implements.
 
 A :class:`Mapper` turns one synchronized set of camera images into per-class probability
-layers on a :class:`~bev_mapper_core.grid.BevGrid`, plus a mask of the cells it knows about.
+layers on a :class:`~bev_mapper_core.geometry.grid.BevGrid`, plus a mask of the cells it knows about.
 The ROS node and the bag tool only talk to this interface, so they never care which method
 runs. Methods register a factory under a name; :func:`create_mapper` builds one.
 """
@@ -14,15 +14,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .classes import BEV_CLASS_NAMES, resolve_classes
 from .errors import ConfigError, InputError
-from .grid import BevGrid
-from .label_maps import NATIVE, label_map
+from .geometry.grid import BevGrid
+from .geometry.rig import Rig
+from .labels.classes import BEV_CLASS_NAMES, resolve_classes
+from .labels.label_maps import NATIVE, label_map
+from .methods import mapper_targets
 from .registry import resolve
-from .rig import Rig
 
 INPUT_KINDS = ("labels", "rgb")
-#: ``MapperConfig.backend`` choices (see :mod:`~bev_mapper_core.models.backends`).
+#: ``MapperConfig.backend`` choices (see :mod:`~bev_mapper_core.nn.backends`).
 BACKENDS = ("torch", "onnxruntime", "openvino", "auto")
 
 
@@ -39,7 +40,7 @@ class MapperConfig:
         device: torch device for learned methods (``cpu``, ``cuda``).
         threads: CPU threads of learned methods' inference; 0 = the method's default.
         ipm_occlusion: occlusion reasoning on label images (see
-            :mod:`~bev_mapper_core.ipm_occlusion`). IPM: cells behind the near edge of an object
+            :mod:`~bev_mapper_core.methods.ipm.occlusion`). IPM: cells behind the near edge of an object
             seen in a camera are unknown to that camera instead of the object's flat-ground
             smear; False = the classical IPM. Learned methods on label input: cells farther than
             an object's full length behind its near edge in every camera are unknown; False =
@@ -59,13 +60,13 @@ class MapperConfig:
         backend: inference runtime of learned methods: ``torch`` (the reference), ``onnxruntime``
             or ``openvino`` (the model exported to ONNX once per weights and calibration, cached;
             optional extras), or ``auto`` (the fastest installed); see
-            :mod:`~bev_mapper_core.models.backends`. Bi-Mapper, S2G2 and FocusBEV use it (FocusBEV
+            :mod:`~bev_mapper_core.nn.backends`. Bi-Mapper, S2G2 and FocusBEV use it (FocusBEV
             for its image -> BEV feature part); segipm's segmenter runs torch.
         label_map: how the ids of the label images (``input_kind`` labels) map onto this
-            package's :class:`~bev_mapper_core.classes.Label`: ``native`` (they are Label
+            package's :class:`~bev_mapper_core.labels.classes.Label`: ``native`` (they are Label
             ids), a preset of another segmenter (``cityscapes_ids``, ``cityscapes_train_ids``,
             ``cam2bev``: rgb8 palette images) or the path of a YAML file; see
-            :mod:`~bev_mapper_core.label_maps`. The node and the bag tools apply it as they
+            :mod:`~bev_mapper_core.labels.label_maps`. The node and the bag tools apply it as they
             decode each image; the mapper itself always receives Label ids.
     """
 
@@ -241,14 +242,9 @@ class Mapper(ABC):
 
 
 # --------------------------------------------------------------- registry
-# name -> "module:Class", imported lazily so that IPM users never import torch.
-_REGISTRY: dict[str, str] = {
-    "ipm": "bev_mapper_core.ipm:IpmMapper",
-    "bimapper": "bev_mapper_core.models.bimapper_mapper:BiMapperMapper",
-    "segipm": "bev_mapper_core.models.segipm_mapper:SegIpmMapper",
-    "s2g2": "bev_mapper_core.models.s2g2_mapper:S2G2Mapper",
-    "focusbev": "bev_mapper_core.models.focusbev_mapper:FocusBEVMapper",
-}
+# name -> "module:Class", imported lazily so that IPM users never import torch; filled from the one
+# table of methods (:data:`bev_mapper_core.methods.METHODS`).
+_REGISTRY: dict[str, str | Callable[..., Mapper]] = dict(mapper_targets())
 
 
 def register_method(name: str, target: str | Callable[..., Mapper]) -> None:

@@ -1,13 +1,13 @@
 """Method-independent temporal fusion of published BEV maps (issue #14, part 2).
 
 :class:`TemporalFusion` keeps the last ``window`` predictions of any mapper with the ego pose of
-each, carries them into the current pose (:func:`~bev_mapper_core.bev_warp.warp_layers`) and
+each, carries them into the current pose (:func:`~bev_mapper_core.geometry.bev_warp.warp_layers`) and
 averages, per cell and class, the **log-odds** of every frame that knows the cell there.
 Averaging, rather than summing, log-odds keeps the probabilities' scale: consecutive frames are
 far from independent observations.
 
 * Only the **flat** layers are fused by default (``layers="flat"``: drivable, dividers,
-  crossings, curbs, sidewalks; the classes whose :class:`~bev_mapper_core.classes.BevClass` is
+  crossings, curbs, sidewalks; the classes whose :class:`~bev_mapper_core.labels.classes.BevClass` is
   flat). Undoing the ego motion does not undo an object's own motion: on the demo drive, fusing
   every layer over 3 frames drops Bi-Mapper's pedestrian IoU from 61.9 to 29.2 (docs/RESULTS.md).
   ``layers="all"`` fuses objects too.
@@ -35,12 +35,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .bev_warp import warp_layers
-from .classes import bev_class
 from .errors import CalibrationError, ConfigError
-from .grid import BevGrid
+from .geometry.bev_warp import warp_layers
+from .geometry.grid import BevGrid
+from .geometry.transforms import validate_transform
+from .labels.classes import bev_class
 from .mapper import BevPrediction
-from .transforms import validate_transform
 
 #: ``TemporalConfig.layers`` choices.
 TEMPORAL_LAYERS = ("flat", "all")

@@ -10,8 +10,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from bev_mapper_core.camera import CameraModel
-from bev_mapper_core.rig import Rig, RigCamera
+from bev_mapper_core.geometry.camera import CameraModel
+from bev_mapper_core.geometry.rig import Rig, RigCamera
 
 # (target_frame, source_frame) -> 4x4 target_from_source, or None when unknown
 TfLookup = Callable[[str, str], "np.ndarray | None"]

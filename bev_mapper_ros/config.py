@@ -2,7 +2,7 @@
 
 The node's parameters map one to one onto fields of :class:`NodeConfig` and the core's own
 dataclasses (:class:`~bev_mapper_core.mapper.MapperConfig`,
-:class:`~bev_mapper_core.grid.BevGrid`); :data:`PARAM_FIELDS` says which. Their defaults are
+:class:`~bev_mapper_core.geometry.grid.BevGrid`); :data:`PARAM_FIELDS` says which. Their defaults are
 those fields' defaults (:func:`parameter_defaults`): no default is written twice. This module
 imports no rclpy, so the mapping is unit-testable without a ROS graph.
 """
@@ -16,11 +16,11 @@ from dataclasses import MISSING, dataclass, field, fields, replace
 import numpy as np
 
 from bev_mapper_core.errors import BevMapperError, ConfigError
-from bev_mapper_core.grid import BevGrid
+from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.geometry.rig import PRESETS, preset_rig
+from bev_mapper_core.geometry.transforms import make_transform, quat_to_rot
 from bev_mapper_core.mapper import MapperConfig
-from bev_mapper_core.rig import PRESETS, preset_rig
 from bev_mapper_core.temporal import TemporalConfig
-from bev_mapper_core.transforms import make_transform, quat_to_rot
 from msg_adapters.sync import SyncConfig
 
 from .rig_params import rig_parameters
@@ -45,7 +45,7 @@ class NodeConfig:
     Attributes:
         cameras: camera names, in rig order; ``{camera}`` in topic patterns expands to them.
             Given none, a preset ``rig`` supplies them (see :func:`preset_parameters`).
-        rig: rig name: a preset (:data:`~bev_mapper_core.rig.PRESETS`) supplies the cameras and
+        rig: rig name: a preset (:data:`~bev_mapper_core.geometry.rig.PRESETS`) supplies the cameras and
             their extrinsics unless those are given; selects the shipped default weights and
             names the live rig ('' = none).
         image_topic: image topic pattern ('' = the default for ``mapper.input_kind``).
@@ -321,7 +321,7 @@ def node_config_from_params(p: dict) -> NodeConfig:
 
     Missing parameters take the dataclass defaults; a preset ``rig`` gives the cameras and
     extrinsics that ``p`` leaves empty (:func:`preset_parameters`). ``threads`` 0 stays 0: the
-    mapper then takes :func:`~bev_mapper_core.models.runtime.inference_threads` (every CPU but
+    mapper then takes :func:`~bev_mapper_core.nn.runtime.inference_threads` (every CPU but
     one, the rule of replay and the benchmarks too).
 
     Raises:

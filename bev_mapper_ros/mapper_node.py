@@ -37,11 +37,11 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
-from bev_mapper_core.classes import bev_picture
 from bev_mapper_core.errors import BevMapperError
-from bev_mapper_core.label_maps import label_map
+from bev_mapper_core.geometry.pose_buffer import PoseBuffer
+from bev_mapper_core.labels.classes import bev_picture
+from bev_mapper_core.labels.label_maps import label_map
 from bev_mapper_core.mapper import create_mapper, mapper_class, output_classes, preflight
-from bev_mapper_core.pose_buffer import PoseBuffer
 from bev_mapper_core.temporal import TemporalFusion
 from msg_adapters import (
     FrameSynchronizer,

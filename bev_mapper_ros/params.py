@@ -27,10 +27,10 @@ from rclpy.exceptions import ParameterUninitializedException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from bev_mapper_core.classes import BEV_CLASS_NAMES
-from bev_mapper_core.label_maps import PRESET_NAMES
+from bev_mapper_core.geometry.rig import PRESETS
+from bev_mapper_core.labels.classes import BEV_CLASS_NAMES
+from bev_mapper_core.labels.label_maps import PRESET_NAMES
 from bev_mapper_core.mapper import BACKENDS, INPUT_KINDS, available_methods
-from bev_mapper_core.rig import PRESETS
 
 from .config import (
     PARAM_FIELDS,

@@ -10,10 +10,11 @@ import sys
 
 import yaml
 
-from bev_mapper_core.grid import BevGrid, grid_preset
+from bev_mapper_core.geometry.grid import BevGrid, grid_preset
+from bev_mapper_core.geometry.rig import PRESETS, Rig, preset_rig
+from bev_mapper_core.geometry.transforms import rot_to_quat
 from bev_mapper_core.mapper import MapperConfig
-from bev_mapper_core.rig import PRESETS, Rig, preset_rig
-from bev_mapper_core.transforms import rot_to_quat
+from bev_mapper_core.methods import method_presets
 
 CONFIG_DIR = pathlib.Path(__file__).resolve().parents[1] / "config"
 
@@ -39,11 +40,8 @@ def rig_parameters(rig: Rig, grid: BevGrid | None = None, method: str = MapperCo
 
 #: Parameter files of a method with its own grid and input: ``config/<name>.yaml`` = the rig's
 #: parameters with these changes (S2G2 maps one front camera's RGB images onto the ``ahead`` grid,
-#: the grid of its shipped weights).
-METHOD_CONFIGS: dict[str, dict] = {
-    "front1_s2g2": {"rig": "front1", "method": "s2g2", "input_kind": "rgb", "grid": "ahead"},
-    "front1_focusbev": {"rig": "front1", "method": "focusbev", "input_kind": "rgb", "grid": "ahead"},
-}
+#: the grid of its shipped weights). From the methods' table (``MethodSpec.presets``).
+METHOD_CONFIGS: dict[str, dict] = method_presets()
 
 
 def write_configs(directory: pathlib.Path = CONFIG_DIR, method: str = MapperConfig.method) -> list[pathlib.Path]:

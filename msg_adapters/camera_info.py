@@ -1,4 +1,4 @@
-"""``sensor_msgs/CameraInfo`` <-> :class:`bev_mapper_core.camera.CameraModel`.
+"""``sensor_msgs/CameraInfo`` <-> :class:`bev_mapper_core.geometry.camera.CameraModel`.
 
 Reading takes ``K`` (``msg.k``, 9 values), ``D`` (``msg.d``), ``distortion_model``, the
 full-resolution ``width``/``height``, ``binning_x/y`` and ``roi``, and checks them against the
@@ -13,8 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from bev_mapper_core.camera import DISTORTION_MODELS, CameraModel, Roi
 from bev_mapper_core.errors import CalibrationError
+from bev_mapper_core.geometry.camera import DISTORTION_MODELS, CameraModel, Roi
 
 from ._fields import as_floats, as_int, as_str, field, short_repr
 from .errors import CalibrationMessageError

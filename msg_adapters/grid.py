@@ -1,6 +1,6 @@
 """BEV layers <-> ``nav_msgs/OccupancyGrid``.
 
-The cell layout is :class:`bev_mapper_core.grid.BevGrid`'s (identical to OccupancyGrid's):
+The cell layout is :class:`bev_mapper_core.geometry.grid.BevGrid`'s (identical to OccupancyGrid's):
 ``info.origin`` is the corner of cell (0, 0) at ``grid.origin_xy``, ``info.width`` counts cells
 along x, ``info.height`` along y, data is row-major; values 0..100, -1 unknown.
 
@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from bev_mapper_core.errors import GridError
-from bev_mapper_core.grid import GRID_TOL_M, BevGrid
+from bev_mapper_core.geometry.grid import GRID_TOL_M, BevGrid
 
 from ._fields import as_float, as_int, byte_buffer, field
 from .errors import GridMessageError
@@ -106,7 +106,7 @@ def grid_from_info(info: Any) -> BevGrid:
 
 def check_grid_info(info: Any, grid: BevGrid) -> None:
     """Raise :class:`GridMessageError` unless ``info`` describes ``grid``: same cell counts,
-    resolution and origin within the grid tolerance :data:`~bev_mapper_core.grid.GRID_TOL_M`
+    resolution and origin within the grid tolerance :data:`~bev_mapper_core.geometry.grid.GRID_TOL_M`
     (as :meth:`BevGrid.isclose`).
     """
     res = _f32(_info_float(info, "resolution"))

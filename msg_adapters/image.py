@@ -20,7 +20,7 @@ mono16,     ``(H, W)``       uint16 (native order)
 ``step`` and the data length are validated *before* any view of the buffer is made.
 
 Sizes are bounded before anything is decoded or copied: by the caller's ``expected_size``
-(``(width, height)``, e.g. the calibrated camera's :attr:`~bev_mapper_core.camera.CameraModel.image_size`)
+(``(width, height)``, e.g. the calibrated camera's :attr:`~bev_mapper_core.geometry.camera.CameraModel.image_size`)
 when given, and always by :class:`~msg_adapters.limits.AdapterLimits` (``max_image_side``,
 ``max_image_pixels``). A ``CompressedImage``'s size is read from its PNG/JPEG header
 (:mod:`msg_adapters.image_header`), so a small message claiming a huge image is refused

@@ -1,7 +1,7 @@
-"""Label images -> ``(H, W)`` uint8 :class:`~bev_mapper_core.classes.Label` ids.
+"""Label images -> ``(H, W)`` uint8 :class:`~bev_mapper_core.labels.classes.Label` ids.
 
 A label image comes from an upstream 2-D segmenter. Which ids (or colours) it holds is the
-``label_map`` setting (:mod:`bev_mapper_core.label_maps`): this package's own ids (``native``,
+``label_map`` setting (:mod:`bev_mapper_core.labels.label_maps`): this package's own ids (``native``,
 the default), another segmenter's ids (mono8) or a colour palette (rgb8). The functions here
 decode the message with the size checks and limits of :mod:`msg_adapters.image`, check that its
 encoding is the one the label map expects, and apply the map once, so that what they return is
@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from bev_mapper_core.errors import InputError
-from bev_mapper_core.label_maps import NATIVE, LabelMap, label_map
+from bev_mapper_core.labels.label_maps import NATIVE, LabelMap, label_map
 
 from ._fields import as_str, field
 from .errors import EncodingError
@@ -60,7 +60,7 @@ def image_to_labels(msg: Any, expected_size: Any = None, *, limits: AdapterLimit
         msg: the ``sensor_msgs/Image``.
         expected_size, limits: as in :func:`~msg_adapters.image.image_to_array` (checked before
             anything is decoded).
-        label_map: what the image holds (:func:`bev_mapper_core.label_maps.label_map`); None =
+        label_map: what the image holds (:func:`bev_mapper_core.labels.label_maps.label_map`); None =
             ``native`` (mono8 Label ids, returned as they are).
 
     Raises:

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from bev_mapper_core.errors import CalibrationError
-from bev_mapper_core.transforms import invert_transform, make_transform, quat_to_rot, rot_to_quat
+from bev_mapper_core.geometry.transforms import invert_transform, make_transform, quat_to_rot, rot_to_quat
 
 from ._fields import as_float, as_str, field
 from .errors import StampError, TransformError

@@ -8,7 +8,7 @@ coarse grid) as MCAP and as sqlite3 and keeps its deserialized messages in memor
   offsets (offsets drawn from a seeded ``random.Random``);
 * ``metadata``: ``metadata.yaml`` binary, not a mapping, an alias bomb, wrong field types,
   non-string ``custom_data``, oversized, empty or missing;
-* ``message``: the bag re-written through :class:`bags.writer.BagWriter` with one defect:
+* ``message``: the bag re-written through :class:`bags.io.writer.BagWriter` with one defect:
   a wrong message type on a topic, negative / huge stamps, a GT grid with huge dimensions,
   a rotated or truncated GT grid, a wrong-size or undecodable label image, a NaN odometry
   quaternion (most of them from frame :data:`FROM` on), a camera without CameraInfo;
@@ -33,10 +33,10 @@ from typing import Any
 
 import numpy as np
 
-from bags import topics as T
-from bags.cli import main
-from bags.reader import BagReader
-from bags.writer import BagWriter
+from bags.cli.main import main
+from bags.io import topics as T
+from bags.io.reader import BagReader
+from bags.io.writer import BagWriter
 
 FRAMES = 12
 #: first damaged frame of the mid-bag variants

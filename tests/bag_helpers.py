@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pathlib
 
-from bags.cli import main
+from bags.cli.main import main
 
 #: The 40 m x 20 m grid at 0.25 m of the small test drives (160 x 80 cells).
 SMALL_GRID_ARGS = ["--grid-x-min", "-20", "--grid-x-max", "20", "--grid-y-min", "-10",

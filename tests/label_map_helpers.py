@@ -8,7 +8,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from bev_mapper_core.classes import NUM_LABELS, Label
+from bev_mapper_core.labels.classes import NUM_LABELS, Label
 
 L = Label
 
@@ -73,9 +73,9 @@ def all_native() -> np.ndarray:
 
 def relabel_bag(src: pathlib.Path, dst: pathlib.Path, convert: Callable[[np.ndarray], tuple[np.ndarray, str]]) -> pathlib.Path:
     """A copy of bag ``src`` at ``dst`` whose label images are ``convert(native) -> (array, encoding)``."""
-    from bags import topics as T  # noqa: PLC0415 - the bag libraries only where bags are written
-    from bags.reader import BagReader  # noqa: PLC0415
-    from bags.writer import BagWriter  # noqa: PLC0415
+    from bags.io import topics as T  # noqa: PLC0415 - the bag libraries only where bags are written
+    from bags.io.reader import BagReader  # noqa: PLC0415
+    from bags.io.writer import BagWriter  # noqa: PLC0415
     from msg_adapters import header_stamp_ns, image_to_array, make_image  # noqa: PLC0415
 
     with BagReader(src) as r, BagWriter(dst) as w:

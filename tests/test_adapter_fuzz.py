@@ -23,12 +23,12 @@ import numpy as np
 import pytest
 
 import msg_adapters as ma
-from bev_mapper_core.camera import DISTORTION_MODELS, CameraModel, Roi
 from bev_mapper_core.errors import BevMapperError, GridError
-from bev_mapper_core.grid import OCC_MAX, OCC_UNKNOWN, BevGrid
-from bev_mapper_core.label_maps import label_map
-from bev_mapper_core.rig import surround6
-from bev_mapper_core.transforms import make_transform, rpy_to_rot
+from bev_mapper_core.geometry.camera import DISTORTION_MODELS, CameraModel, Roi
+from bev_mapper_core.geometry.grid import OCC_MAX, OCC_UNKNOWN, BevGrid
+from bev_mapper_core.geometry.rig import surround6
+from bev_mapper_core.geometry.transforms import make_transform, rpy_to_rot
+from bev_mapper_core.labels.label_maps import label_map
 from msg_adapters.image import AMBIGUOUS_ENCODINGS
 from msg_adapters.image_header import _JPEG_SOF, PNG_SIGNATURE
 

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from bev_mapper_core.errors import ConfigError
-from bev_mapper_core.grid import BevGrid
+from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.geometry.rig import preset_rig
 from bev_mapper_core.mapper import BACKENDS, MapperConfig, create_mapper, preflight
-from bev_mapper_core.models import backends
-from bev_mapper_core.rig import preset_rig
+from bev_mapper_core.nn import backends
 from bev_mapper_core.synth import SynthConfig, generate_drive
 
 
@@ -81,7 +81,7 @@ def test_exported_monocular_methods_map_as_torch_does(method, backend, tmp_path,
     """
     if importlib.util.find_spec(backend) is None:
         pytest.skip(f"{backend} is not installed (the 'fast' extra)")
-    from bev_mapper_core.grid import grid_preset
+    from bev_mapper_core.geometry.grid import grid_preset
 
     monkeypatch.setenv(backends.CACHE_ENV, str(tmp_path))
     rig, grid = preset_rig("front1"), grid_preset("ahead")

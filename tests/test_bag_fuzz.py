@@ -5,7 +5,7 @@ synthetic drive: byte flips in MCAP chunks and anywhere, truncation at random of
 ``metadata.yaml`` mutations, wrong message types, invalid stamps, GT grids that do not fit,
 wrong-size and undecodable label images, a NaN odometry quaternion, a camera without
 CameraInfo, sqlite3 rows with unknown topic ids. For each, in-process through
-``bags.cli.main``: no exception escapes, a non-zero status comes with an ``error:`` line, a
+``bags.cli.main.main``: no exception escapes, a non-zero status comes with an ``error:`` line, a
 damaged bag is never replayed as ``complete: true``, and the outputs of the readable frames
 are kept. Then one test per defect of the issue's bag-tool part (#4, #5, #6; #8, SIGTERM, is
 in ``test_bag_signals.py``).
@@ -23,13 +23,13 @@ from pathlib import Path
 import bag_damage as D
 import pytest
 
-from bags import topics as T
-from bags.cli import main
+from bags.cli.main import main
 from bags.errors import BagCorruptError
-from bags.metadata import MAX_METADATA_NODES, MetadataError, parse_yaml
-from bags.reader import BagReader
-from bags.replay import BAG_DIR, IMAGE_TOPIC, METRICS_FILE
-from bev_mapper_core.grid import MAX_GRID_CELLS
+from bags.io import topics as T
+from bags.io.metadata import MAX_METADATA_NODES, MetadataError, parse_yaml
+from bags.io.reader import BagReader
+from bags.replay.core import BAG_DIR, IMAGE_TOPIC, METRICS_FILE
+from bev_mapper_core.geometry.grid import MAX_GRID_CELLS
 
 pytestmark = [pytest.mark.slow]
 

@@ -18,8 +18,8 @@ from pathlib import Path
 import bag_damage as D
 import pytest
 
-from bags import topics as T
-from bags.writer import BagWriter
+from bags.io import topics as T
+from bags.io.writer import BagWriter
 
 pytestmark = [pytest.mark.slow]
 
@@ -64,7 +64,7 @@ def test_sigterm_cleans_up_like_sigint(tmp_path):
     bag = long_bag(base, tmp_path / "long")
     out = tmp_path / "out"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "bags.cli", "replay", str(bag), "--out", str(out), "--quiet",
+        [sys.executable, "-m", "bags.cli.main", "replay", str(bag), "--out", str(out), "--quiet",
          "--method", "ipm", "--picture-every", "1"],
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:

@@ -14,14 +14,14 @@ from nav_msgs.msg import OccupancyGrid, Odometry  # noqa: E402
 from ros_helpers import REPO, core_map_as_received, rclpy, ros_env, spin_until, start_process, stop_process
 from rosgraph_msgs.msg import Clock  # noqa: E402
 
-from bags import topics as T
-from bags.cli import main
-from bags.play_cmd import jazzy_typestore, to_cdr, to_rclpy
-from bags.reader import BagReader
-from bags.replay import BAG_DIR
-from bev_mapper_core.classes import BEV_CLASS_NAMES
+from bags.cli.main import main
+from bags.cli.play import jazzy_typestore, to_cdr, to_rclpy
+from bags.io import topics as T
+from bags.io.reader import BagReader
+from bags.replay.core import BAG_DIR
+from bev_mapper_core.geometry.rig import Rig, RigCamera
+from bev_mapper_core.labels.classes import BEV_CLASS_NAMES
 from bev_mapper_core.mapper import MapperConfig, create_mapper
-from bev_mapper_core.rig import Rig, RigCamera
 from bev_mapper_ros.config import node_config_from_params
 
 pytest.importorskip("bev_mapper_core.synth")
@@ -121,7 +121,7 @@ def test_play_through_mapper_node(drive, tmp_path, ros_domain):
     clocks: list[int] = []
     try:
         play = subprocess.Popen(
-            [sys.executable, "-m", "bags.cli", "play", str(bag), "--rate", "0.5", "--clock",
+            [sys.executable, "-m", "bags.cli.main", "play", str(bag), "--rate", "0.5", "--clock",
              "--domain-id", str(domain), "--topics", *cams, *infos, T.TF_STATIC,
              "--wait-for", *cams, "/clock", "--delay", "0.5"],
             cwd=REPO, env=ros_env(domain), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -182,7 +182,7 @@ def test_play_loop_stops_cleanly_on_ctrl_c(drive, ros_domain):
     odoms: list[int] = []
     node.create_subscription(Odometry, "/odom", lambda m: odoms.append(stamp_ns(m)), 50)
     proc = subprocess.Popen(
-        [sys.executable, "-m", "bags.cli", "play", str(bag), "--loop", "--rate", "4",
+        [sys.executable, "-m", "bags.cli.main", "play", str(bag), "--loop", "--rate", "4",
          "--topics", "/odom", "/cameras/front/camera_info", "--domain-id", str(domain)],
         cwd=REPO, env=ros_env(domain), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:

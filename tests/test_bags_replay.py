@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 from bag_helpers import SMALL_DRIVE_FRAMES, replay_ipm, synth_small
 
-from bags import topics as T
-from bags.cli import main
-from bags.reader import BagReader
-from bags.replay import BAG_DIR, FRAMES_DIR, IMAGE_TOPIC, METRICS_FILE
-from bags.writer import BagWriter
-from bev_mapper_core.classes import BEV_CLASS_NAMES, bev_picture
+from bags.cli.main import main
+from bags.io import topics as T
+from bags.io.reader import BagReader
+from bags.io.writer import BagWriter
+from bags.replay.core import BAG_DIR, FRAMES_DIR, IMAGE_TOPIC, METRICS_FILE
 from bev_mapper_core.errors import BevMapperError
-from bev_mapper_core.grid import BevGrid
+from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.labels.classes import BEV_CLASS_NAMES, bev_picture
 from bev_mapper_core.mapper import MapperConfig, create_mapper
 from msg_adapters import image_to_rgb, occupancy_grid_to_layer
 

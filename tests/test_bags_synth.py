@@ -10,14 +10,14 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from bags import topics as T
-from bags.cli import main
+from bags.cli.main import main
 from bags.errors import BagCorruptError, BagError, BagExistsError
-from bags.reader import BagReader
-from bags.writer import write_drive
-from bev_mapper_core.classes import BEV_CLASS_NAMES, BEV_CLASSES
-from bev_mapper_core.grid import BevGrid
-from bev_mapper_core.rig import surround6
+from bags.io import topics as T
+from bags.io.reader import BagReader
+from bags.io.writer import write_drive
+from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.geometry.rig import surround6
+from bev_mapper_core.labels.classes import BEV_CLASS_NAMES, BEV_CLASSES
 
 try:
     from bev_mapper_core.synth import CameraFrame, SynthConfig, SynthFrame, generate_drive

@@ -1,4 +1,4 @@
-"""BEV layers moved between ego poses (bev_mapper_core/bev_warp.py): exact cell shifts for known
+"""BEV layers moved between ego poses (bev_mapper_core/geometry/bev_warp.py): exact cell shifts for known
 motions, rotations about the ego origin, validity at the border, and bad transforms refused."""
 
 from __future__ import annotations
@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from bev_mapper_core.bev_warp import source_points, warp_layers
 from bev_mapper_core.errors import ConfigError
-from bev_mapper_core.grid import BevGrid, grid_preset
-from bev_mapper_core.transforms import rpy_to_rot
+from bev_mapper_core.geometry.bev_warp import source_points, warp_layers
+from bev_mapper_core.geometry.grid import BevGrid, grid_preset
+from bev_mapper_core.geometry.transforms import rpy_to_rot
 
 GRID = BevGrid(-10.0, 10.0, -5.0, 5.0, 0.5)  # 40 x 20 cells
 

@@ -14,12 +14,13 @@ from test_bimapper_model import GRID, RIG, TINY, batch, random_labels
 
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.mapper import MapperConfig
-from bev_mapper_core.models import BiMapper, BiMapperConfig, BiMapperLossConfig, bimapper_loss, save_weights
-from bev_mapper_core.models.bimapper_mapper import BiMapperMapper
-from bev_mapper_core.models.losses import uncertainty_loss
-from bev_mapper_core.models.weights import META_KEY, WeightsError, WeightsFile
-from bev_mapper_core.training.bimapper_method import init_from
-from bev_mapper_core.training.calibrate import fit_temperature
+from bev_mapper_core.methods.bimapper.calibrate import fit_temperature
+from bev_mapper_core.methods.bimapper.config import BiMapperConfig
+from bev_mapper_core.methods.bimapper.losses import BiMapperLossConfig, bimapper_loss, uncertainty_loss
+from bev_mapper_core.methods.bimapper.mapper import BiMapperMapper
+from bev_mapper_core.methods.bimapper.model import BiMapper
+from bev_mapper_core.methods.bimapper.train import init_from
+from bev_mapper_core.methods.bimapper.weights import META_KEY, WeightsError, WeightsFile, save_weights
 
 torch.set_num_threads(1)
 VIS = replace(TINY, ipm_skip=True, visibility_head=True)

@@ -6,9 +6,9 @@ import json
 
 import pytest
 
-from bags.cli import main as bev_bag
-from bev_mapper_core.classes import BEV_CLASS_NAMES, class_cover
+from bags.cli.main import main as bev_bag
 from bev_mapper_core.errors import ConfigError
+from bev_mapper_core.labels.classes import BEV_CLASS_NAMES, class_cover
 
 pytestmark = [pytest.mark.slow]
 

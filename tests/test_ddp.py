@@ -16,11 +16,12 @@ torch = pytest.importorskip("torch")
 from safetensors import safe_open  # noqa: E402
 from safetensors.torch import save_file  # noqa: E402
 
-from bags import train_cli as cli  # noqa: E402
-from bev_mapper_core.classes import NUM_LABELS  # noqa: E402
+from bags.cli import train as cli  # noqa: E402
 from bev_mapper_core.errors import ConfigError  # noqa: E402
-from bev_mapper_core.models import BiMapper, load_state  # noqa: E402
-from bev_mapper_core.rig import preset_rig  # noqa: E402
+from bev_mapper_core.geometry.rig import preset_rig  # noqa: E402
+from bev_mapper_core.labels.classes import NUM_LABELS  # noqa: E402
+from bev_mapper_core.methods.bimapper.model import BiMapper  # noqa: E402
+from bev_mapper_core.methods.bimapper.weights import load_state  # noqa: E402
 from bev_mapper_core.training import method as method_mod  # noqa: E402
 from bev_mapper_core.training.config import TrainConfig  # noqa: E402
 from bev_mapper_core.training.data import FrameSet, shard_slice  # noqa: E402

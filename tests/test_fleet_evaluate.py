@@ -11,14 +11,14 @@ import numpy as np
 import pytest
 from bag_damage import GRID_ARGS, make_base
 
-from bags.cli import build_parser, main
-from bags.evaluate import RECORD_FILE, SUMMARY_FILE
-from bags.fleet import bag_names
-from bags.reader import BagReader
-from bags.replay import METRICS_FILE, ReplayScorer, _percentiles
+from bags.cli.main import build_parser, main
+from bags.fleet.evaluate import RECORD_FILE, SUMMARY_FILE
+from bags.fleet.replay_tasks import bag_names
+from bags.io.reader import BagReader
+from bags.replay.core import METRICS_FILE, ReplayScorer, _percentiles
 from bev_mapper_core.errors import ConfigError
-from bev_mapper_core.grid import BevGrid
-from bev_mapper_core.label_maps import label_map
+from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.labels.label_maps import label_map
 from bev_mapper_core.mapper import MapperConfig, create_mapper
 from bev_mapper_core.metrics import MetricAccumulator, WholeGridAccumulator
 

@@ -14,13 +14,13 @@ import pytest
 
 pytest.importorskip("ray")
 
-from bags.cli import build_parser, main  # noqa: E402
-from bags.ray_tasks import RayOptions, TaskFailure, ray_runtime, run_tasks  # noqa: E402
-from bags.synth_cmd import SynthBagOptions  # noqa: E402
-from bags.synth_many_cmd import MAX_SEEDS, options_from_args, parse_seeds  # noqa: E402
+from bags.cli.main import build_parser, main  # noqa: E402
+from bags.cli.synth import SynthBagOptions  # noqa: E402
+from bags.cli.synth_many import MAX_SEEDS, options_from_args, parse_seeds  # noqa: E402
+from bags.fleet.ray_tasks import RayOptions, TaskFailure, ray_runtime, run_tasks  # noqa: E402
 from bev_mapper_core.errors import ConfigError  # noqa: E402
-from bev_mapper_core.grid import BevGrid  # noqa: E402
-from bev_mapper_core.rig import preset_rig  # noqa: E402
+from bev_mapper_core.geometry.grid import BevGrid  # noqa: E402
+from bev_mapper_core.geometry.rig import preset_rig  # noqa: E402
 from bev_mapper_core.synth.config import SynthConfig  # noqa: E402
 from bev_mapper_core.training import data  # noqa: E402
 from bev_mapper_core.training.config import TrainConfig  # noqa: E402
@@ -160,7 +160,7 @@ def _alive(pid: int) -> bool:
 @pytest.mark.slow
 def test_sigterm_cancels_the_tasks_and_stops_ray(tmp_path):
     out = tmp_path / "o"
-    cmd = [sys.executable, "-m", "bags.cli", "synth-many", str(out), "--seeds", "0..200", "--workers", "2",
+    cmd = [sys.executable, "-m", "bags.cli.main", "synth-many", str(out), "--seeds", "0..200", "--workers", "2",
            *CACHE_ARGS]
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

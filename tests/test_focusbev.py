@@ -9,12 +9,14 @@ import numpy as np
 import pytest
 import torch
 
-from bev_mapper_core.bev_warp import warp_batch
 from bev_mapper_core.errors import ConfigError
-from bev_mapper_core.grid import BevGrid
+from bev_mapper_core.geometry.bev_warp import warp_batch
+from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.geometry.rig import preset_rig
 from bev_mapper_core.mapper import MapperConfig, create_mapper
-from bev_mapper_core.models.focusbev import FocusBEV, FocusBEVConfig, input_size
-from bev_mapper_core.models.focusbev_blocks import (
+from bev_mapper_core.methods.bimapper.geometry import scaled_camera
+from bev_mapper_core.methods.bimapper.weights import WeightsError
+from bev_mapper_core.methods.focusbev.blocks import (
     ColumnTransformer,
     EgoMotionFusion,
     depth_ranges,
@@ -22,12 +24,10 @@ from bev_mapper_core.models.focusbev_blocks import (
     polar_grids,
     polar_to_cartesian,
 )
-from bev_mapper_core.models.focusbev_losses import FocusBEVLossConfig, focusbev_loss, occupancy_agnostic_iou_loss, uncertainty_loss
-from bev_mapper_core.models.focusbev_weights import load_focusbev, read_focusbev_metadata, save_focusbev
-from bev_mapper_core.models.geometry import scaled_camera
-from bev_mapper_core.models.resnet import FPN, ResNet
-from bev_mapper_core.models.weights import WeightsError
-from bev_mapper_core.rig import preset_rig
+from bev_mapper_core.methods.focusbev.losses import FocusBEVLossConfig, focusbev_loss, occupancy_agnostic_iou_loss, uncertainty_loss
+from bev_mapper_core.methods.focusbev.model import FocusBEV, FocusBEVConfig, input_size
+from bev_mapper_core.methods.focusbev.weights import load_focusbev, read_focusbev_metadata, save_focusbev
+from bev_mapper_core.nn.resnet import FPN, ResNet
 from bev_mapper_core.training.config import TrainConfig
 from bev_mapper_core.training.data import FrameSet, drive_poses, render_drive
 from bev_mapper_core.training.sources import DataNeeds, InMemorySource
@@ -341,10 +341,10 @@ def test_replay_maps_a_front1_bag_with_the_shipped_focusbev_and_its_memory(tmp_p
     """``bev-bag replay --method focusbev --input rgb`` on a front1 bag with odometry: the shipped
     weights, the bag's frames in order with their poses; the output grids equal the core mapper
     fed the same frames in order, and from the third frame on the memory bank is used."""
-    from bags.cli import main
-    from bags.reader import BagReader
-    from bags.replay import BAG_DIR, METRICS_FILE
-    from bev_mapper_core.grid import grid_preset
+    from bags.cli.main import main
+    from bags.io.reader import BagReader
+    from bags.replay.core import BAG_DIR, METRICS_FILE
+    from bev_mapper_core.geometry.grid import grid_preset
 
     bag, out = tmp_path / "bag", tmp_path / "out"
     assert main(["synth", str(bag), "--rig", "front1", "--grid", "ahead", "--frames", "4", "--seed", "950000015"]) == 0

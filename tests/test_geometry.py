@@ -6,11 +6,11 @@ import cv2
 import numpy as np
 import pytest
 
-from bev_mapper_core.camera import CameraModel, Roi
 from bev_mapper_core.errors import CalibrationError, GridError
-from bev_mapper_core.grid import BevGrid
-from bev_mapper_core.rig import preset_rig
-from bev_mapper_core.transforms import (
+from bev_mapper_core.geometry.camera import CameraModel, Roi
+from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.geometry.rig import preset_rig
+from bev_mapper_core.geometry.transforms import (
     ego_from_optical,
     invert_transform,
     make_transform,

@@ -8,11 +8,11 @@ reader and the IPM would break this.
 
 import pytest
 
-from bags.reader import BagReader
-from bags.synth_cmd import SynthBagOptions, synth_bag
-from bev_mapper_core.grid import BevGrid
-from bev_mapper_core.ipm import IpmMapper
+from bags.cli.synth import SynthBagOptions, synth_bag
+from bags.io.reader import BagReader
+from bev_mapper_core.geometry.grid import BevGrid
 from bev_mapper_core.mapper import MapperConfig
+from bev_mapper_core.methods.ipm.mapper import IpmMapper
 from bev_mapper_core.metrics import MetricAccumulator
 from bev_mapper_core.synth import SynthConfig
 

@@ -13,19 +13,19 @@ import math
 import numpy as np
 import pytest
 
-from bags import topics as T
-from bags.cli import main
-from bags.reader import BagReader
-from bags.replay import METRICS_FILE, RELIABILITY_FILE
-from bags.writer import write_drive
-from bev_mapper_core.camera import CameraModel
-from bev_mapper_core.classes import BEV_CLASS_NAMES, BEV_CLASSES, Label, label_lut
-from bev_mapper_core.grid import BevGrid
-from bev_mapper_core.ipm import IpmMapper
+from bags.cli.main import main
+from bags.io import topics as T
+from bags.io.reader import BagReader
+from bags.io.writer import write_drive
+from bags.replay.core import METRICS_FILE, RELIABILITY_FILE
+from bev_mapper_core.geometry.camera import CameraModel
+from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.geometry.rig import Rig, RigCamera, preset_rig
+from bev_mapper_core.geometry.transforms import ego_from_optical, transform_points
+from bev_mapper_core.labels.classes import BEV_CLASS_NAMES, BEV_CLASSES, Label, label_lut
 from bev_mapper_core.mapper import MapperConfig
+from bev_mapper_core.methods.ipm.mapper import IpmMapper
 from bev_mapper_core.metrics import WholeGridAccumulator, expected_calibration_error
-from bev_mapper_core.rig import Rig, RigCamera, preset_rig
-from bev_mapper_core.transforms import ego_from_optical, transform_points
 
 pytest.importorskip("bev_mapper_core.synth")
 from bev_mapper_core.synth import DriveRenderer, SynthConfig, build_world, generate_drive  # noqa: E402
@@ -288,9 +288,10 @@ def test_bimapper_on_labels_withholds_the_cells_no_ray_reaches(box_scene, tmp_pa
     import torch
     from test_bimapper_model import TINY
 
-    from bev_mapper_core.ipm_occlusion import OBJECT_MAX_DEPTH_M
-    from bev_mapper_core.models import BiMapper, save_weights
-    from bev_mapper_core.models.bimapper_mapper import BiMapperMapper
+    from bev_mapper_core.methods.bimapper.mapper import BiMapperMapper
+    from bev_mapper_core.methods.bimapper.model import BiMapper
+    from bev_mapper_core.methods.bimapper.weights import save_weights
+    from bev_mapper_core.methods.ipm.occlusion import OBJECT_MAX_DEPTH_M
 
     grid, _ = box_scene
     rig = _level_rig()

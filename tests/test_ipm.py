@@ -5,14 +5,14 @@ import math
 import numpy as np
 import pytest
 
-from bev_mapper_core.camera import CameraModel
-from bev_mapper_core.classes import BEV_CLASS_NAMES, Label
 from bev_mapper_core.errors import ConfigError, InputError
-from bev_mapper_core.grid import BevGrid
-from bev_mapper_core.ipm import IpmMapper, ground_tables
+from bev_mapper_core.geometry.camera import CameraModel
+from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.geometry.rig import Rig, RigCamera
+from bev_mapper_core.geometry.transforms import ego_from_optical, transform_points
+from bev_mapper_core.labels.classes import BEV_CLASS_NAMES, Label
 from bev_mapper_core.mapper import MapperConfig, available_methods, create_mapper
-from bev_mapper_core.rig import Rig, RigCamera
-from bev_mapper_core.transforms import ego_from_optical, transform_points
+from bev_mapper_core.methods.ipm.mapper import IpmMapper, ground_tables
 
 GRID = BevGrid(x_min=-10, x_max=20, y_min=-6, y_max=6, resolution=0.25)
 
@@ -172,7 +172,7 @@ def test_gather_tables_give_the_whole_image_warps_cell_for_cell(occlusion):
     """The per-frame gather (``GatherTable``) gives exactly what warping whole images with
     ``cv2.remap`` and accumulating them gave: every camera of surround6 on synthetic frames with
     cars and pedestrians, a label id unknown to the package, and a camera missing."""
-    from bev_mapper_core.rig import preset_rig
+    from bev_mapper_core.geometry.rig import preset_rig
     from bev_mapper_core.synth import SynthConfig, generate_drive
 
     rig, grid = preset_rig("surround6"), BevGrid()

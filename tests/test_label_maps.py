@@ -13,9 +13,9 @@ from label_map_helpers import CITYSCAPES, L, all_native, equivalent_native, to_u
 from rosbags.typesys import Stores, get_typestore
 
 import msg_adapters as ma
-from bev_mapper_core.classes import NUM_LABELS, Label
 from bev_mapper_core.errors import ConfigError, InputError
-from bev_mapper_core.label_maps import (
+from bev_mapper_core.labels.classes import NUM_LABELS, Label
+from bev_mapper_core.labels.label_maps import (
     LABEL_NAMES,
     MAX_FILE_BYTES,
     NATIVE,

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from bev_mapper_core.errors import ConfigError, InputError
-from bev_mapper_core.grid import BevGrid
+from bev_mapper_core.geometry.grid import BevGrid
 from bev_mapper_core.metrics import MetricAccumulator, chamfer, format_table, iou, mean_iou
 
 # 10 x 10 cells at 0.5 m; x, y in [0, 5) m.

@@ -10,11 +10,11 @@ import pytest
 from import_check import ros_modules_loaded_by
 
 import msg_adapters as ma
-from bev_mapper_core.camera import CameraModel, Roi
 from bev_mapper_core.errors import BevMapperError
-from bev_mapper_core.grid import BevGrid
-from bev_mapper_core.rig import surround6
-from bev_mapper_core.transforms import ego_from_optical, make_transform, rpy_to_rot
+from bev_mapper_core.geometry.camera import CameraModel, Roi
+from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.geometry.rig import surround6
+from bev_mapper_core.geometry.transforms import ego_from_optical, make_transform, rpy_to_rot
 
 HAVE_RCLPY = importlib.util.find_spec("rclpy") is not None and importlib.util.find_spec(
     "sensor_msgs"

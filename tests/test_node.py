@@ -16,10 +16,10 @@ from rclpy.signals import uninstall_signal_handlers
 from ros_helpers import REPO, core_map_as_received, rclpy, spin_until, start_process, stop_process
 from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 
-from bev_mapper_core.grid import BevGrid, grid_preset
-from bev_mapper_core.ipm import IpmMapper
+from bev_mapper_core.geometry.grid import BevGrid, grid_preset
+from bev_mapper_core.geometry.rig import Rig, RigCamera, preset_rig
 from bev_mapper_core.mapper import MapperConfig, create_mapper
-from bev_mapper_core.rig import Rig, RigCamera, preset_rig
+from bev_mapper_core.methods.ipm.mapper import IpmMapper
 from bev_mapper_core.synth import SynthConfig, generate_drive
 from bev_mapper_ros import mapper_node
 from bev_mapper_ros.config import node_config_from_params

@@ -8,9 +8,9 @@ import pytest
 import yaml
 
 from bev_mapper_core.errors import ConfigError, GridError
-from bev_mapper_core.grid import grid_preset
-from bev_mapper_core.rig import PRESETS, preset_rig
-from bev_mapper_core.transforms import quat_to_rot
+from bev_mapper_core.geometry.grid import grid_preset
+from bev_mapper_core.geometry.rig import PRESETS, preset_rig
+from bev_mapper_core.geometry.transforms import quat_to_rot
 from bev_mapper_ros.calibration import LiveCalibration
 from bev_mapper_ros.config import NodeConfigError, node_config_from_params
 from bev_mapper_ros.rig_params import CONFIG_DIR, METHOD_CONFIGS, write_configs
@@ -126,7 +126,7 @@ def test_inference_threads_leave_a_core_to_the_callbacks(monkeypatch):
     """
     import os
 
-    from bev_mapper_core.models.runtime import THREADS_ENV, inference_threads
+    from bev_mapper_core.nn.runtime import THREADS_ENV, inference_threads
 
     cpus = len(os.sched_getaffinity(0))
     monkeypatch.delenv(THREADS_ENV, raising=False)

@@ -16,10 +16,10 @@ from rclpy.qos import qos_profile_sensor_data  # noqa: E402
 from ros_helpers import REPO, core_map_as_received, rclpy, spin_until, start_process, stop_process
 from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 
-from bev_mapper_core.grid import BevGrid
-from bev_mapper_core.ipm import IpmMapper
+from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.geometry.rig import Rig, RigCamera, preset_rig
 from bev_mapper_core.mapper import MapperConfig
-from bev_mapper_core.rig import Rig, RigCamera, preset_rig
+from bev_mapper_core.methods.ipm.mapper import IpmMapper
 from bev_mapper_core.synth import SynthConfig, generate_drive
 from bev_mapper_ros.config import node_config_from_params
 from msg_adapters import RclpyFactory, camera_info_to_model, make_camera_info, make_image

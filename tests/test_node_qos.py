@@ -13,7 +13,7 @@ from ros_helpers import rclpy, spin_until, start_process, stop_process
 from sensor_msgs.msg import Image
 from test_node import CLASSES, GRID, PARAMS_FILE, Driver
 
-from bev_mapper_core.rig import preset_rig
+from bev_mapper_core.geometry.rig import preset_rig
 from bev_mapper_core.synth import SynthConfig, generate_drive
 from bev_mapper_ros.input_qos import camera_qos, offered_reliability
 from msg_adapters import make_image

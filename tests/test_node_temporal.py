@@ -10,13 +10,13 @@ from nav_msgs.msg import Odometry
 from ros_helpers import REPO, rclpy, spin_until, start_process, stop_process
 from test_node import Driver, node_view_of_rig
 
-from bev_mapper_core.grid import grid_preset
-from bev_mapper_core.ipm import IpmMapper
+from bev_mapper_core.geometry.grid import grid_preset
+from bev_mapper_core.geometry.rig import preset_rig
+from bev_mapper_core.geometry.transforms import rot_to_quat
 from bev_mapper_core.mapper import MapperConfig, create_mapper
-from bev_mapper_core.rig import preset_rig
+from bev_mapper_core.methods.ipm.mapper import IpmMapper
 from bev_mapper_core.synth import SynthConfig, generate_drive
 from bev_mapper_core.temporal import TemporalConfig, TemporalFusion
-from bev_mapper_core.transforms import rot_to_quat
 
 PARAMS = REPO / "config" / "front1.yaml"
 CLASSES = ("drivable", "lane_divider", "vehicle")

@@ -22,9 +22,9 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profi
 from ros_helpers import REPO, free_domain_id, rclpy, ros_env, start_process, stop_process
 from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 
-from bev_mapper_core.grid import BevGrid
+from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.geometry.rig import PRESETS, preset_rig
 from bev_mapper_core.mapper import available_methods
-from bev_mapper_core.rig import PRESETS, preset_rig
 from bev_mapper_core.synth import SynthConfig, generate_drive
 from bev_mapper_ros.config import NodeConfig, preset_parameters
 from bev_mapper_ros.params import PARAMETERS

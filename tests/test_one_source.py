@@ -11,15 +11,15 @@ from types import SimpleNamespace
 import pytest
 import yaml
 
-from bags.cli import build_parser
-from bags.reader import DEFAULT_SYNC
-from bags.replay import SCOPES, ReplayOptions
-from bags.synth_cmd import SynthBagOptions
-from bags.writer import STORAGES
+from bags.cli.main import build_parser
+from bags.cli.synth import SynthBagOptions
+from bags.io.reader import DEFAULT_SYNC
+from bags.io.writer import STORAGES
+from bags.replay.core import SCOPES, ReplayOptions
 from bev_mapper_core.errors import GridError
-from bev_mapper_core.grid import GRID_TOL_M, BevGrid
+from bev_mapper_core.geometry.grid import GRID_TOL_M, BevGrid
+from bev_mapper_core.geometry.rig import PRESETS
 from bev_mapper_core.mapper import INPUT_KINDS, MapperConfig, available_methods
-from bev_mapper_core.rig import PRESETS
 from bev_mapper_core.synth.config import SynthConfig
 from bev_mapper_core.synth.styles import STYLE_CHOICES
 from bev_mapper_core.temporal import TemporalConfig
@@ -167,13 +167,13 @@ def test_bev_bag_choices_come_from_the_constants():
     assert tuple(_action(synth, "--style").choices) == STYLE_CHOICES
     assert tuple(_action(synth, "--storage").choices) == STORAGES
     # --label-map takes a preset or a YAML path: no choices, but the help names every preset
-    from bev_mapper_core.label_maps import PRESET_NAMES
+    from bev_mapper_core.labels.label_maps import PRESET_NAMES
 
     label_map = _action(replay, "--label-map")
     assert label_map.default == MapperConfig.label_map == PRESET_NAMES[0]
     assert all(name in label_map.help for name in PRESET_NAMES)
     # every input kind has a bag topic and a default node topic
-    from bags.topics import IMAGE_KINDS
+    from bags.io.topics import IMAGE_KINDS
     from bev_mapper_ros.config import DEFAULT_TOPICS
 
     assert set(IMAGE_KINDS) == set(INPUT_KINDS) == set(DEFAULT_TOPICS)
@@ -181,7 +181,8 @@ def test_bev_bag_choices_come_from_the_constants():
 
 def test_bev_bag_defaults_are_the_dataclass_defaults():
     """No flags given = the dataclasses' defaults."""
-    from bags import replay_cmd, synth_cmd
+    from bags.cli import replay as replay_cmd
+    from bags.cli import synth as synth_cmd
 
     opts = replay_cmd.options_from_args(build_parser().parse_args(["replay", "b", "--out", "o"]))
     assert opts == ReplayOptions(bag=Path("b"), out=Path("o"), progress=opts.progress)
@@ -222,8 +223,8 @@ def _info(grid: BevGrid, dx: float = 0.0):
 def test_bag_grid_check_and_weights_check_share_the_tolerance():
     """A grid within GRID_TOL_M of another is the same grid for the bag reader (GT layers) and
     for the weights check; a bit more is not, for both."""
-    from bev_mapper_core.models.bimapper_mapper import default_weights_path
-    from bev_mapper_core.models.weights import WeightsError, WeightsFile
+    from bev_mapper_core.methods.bimapper.mapper import default_weights_path
+    from bev_mapper_core.methods.bimapper.weights import WeightsError, WeightsFile
 
     wf = WeightsFile.open(default_weights_path("front1", "labels"))
     stored = wf.grid
@@ -275,9 +276,9 @@ class _CountingSafeOpen:
 
 def test_node_start_up_reads_the_weights_file_once(monkeypatch):
     """preflight then create_mapper (what the node does): one header read, one tensor read."""
+    from bev_mapper_core.geometry.rig import preset_rig
     from bev_mapper_core.mapper import create_mapper, preflight
-    from bev_mapper_core.models import weights
-    from bev_mapper_core.rig import preset_rig
+    from bev_mapper_core.methods.bimapper import weights
 
     counter = _CountingSafeOpen(weights.safe_open)
     monkeypatch.setattr(weights, "safe_open", counter)
@@ -290,8 +291,8 @@ def test_node_start_up_reads_the_weights_file_once(monkeypatch):
 
 
 def test_weights_cache_sees_a_replaced_file(tmp_path, monkeypatch):
-    from bev_mapper_core.models import weights
-    from bev_mapper_core.models.bimapper_mapper import default_weights_path
+    from bev_mapper_core.methods.bimapper import weights
+    from bev_mapper_core.methods.bimapper.mapper import default_weights_path
 
     src = default_weights_path("front1", "labels")
     path = tmp_path / "w.safetensors"

@@ -16,11 +16,13 @@ import cv2
 import numpy as np
 import pytest
 
-from bags.cli import main
-from bags.frame_scores import FrameScores
-from bags.pictures import comparison_picture, panel_boxes, panel_scale
-from bags.replay import FRAMES_DIR, REPORT_FILE, ReplayOptions
-from bev_mapper_core.classes import (
+from bags.cli.main import main
+from bags.replay.core import FRAMES_DIR, REPORT_FILE, ReplayOptions
+from bags.replay.frame_scores import FrameScores
+from bags.report.pictures import comparison_picture, panel_boxes, panel_scale
+from bev_mapper_core.display import EGO_CENTER_X_M, EGO_LENGTH_M, EGO_WIDTH_M, STRIP_FG, BevPainter, painter
+from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.labels.classes import (
     BEV_CLASSES,
     CAM2BEV_CLASSES,
     CLASS_COLORS,
@@ -30,8 +32,6 @@ from bev_mapper_core.classes import (
     bev_class,
     bev_picture,
 )
-from bev_mapper_core.display import EGO_CENTER_X_M, EGO_LENGTH_M, EGO_WIDTH_M, STRIP_FG, BevPainter, painter
-from bev_mapper_core.grid import BevGrid
 from bev_mapper_core.metrics import MetricAccumulator, scope_masks
 
 GRID = BevGrid(-20.0, 20.0, -10.0, 10.0, 0.25)
@@ -385,8 +385,8 @@ def test_report_renders_in_headless_chromium(replays, tmp_path):
     rc, console, dom = _render(browser, html, None, tmp_path, "--dump-dom")
     assert rc == 0 and console == [] and "(1 / 3)" in dom
     # a report without pictures (no viewer) runs its script without errors too
-    from bags.replay import ReplayResult  # noqa: PLC0415
-    from bags.report import render_report  # noqa: PLC0415
+    from bags.replay.core import ReplayResult  # noqa: PLC0415
+    from bags.report.html import render_report  # noqa: PLC0415
 
     metrics = json.loads((outs["every"] / "metrics.json").read_text())
     bare = tmp_path / "bare.html"
@@ -414,8 +414,8 @@ def test_report_without_pictures_or_ground_truth(replays, tmp_path):
     html = (out / REPORT_FILE).read_text()
     assert "No pictures were written" in html and 'id="frames-data"' not in html
     assert "mIoU / mAP" in html
-    from bags.replay import ReplayResult  # noqa: PLC0415
-    from bags.report import render_report  # noqa: PLC0415
+    from bags.replay.core import ReplayResult  # noqa: PLC0415
+    from bags.report.html import render_report  # noqa: PLC0415
 
     metrics = json.loads((out / "metrics.json").read_text())
     metrics.update(frames_scored=0, classes={}, miou=None, map=None, iou_by_range={},

@@ -1,4 +1,4 @@
-"""The replay pipeline (bags/pipeline.py): read-ahead items and the source's exception arrive in order, closing
+"""The replay pipeline (bags/replay/pipeline.py): read-ahead items and the source's exception arrive in order, closing
 stops the thread and runs the source's ``finally``, in-order calls run in order and hand back the first error; a replay through the pipeline
 equals one in a single thread."""
 
@@ -9,8 +9,8 @@ import threading
 
 import pytest
 
-from bags.pipeline import InOrder, Prefetch
-from bags.replay import ReplayOptions, replay
+from bags.replay.core import ReplayOptions, replay
+from bags.replay.pipeline import InOrder, Prefetch
 from bev_mapper_core.mapper import MapperConfig
 
 

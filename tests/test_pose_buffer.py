@@ -1,4 +1,4 @@
-"""Ego poses at an image's stamp (bev_mapper_core/pose_buffer.py): interpolation (linear
+"""Ego poses at an image's stamp (bev_mapper_core/geometry/pose_buffer.py): interpolation (linear
 translation, slerp rotation), gaps and ends without a pose, time going back, bad poses."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from bev_mapper_core.errors import ConfigError
-from bev_mapper_core.pose_buffer import PoseBuffer, PoseBufferConfig
-from bev_mapper_core.transforms import rpy_to_rot, yaw_of
+from bev_mapper_core.geometry.pose_buffer import PoseBuffer, PoseBufferConfig
+from bev_mapper_core.geometry.transforms import rpy_to_rot, yaw_of
 
 MS = 1_000_000
 

@@ -57,7 +57,7 @@ def layout():
 @pytest.fixture(scope="module")
 def front_bag(tmp_path_factory):
     """A short synthetic front1 drive as a rosbag2."""
-    from bags.cli import main as bev_bag
+    from bags.cli.main import main as bev_bag
 
     path = tmp_path_factory.mktemp("live") / "front1_drive"
     assert bev_bag(["synth", str(path), "--rig", "front1", "--frames", "6", "--seed", "950000001"]) == 0
@@ -242,7 +242,7 @@ def test_launch_file(layout, tmp_path):
     import ast
     import importlib.util
 
-    from bev_mapper_core.rig import PRESETS
+    from bev_mapper_core.geometry.rig import PRESETS
     from bev_mapper_ros.ament_layout import EXECUTABLES
 
     tree = ast.parse((REPO / "launch" / "mapper.launch.py").read_text())

@@ -11,21 +11,23 @@ import torch
 from safetensors.torch import load_file, save_file
 from torch.nn import functional as F
 
-from bags import train_cli as cli
-from bev_mapper_core.classes import NUM_LABELS, S2G2_CLASSES, Label, label_lut
+from bags.cli import train as cli
 from bev_mapper_core.errors import ConfigError, GridError
-from bev_mapper_core.grid import BevGrid, grid_preset
+from bev_mapper_core.geometry.grid import BevGrid, grid_preset
+from bev_mapper_core.geometry.rig import preset_rig
+from bev_mapper_core.labels.classes import NUM_LABELS, S2G2_CLASSES, Label, label_lut
 from bev_mapper_core.mapper import MapperConfig, available_methods, create_mapper
-from bev_mapper_core.models import BiMapper, BiMapperConfig, save_weights
-from bev_mapper_core.models.s2g2 import S2G2, S2G2Config, input_size
-from bev_mapper_core.models.s2g2_blocks import (
+from bev_mapper_core.methods.bimapper.config import BiMapperConfig
+from bev_mapper_core.methods.bimapper.model import BiMapper
+from bev_mapper_core.methods.bimapper.weights import WeightsError, save_weights
+from bev_mapper_core.methods.s2g2.blocks import (
     CrossViewAttention,
     InterViewAttention,
     ViewTransform,
     grid_to_image_layout,
     image_to_grid_layout,
 )
-from bev_mapper_core.models.s2g2_losses import (
+from bev_mapper_core.methods.s2g2.losses import (
     S2G2LossConfig,
     bev_tie_loss,
     consistency_loss,
@@ -35,16 +37,15 @@ from bev_mapper_core.models.s2g2_losses import (
     s2g2_loss,
     sigmoid_rampup,
 )
-from bev_mapper_core.models.s2g2_mapper import shipped_s2g2
-from bev_mapper_core.models.s2g2_weights import load_s2g2, read_s2g2_metadata, save_s2g2
-from bev_mapper_core.models.segipm_mapper import shipped_segmenter
-from bev_mapper_core.models.segmenter_weights import load_segmenter
-from bev_mapper_core.models.weights import WeightsError
-from bev_mapper_core.rig import preset_rig
+from bev_mapper_core.methods.s2g2.mapper import shipped_s2g2
+from bev_mapper_core.methods.s2g2.model import S2G2, S2G2Config, input_size
+from bev_mapper_core.methods.s2g2.train import S2G2Training
+from bev_mapper_core.methods.s2g2.weights import load_s2g2, read_s2g2_metadata, save_s2g2
+from bev_mapper_core.methods.segipm.mapper import shipped_segmenter
+from bev_mapper_core.methods.segmenter.weights import load_segmenter
 from bev_mapper_core.training.config import TrainConfig
 from bev_mapper_core.training.data import FrameSet
 from bev_mapper_core.training.method import method_class, train_methods
-from bev_mapper_core.training.s2g2_method import S2G2Training
 from bev_mapper_core.training.sources import DataNeeds, InMemorySource, SynthSource, TrainData
 from bev_mapper_core.training.trainer import train
 
@@ -463,11 +464,11 @@ def test_unlabeled_frames_from_a_bag(tmp_path):
     pytest.importorskip("rosbags")
     import yaml
 
-    from bags.cli import main as bag_main
-    from bags.reader import BagReader
-    from bags.train_data import unlabeled_frameset
-    from bags.writer import BagWriter
-    from bev_mapper_core.models.s2g2 import input_size
+    from bags.cli.main import main as bag_main
+    from bags.io.reader import BagReader
+    from bags.io.train_data import unlabeled_frameset
+    from bags.io.writer import BagWriter
+    from bev_mapper_core.methods.s2g2.model import input_size
 
     synth = tmp_path / "synth"
     assert bag_main(["synth", str(synth), "--rig", "front1", "--frames", "3", "--scale", "0.5", "--style", "dusk"]) == 0
@@ -570,9 +571,9 @@ def test_replay_maps_a_front1_bag_with_the_shipped_s2g2_weights(tmp_path):
     """``bev-bag synth --rig front1 --grid ahead`` then ``bev-bag replay --method s2g2 --input rgb``:
     the shipped weights are found from the bag's rig, the bag's GT grid is the weights' grid, and
     the output grids are the core mapper's on the bag's RGB images, scored against the bag's GT."""
-    from bags.cli import main
-    from bags.reader import BagReader
-    from bags.replay import BAG_DIR, METRICS_FILE
+    from bags.cli.main import main
+    from bags.io.reader import BagReader
+    from bags.replay.core import BAG_DIR, METRICS_FILE
 
     bag, out = tmp_path / "bag", tmp_path / "out"
     assert main(["synth", str(bag), "--rig", "front1", "--grid", "ahead", "--frames", "3", "--seed", "950000013",

@@ -10,9 +10,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bev_mapper_core.classes import BEV_CLASS_NAMES, resolve_classes
 from bev_mapper_core.errors import ConfigError, InputError
-from bev_mapper_core.grid import BevGrid
+from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.labels.classes import BEV_CLASS_NAMES, resolve_classes
 from bev_mapper_core.metrics import MetricAccumulator, default_range_bands, scope_masks
 from bev_mapper_core.training.data import FrameSet
 from bev_mapper_core.training.evaluate import score_frameset
@@ -116,9 +116,9 @@ def test_replay_and_eval_score_the_same_drive_identically(tmp_path):
     rendered for training give the same metrics document (one scorer, one set of bands)."""
     import json
 
-    from bags.cli import main as bev_bag
+    from bags.cli.main import main as bev_bag
+    from bev_mapper_core.geometry.rig import preset_rig
     from bev_mapper_core.mapper import MapperConfig, create_mapper
-    from bev_mapper_core.rig import preset_rig
     from bev_mapper_core.training.data import synth_frameset
     from bev_mapper_core.training.evaluate import evaluate_mapper
 

@@ -9,16 +9,16 @@ import torch
 from safetensors.torch import load_file, save_file
 from test_bimapper_model import GRID, RIG, TINY
 
-from bev_mapper_core.classes import NUM_LABELS, Label
 from bev_mapper_core.errors import ConfigError
-from bev_mapper_core.ipm import IpmMapper
+from bev_mapper_core.labels.classes import NUM_LABELS, Label
 from bev_mapper_core.mapper import MapperConfig, create_mapper
-from bev_mapper_core.models import BiMapper, save_weights
-from bev_mapper_core.models.bimapper_mapper import BiMapperMapper
-from bev_mapper_core.models.segipm_mapper import SegmenterStage
-from bev_mapper_core.models.segmenter import Segmenter, SegmenterConfig, class_weights, pixel_iou
-from bev_mapper_core.models.segmenter_weights import load_segmenter, save_segmenter
-from bev_mapper_core.models.weights import WeightsError
+from bev_mapper_core.methods.bimapper.mapper import BiMapperMapper
+from bev_mapper_core.methods.bimapper.model import BiMapper
+from bev_mapper_core.methods.bimapper.weights import WeightsError, save_weights
+from bev_mapper_core.methods.ipm.mapper import IpmMapper
+from bev_mapper_core.methods.segipm.mapper import SegmenterStage
+from bev_mapper_core.methods.segmenter.model import Segmenter, SegmenterConfig, class_weights, pixel_iou
+from bev_mapper_core.methods.segmenter.weights import load_segmenter, save_segmenter
 
 torch.set_num_threads(1)
 SMALL = SegmenterConfig(input_width=32, width_mult=0.25, depth_mult=0.25, encoder_stages=3, decoder_channels=8)

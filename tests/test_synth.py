@@ -5,10 +5,11 @@ import math
 import numpy as np
 import pytest
 
-from bev_mapper_core.classes import BEV_CLASS_NAMES, BEV_CLASSES, Label, label_lut
 from bev_mapper_core.errors import ConfigError
-from bev_mapper_core.grid import BevGrid
-from bev_mapper_core.rig import preset_rig
+from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.geometry.rig import preset_rig
+from bev_mapper_core.geometry.transforms import transform_points
+from bev_mapper_core.labels.classes import BEV_CLASS_NAMES, BEV_CLASSES, Label, label_lut
 from bev_mapper_core.synth import (
     CameraFrame,
     DriveRenderer,
@@ -20,7 +21,6 @@ from bev_mapper_core.synth import (
 from bev_mapper_core.synth.config import EPOCH_NS
 from bev_mapper_core.synth.objects import Boxes, obb_overlap
 from bev_mapper_core.synth.populate import EGO_HALF, EGO_OFFSET
-from bev_mapper_core.transforms import transform_points
 
 CI = {n: i for i, n in enumerate(BEV_CLASS_NAMES)}
 GRID = BevGrid()

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from bev_mapper_core.errors import ConfigError
-from bev_mapper_core.grid import BevGrid
-from bev_mapper_core.rig import preset_rig
+from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.geometry.rig import preset_rig
 from bev_mapper_core.synth import DriveRenderer, SynthConfig, build_world, generate_drive
 from bev_mapper_core.synth.render import Look
 from bev_mapper_core.synth.styles import (
@@ -162,9 +162,9 @@ def test_depth_and_box_buffers_do_not_depend_on_the_look(world, rig):
 
 
 def test_cli_style_flag_and_bag_metadata(tmp_path, capsys):
-    from bags.cli import build_parser, main
-    from bags.info_cmd import describe, format_info
-    from bags.reader import BagReader
+    from bags.cli.info import describe, format_info
+    from bags.cli.main import build_parser, main
+    from bags.io.reader import BagReader
 
     out = tmp_path / "night"
     assert main(["synth", str(out), "--frames", "2", "--seed", "3", "--scale", "0.25",

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from bev_mapper_core.errors import ConfigError
-from bev_mapper_core.grid import BevGrid
+from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.geometry.transforms import rpy_to_rot
 from bev_mapper_core.mapper import BevPrediction
 from bev_mapper_core.temporal import TemporalConfig, TemporalFusion
-from bev_mapper_core.transforms import rpy_to_rot
 
 GRID = BevGrid(-10.0, 10.0, -5.0, 5.0, 0.5)  # 40 x 20 cells
 S = 1_000_000_000  # ns per s
@@ -103,8 +103,8 @@ def test_replay_fuses_over_the_bags_odometry_exactly_as_the_core(tmp_path):
     mapper's maps, and the default (window 1) leaves them the method's own."""
     from bag_helpers import replay_ipm, synth_small
 
-    from bags.reader import BagReader
-    from bags.replay import BAG_DIR, METRICS_FILE
+    from bags.io.reader import BagReader
+    from bags.replay.core import BAG_DIR, METRICS_FILE
     from bev_mapper_core.mapper import MapperConfig, create_mapper
 
     bag = synth_small(tmp_path / "bag", frames=4)
@@ -142,10 +142,10 @@ def test_eval_fuses_each_drive_over_its_poses(tmp_path):
     """``evaluate_mapper(..., temporal=TemporalConfig(window=2))`` (``bev-train eval
     --temporal-window 2``) scores exactly the fusion of the mapper's maps over each drive's frames
     in order, the memory dropped between drives."""
-    from bev_mapper_core.grid import grid_preset
+    from bev_mapper_core.geometry.grid import grid_preset
+    from bev_mapper_core.geometry.rig import preset_rig
     from bev_mapper_core.mapper import MapperConfig, create_mapper
     from bev_mapper_core.metrics import MetricAccumulator, scope_masks
-    from bev_mapper_core.rig import preset_rig
     from bev_mapper_core.training.evaluate import evaluate_mapper, held_out_frames
 
     classes = ("drivable", "lane_divider", "sidewalk")

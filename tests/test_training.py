@@ -9,11 +9,12 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from bags import train_cli as cli  # noqa: E402
+from bags.cli import train as cli  # noqa: E402
 from bev_mapper_core.errors import ConfigError  # noqa: E402
-from bev_mapper_core.grid import BevGrid  # noqa: E402
-from bev_mapper_core.models import BiMapper, load_state  # noqa: E402
-from bev_mapper_core.rig import preset_rig  # noqa: E402
+from bev_mapper_core.geometry.grid import BevGrid  # noqa: E402
+from bev_mapper_core.geometry.rig import preset_rig  # noqa: E402
+from bev_mapper_core.methods.bimapper.model import BiMapper  # noqa: E402
+from bev_mapper_core.methods.bimapper.weights import load_state  # noqa: E402
 from bev_mapper_core.synth.config import SynthConfig  # noqa: E402
 from bev_mapper_core.synth.styles import STYLE_CHOICES  # noqa: E402
 from bev_mapper_core.training.config import TrainConfig  # noqa: E402
@@ -180,13 +181,13 @@ def test_config_from_yaml(tmp_path):
 
 def test_training_on_a_bag_with_gt(tmp_path, capsys):
     pytest.importorskip("rosbags")
-    from bags.cli import main as bag_main
+    from bags.cli.main import main as bag_main
 
     bag = tmp_path / "bag"
     g = [str(v) for v in TINY_GRID]
     assert bag_main(["synth", str(bag), "--rig", RIG, "--frames", "3", "--grid-x-min", g[0], "--grid-x-max", g[1],
                      "--grid-y-min", g[2], "--grid-y-max", g[3], "--grid-res", g[4]]) == 0
-    from bags.train_data import bag_frameset, bag_rig_grid
+    from bags.io.train_data import bag_frameset, bag_rig_grid
 
     rig, grid = bag_rig_grid(bag)
     assert rig.names == preset_rig(RIG).names and grid == BevGrid(*TINY_GRID)
@@ -207,14 +208,17 @@ from dataclasses import dataclass, fields  # noqa: E402
 from safetensors import safe_open  # noqa: E402
 from safetensors.torch import save_file  # noqa: E402
 
-from bev_mapper_core.classes import BEV_CLASS_NAMES, NUM_LABELS  # noqa: E402
+from bev_mapper_core.geometry.rig import PRESETS  # noqa: E402
+from bev_mapper_core.labels.classes import BEV_CLASS_NAMES, NUM_LABELS  # noqa: E402
 from bev_mapper_core.mapper import INPUT_KINDS  # noqa: E402
-from bev_mapper_core.models import BiMapperConfig  # noqa: E402
-from bev_mapper_core.models.config import FUSIONS, STREAMS  # noqa: E402
-from bev_mapper_core.models.losses import MUTUAL_MODES, masked_bce  # noqa: E402
-from bev_mapper_core.rig import PRESETS  # noqa: E402
+from bev_mapper_core.methods.bimapper.config import (  # noqa: E402
+    FUSIONS,
+    STREAMS,
+    BiMapperConfig,  # noqa: E402
+)
+from bev_mapper_core.methods.bimapper.losses import MUTUAL_MODES, masked_bce  # noqa: E402
+from bev_mapper_core.methods.bimapper.train import POS_WEIGHTS, BiMapperMethod, BiMapperTraining  # noqa: E402
 from bev_mapper_core.training import method as method_mod  # noqa: E402
-from bev_mapper_core.training.bimapper_method import POS_WEIGHTS, BiMapperMethod, BiMapperTraining  # noqa: E402
 from bev_mapper_core.training.method import CliFlag, TrainMethod, method_class, register_train_method, train_methods  # noqa: E402
 from bev_mapper_core.training.sources import DataNeeds, InMemorySource, SynthSource  # noqa: E402
 
@@ -345,7 +349,7 @@ def test_a_second_method_through_bev_train(tmp_path, tiny_data, toy_method, caps
 
 
 def test_data_sources_refuse_needs_they_cannot_honour(tiny_data):
-    from bags.train_data import BagSource
+    from bags.io.train_data import BagSource
 
     tr, va, _ = tiny_data
     untimed = [FrameSet(f.labels, f.target, f.mask) for f in (tr, va)]  # frames without poses
@@ -512,7 +516,7 @@ def test_segmenter_and_rgb_bimapper_train_through_the_trainer(tmp_path):
     lines = [json.loads(x) for x in (tmp_path / "seg" / "metrics.jsonl").read_text().splitlines()]
     assert lines[-1]["loss_ce"] < lines[0]["loss_ce"]
     assert 0.0 <= state["best_val_miou"] <= 1.0
-    from bev_mapper_core.models.segmenter_weights import load_segmenter
+    from bev_mapper_core.methods.segmenter.weights import load_segmenter
     assert load_segmenter(tmp_path / "seg" / "last.safetensors").config.input_width == 32
     rgb_cfg = tiny_cfg(tmp_path, input="rgb", out=str(tmp_path / "rgb"), epochs=2)
     train(rgb_cfg, log=lambda m: None)

@@ -11,11 +11,11 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import save_file
 
-from bev_mapper_core.grid import BevGrid
+from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.geometry.rig import preset_rig
 from bev_mapper_core.mapper import MapperConfig, create_mapper, preflight
-from bev_mapper_core.models.bimapper_mapper import default_weights_path
-from bev_mapper_core.models.weights import META_KEY, WeightsError, WeightsFile
-from bev_mapper_core.rig import preset_rig
+from bev_mapper_core.methods.bimapper.mapper import default_weights_path
+from bev_mapper_core.methods.bimapper.weights import META_KEY, WeightsError, WeightsFile
 
 SHIPPED = default_weights_path("front1", "labels")
 
@@ -94,7 +94,7 @@ def test_hostile_metadata_is_refused_before_allocating(tmp_path, edit, match):
 
 def test_good_weights_pass_and_the_model_reuses_the_checked_tensors(monkeypatch):
     """The shipped file passes; after the preflight the mapper reads no tensor file again."""
-    import bev_mapper_core.models.weights as W
+    import bev_mapper_core.methods.bimapper.weights as W
 
     WeightsFile.clear_cache()
     _preflight(SHIPPED)

@@ -1,6 +1,6 @@
 """Evaluation metrics of BEV semantic maps: IoU / mIoU, Chamfer distance, precision / "mAP".
 
-Framework-free (numpy + OpenCV). All layers follow :mod:`bev_mapper_core.grid`: a class stack is
+Framework-free (numpy + OpenCV). All layers follow :mod:`bev_mapper_core.geometry.grid`: a class stack is
 ``(C, H, W)`` (classes, rows along +y, cols along +x), masks are ``(H, W)``.
 
 What is computed, and how it relates to the papers:

@@ -9,9 +9,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ..classes import resolve_classes
 from ..errors import ConfigError, InputError
-from ..grid import BevGrid
+from ..geometry.grid import BevGrid
+from ..labels.classes import resolve_classes
 from ._checks import _check_bool, _check_mask, _nan_to_none, _safe_div
 from ._state import Mergeable, _from_json_number, _json_number
 from .functional import DEFAULT_CLIP_M, _chamfer_terms, mean_iou

@@ -7,7 +7,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from ..errors import ConfigError, InputError
-from ..grid import BevGrid
+from ..geometry.grid import BevGrid
 from ._checks import _check_bool, _check_mask, _nan_to_none, _safe_div
 from ._state import Mergeable
 from .functional import mean_iou

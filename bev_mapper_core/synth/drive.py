@@ -24,11 +24,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..classes import BEV_CLASSES, label_lut
 from ..errors import ConfigError
-from ..grid import BevGrid
-from ..rig import Rig
-from ..transforms import invert_transform
+from ..geometry.grid import BevGrid
+from ..geometry.rig import Rig
+from ..geometry.transforms import invert_transform
+from ..labels.classes import BEV_CLASSES, label_lut
 from .config import SynthConfig
 from .objects import Boxes
 from .render import CameraRenderer
@@ -191,7 +191,7 @@ def generate_drive(rig: Rig, grid: BevGrid,
         ConfigError: arguments of the wrong type.
     """
     if not isinstance(rig, Rig):
-        raise ConfigError(f"rig must be a bev_mapper_core.rig.Rig, got {type(rig).__name__}")
+        raise ConfigError(f"rig must be a bev_mapper_core.geometry.rig.Rig, got {type(rig).__name__}")
     if not isinstance(grid, BevGrid):
         raise ConfigError(f"grid must be a BevGrid, got {type(grid).__name__}")
     if config is None:

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..classes import Label
+from ..labels.classes import Label
 
 # part shading kinds
 PLAIN, FACADE, GLASS, CAR_BODY = 0, 1, 2, 3
@@ -26,7 +26,7 @@ class Boxes:
         z0: ``(N,)`` base height.
         size: ``(N, 3)`` length (along the box x axis), width, height.
         yaw: ``(N,)`` heading of the box x axis.
-        label: ``(N,)`` uint8 :class:`~bev_mapper_core.classes.Label` ids.
+        label: ``(N,)`` uint8 :class:`~bev_mapper_core.labels.classes.Label` ids.
         color: ``(N, 3)`` float32 base colour, RGB 0..255.
         kind: ``(N,)`` uint8 shading kind (plain, facade with windows, glass, car body).
         obj: ``(N,)`` int64 id of the object each box belongs to.

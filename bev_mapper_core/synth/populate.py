@@ -10,8 +10,8 @@ import math
 import cv2
 import numpy as np
 
-from ..classes import Label
 from ..display import EGO_CENTER_X_M, EGO_LENGTH_M, EGO_WIDTH_M
+from ..labels.classes import Label
 from .objects import FACADE, Boxes, car_parts, obb_overlap, obstacle_parts, pedestrian_parts
 from .raster import GroundRaster
 from .roads import Road, RoadNetwork

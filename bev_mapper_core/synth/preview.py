@@ -11,9 +11,9 @@ import itertools
 import cv2
 import numpy as np
 
-from ..classes import colorize_labels, colorize_layers
-from ..grid import BevGrid
-from ..rig import preset_rig
+from ..geometry.grid import BevGrid
+from ..geometry.rig import preset_rig
+from ..labels.classes import colorize_labels, colorize_layers
 from .config import SynthConfig
 from .drive import DriveRenderer, SynthFrame
 from .world import build_world

@@ -1,6 +1,6 @@
 """The flat ground of the synthetic world as a lazily tiled world-frame raster.
 
-Each cell holds one byte: the ground :class:`~bev_mapper_core.classes.Label` in the low four
+Each cell holds one byte: the ground :class:`~bev_mapper_core.labels.classes.Label` in the low four
 bits and a :class:`Mat` (surface material, for colour) in the high four. Cell ``(iy, ix)`` covers
 ``[x0 + ix * res, x0 + (ix + 1) * res) x [y0 + iy * res, ...)``; a world point is looked up by
 flooring, so the renderer and the ground truth read exactly the same cell for the same point.
@@ -19,7 +19,7 @@ from enum import IntEnum
 import cv2
 import numpy as np
 
-from ..classes import Label
+from ..labels.classes import Label
 from .roads import RoadNetwork
 
 TILE = 1024  # cells per fine tile edge

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..rig import RigCamera
-from ..transforms import invert_transform
+from ..geometry.rig import RigCamera
+from ..geometry.transforms import invert_transform
 from .objects import CAR_BODY, FACADE, GLASS, Boxes
 from .raster import NUM_MATS, GroundRaster, Mat, unpack
 

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..transforms import make_transform, rpy_to_rot
+from ..geometry.transforms import make_transform, rpy_to_rot
 from .config import SynthConfig
 from .objects import Boxes
 from .populate import (

@@ -1,7 +1,7 @@
 """Typed, frozen training configuration (``bev-train`` flags and ``--config`` YAML map onto it).
 
 A :class:`TrainConfig` holds the run settings (rig, data, schedule, output), the BEV grid as a
-:class:`~bev_mapper_core.grid.BevGrid`, and the training method's own config objects: ``model``
+:class:`~bev_mapper_core.geometry.grid.BevGrid`, and the training method's own config objects: ``model``
 (its architecture, e.g. :class:`~bev_mapper_core.models.BiMapperConfig`) and ``loss`` (its
 training settings, e.g. :class:`~.bimapper_method.BiMapperTraining`). Serialised (``to_dict``,
 saved in ``last.json``) it is a mapping with ``grid``, ``model`` and ``loss`` sub-mappings.
@@ -19,12 +19,12 @@ from dataclasses import MISSING, asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-from ..classes import BEV_CLASS_NAMES, CAM2BEV_CLASSES, CLASS_SETS, resolve_classes
 from ..errors import BevMapperError, ConfigError
-from ..grid import BevGrid, grid_preset
-from ..label_maps import label_map
+from ..geometry.grid import BevGrid, grid_preset
+from ..geometry.rig import PRESETS
+from ..labels.classes import BEV_CLASS_NAMES, CAM2BEV_CLASSES, CLASS_SETS, resolve_classes
+from ..labels.label_maps import label_map
 from ..mapper import MapperConfig
-from ..rig import PRESETS
 from ..synth.config import SynthConfig
 from ..synth.styles import check_style
 from .method import method_class
@@ -40,7 +40,7 @@ MODEL_ALIASES = {"input": "input_kind"}
 
 def class_set(name_or_list, rig: str) -> tuple[str, ...]:
     """``auto`` (Cam2BEV's road / vehicle / static for ``cam2bev4``, else the standard set), a
-    class set's name (``standard``, ``cam2bev``, ``s2g2``: :data:`~bev_mapper_core.classes.CLASS_SETS`),
+    class set's name (``standard``, ``cam2bev``, ``s2g2``: :data:`~bev_mapper_core.labels.classes.CLASS_SETS`),
     or a comma-separated list / sequence of class names.
     """
     if isinstance(name_or_list, str):
@@ -76,7 +76,7 @@ def _build(cls: type, d: dict, what: str):
 
 
 def _grid(v) -> BevGrid:
-    """A BevGrid from a BevGrid, a grid's name (:data:`~bev_mapper_core.grid.GRID_PRESETS`), a
+    """A BevGrid from a BevGrid, a grid's name (:data:`~bev_mapper_core.geometry.grid.GRID_PRESETS`), a
     mapping, the old 5-sequence, or None (the default grid).
     """
     if v is None:
@@ -129,9 +129,9 @@ class TrainConfig:
             ones never show.
         unlabeled_bag: rosbag2 paths of unlabeled frames (``bev-train --unlabeled``; no GT
             needed, the cameras of ``rig``): the ``bev-train`` command reads them with
-            ``bags.train_data.UnlabeledBagSource``; instead of ``unlabeled_drives``.
+            ``bags.io.train_data.UnlabeledBagSource``; instead of ``unlabeled_drives``.
         label_map: what the bags' label images hold (``native``, a preset of another segmenter
-            or a YAML file, see :mod:`~bev_mapper_core.label_maps`; default: MapperConfig's);
+            or a YAML file, see :mod:`~bev_mapper_core.labels.label_maps`; default: MapperConfig's);
             bags only: synthetic drives are in this package's own ids.
         progress: tqdm progress bars.
         grid: the BEV grid (default: 60 m x 30 m at 0.15 m, which the shipped weights use);

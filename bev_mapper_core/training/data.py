@@ -44,10 +44,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..classes import NUM_LABELS, label_lut, resolve_classes
 from ..errors import ConfigError
-from ..grid import BevGrid
-from ..rig import Rig
+from ..geometry.grid import BevGrid
+from ..geometry.rig import Rig
+from ..labels.classes import NUM_LABELS, label_lut, resolve_classes
 
 #: First validation seed; training seeds must stay below it.
 VAL_SEED_BASE = 900_000_000
@@ -424,8 +424,8 @@ def main(argv: list[str] | None = None) -> int:
     """``python -m bev_mapper_core.training.data``: render the cache ahead of training."""
     import argparse
 
-    from ..classes import BEV_CLASS_NAMES, CAM2BEV_CLASSES
-    from ..rig import preset_rig
+    from ..geometry.rig import preset_rig
+    from ..labels.classes import BEV_CLASS_NAMES, CAM2BEV_CLASSES
 
     ap = argparse.ArgumentParser(description="Render synthetic training/validation drives into a cache.")
     ap.add_argument("--rig", default="surround6")

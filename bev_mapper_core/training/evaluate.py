@@ -20,10 +20,10 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError
-from ..grid import BevGrid
+from ..geometry.grid import BevGrid
+from ..geometry.rig import Rig
 from ..mapper import MapperConfig, create_mapper
 from ..metrics import MetricAccumulator, scope_masks
-from ..rig import Rig
 from ..temporal import TemporalConfig, TemporalFusion
 from .data import FrameSet, synth_frameset
 

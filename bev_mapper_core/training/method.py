@@ -3,8 +3,9 @@
 The trainer owns everything that is the same for every method: seeding, the optimizer and its
 step lr schedule, epochs, the time budget, checkpoint / resume (weights through the method,
 optimizer state as safetensors), progress bars, ``metrics.jsonl``, best / last. A method owns
-its model and its objective. A new method is one module with a :class:`TrainMethod` subclass
-plus one :func:`register_train_method` line (below, or from the method's own package).
+its model and its objective. A new method's plug-in is ``methods/<name>/train.py`` with a
+:class:`TrainMethod` subclass, named in the one table of methods
+(:data:`bev_mapper_core.methods.METHODS`); :func:`register_train_method` adds one at run time.
 
 Per run the trainer does, in this order::
 
@@ -28,53 +29,11 @@ its training settings (:attr:`TrainMethod.loss_config_type`, a frozen dataclass:
 schedules). ``bev-train`` flags of the method are declared as :class:`CliFlag` and land on a
 field of one of the two (see :meth:`~.config.TrainConfig.from_dict`).
 
-How the semi-supervised and temporal methods plug in: **S2G2** is implemented in
-:mod:`.s2g2_method` along this sketch (its source: ``TrainConfig.unlabeled_drives``), FocusBEV in
-:mod:`.focusbev_method` (windows of frames with poses: :meth:`~.data.FrameSet.windows`).
-
-**S2G2** (semi-supervised; labeled + unlabeled front images, EMA passive branch)::
-
-    @dataclass(frozen=True)
-    class S2G2Loss:
-        ema_decay: float = 0.999          # passive branch = EMA of the active one
-        consistency_ramp_steps: int = 100 # gamma ramped to 1 (mean-teacher sigmoid ramp)
-
-    class S2G2Method(TrainMethod):
-        name, model_config_type, loss_config_type = "s2g2", S2G2Config, S2G2Loss
-        def build_model(self):           # active + passive branch in one module, so that
-            return S2G2(self.cfg.model, self.rig, self.grid)   # save() keeps both
-        def trainable_parameters(self):  # the passive branch gets no gradient
-            return self.model.active.parameters()
-        def configure_optimizer(self, lr):  # paper: SGD momentum 0.9, wd 1e-4
-            return torch.optim.SGD(self.trainable_parameters(), lr, momentum=0.9, weight_decay=1e-4)
-        def data_needs(self):
-            return DataNeeds(image_size=self.model.input_size, unlabeled=True)
-        def loss(self, batch, epoch, step):   # batch = {"labeled": {...}, "unlabeled": {...}}
-            gamma = sigmoid_rampup(step, self.cfg.loss.consistency_ramp_steps)
-            seg, cyc, bev, con = ...          # L_seg on labeled; L_con on both
-            total = seg + cyc + bev + gamma * con
-            return total, {"seg": ..., "cycle": ..., "bev": ..., "con": ..., "total": float(total)}
-        def after_step(self, step):       # after opt.step(): passive <- EMA(active)
-            ema_update(self.model.passive, self.model.active, self.cfg.loss.ema_decay)
-
-and its data source yields ``{"labeled": ..., "unlabeled": ...}`` batches from
-:meth:`~.sources.TrainData.batches` (a source without unlabeled frames refuses the run).
-
-**FocusBEV** (windows of consecutive frames with ego poses; :mod:`.focusbev_method`)::
-
-    class FocusBEVMethod(TrainMethod):
-        name, model_config_type, loss_config_type = "focusbev", FocusBEVConfig, FocusBEVTraining
-        def configure_optimizer(self, lr):
-            return torch.optim.AdamW(self.model.parameters(), lr=lr, weight_decay=...)
-        def data_needs(self):           # the frame and the window - 1 before it, each with its pose
-            w = self.cfg.model.window
-            return DataNeeds(image_size=self.model.input_size, sequence_length=w, poses=w > 1, rgb=...)
-        def loss(self, batch, epoch, step):   # images (B, T, 1, h, w[, 3]), poses (B, T, 4, 4), present (B, T)
-            hist = history(self.model, x, poses, present)  # frames T-2..0 forward only, newest first
-            out = self.model(x[:, -1], hist)               # the last frame, fused with its history
-            return focusbev_loss(out["logits"], target, mask, ...)   # BCE + 0.001 unc. + 0.01 OA-IoU
-
-``predict`` of both returns ``(probs (B, K, H, W), known (B, H, W))`` numpy arrays on the run's
+Methods whose batches differ plug in through :meth:`TrainMethod.data_needs`: S2G2 asks for
+unlabeled frames beside the labeled ones (batches ``{"labeled": ..., "unlabeled": ...}``),
+FocusBEV for windows of consecutive frames with their ego poses. Their plug-ins
+(``methods/s2g2/train.py``, ``methods/focusbev/train.py``) are the worked examples.
+``predict`` returns ``(probs (B, K, H, W), known (B, H, W))`` numpy arrays on the run's
 grid; the trainer scores them with the same scorer as every other method.
 """
 
@@ -88,9 +47,10 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import numpy as np
 
 from ..errors import ConfigError
-from ..grid import BevGrid
+from ..geometry.grid import BevGrid
+from ..geometry.rig import Rig
+from ..methods import trainer_targets
 from ..registry import resolve
-from ..rig import Rig
 from .sources import DataNeeds, TrainData
 
 if TYPE_CHECKING:
@@ -228,12 +188,8 @@ class TrainMethod(ABC):
 
 
 # ----------------------------------------------------------------------- registry
-_REGISTRY: dict[str, str | type[TrainMethod]] = {
-    "bimapper": "bev_mapper_core.training.bimapper_method:BiMapperMethod",
-    "segmenter": "bev_mapper_core.training.segmenter_method:SegmenterMethod",
-    "s2g2": "bev_mapper_core.training.s2g2_method:S2G2Method",
-    "focusbev": "bev_mapper_core.training.focusbev_method:FocusBEVMethod",
-}
+# filled from the one table of methods (:data:`bev_mapper_core.methods.METHODS`)
+_REGISTRY: dict[str, str | type[TrainMethod]] = dict(trainer_targets())
 
 
 def register_train_method(name: str, target: str | type[TrainMethod]) -> None:

@@ -7,7 +7,7 @@ later frame sequences, ego poses); the trainer asks the run's :class:`DataSource
 
 Sources here (framework-free): :class:`SynthSource` (seeded synthetic drives, cached) and
 :class:`InMemorySource` (ready FrameSets, for tests and notebooks). The rosbag2 source lives in
-``bags.train_data`` (it needs rosbags) and is passed in by the ``bev-train`` entry point.
+``bags.io.train_data`` (it needs rosbags) and is passed in by the ``bev-train`` entry point.
 """
 
 from __future__ import annotations
@@ -23,8 +23,8 @@ import numpy as np
 from typing_extensions import override
 
 from ..errors import ConfigError
-from ..grid import BevGrid
-from ..rig import Rig, preset_rig
+from ..geometry.grid import BevGrid
+from ..geometry.rig import Rig, preset_rig
 from .data import FrameSet, shard_slice, synth_frameset, train_seeds
 
 if TYPE_CHECKING:  # typing only: config imports the method registry, not this module

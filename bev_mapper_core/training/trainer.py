@@ -34,7 +34,7 @@ from safetensors import safe_open
 from safetensors.torch import save_file
 
 from ..errors import BevMapperError, ConfigError
-from ..grid import BevGrid
+from ..geometry.grid import BevGrid
 from .config import TrainConfig
 from .data import FrameSet
 from .distributed import Ranks, batch_frames, launch, no_log, torchrun_ranks

@@ -1,0 +1,209 @@
+"""``bev-bag evaluate``: many bags replayed as Ray tasks, scored together (see :mod:`bags.fleet.replay_tasks`).
+
+:func:`evaluate` writes into ``options.out``:
+
+* ``bags/<name>/``: what ``bev-bag replay`` writes for that bag (``metrics.json`` last), and
+  ``evaluate.json``: the bag's record (status, error, the options that define its results, its
+  mergeable scoring state and per-frame latencies), written when its task is done;
+* ``summary.json``: the aggregate over the complete bags (dataset-level IoU from the summed
+  intersections and unions, Chamfer weighted by frames, latency percentiles over all frames),
+  one entry per bag (status ``ok`` / ``damaged`` / ``failed`` with its error), the options and
+  timings. Written last.
+
+Every file is written under a temporary name and renamed. With ``resume`` the bags whose
+``evaluate.json`` says ``ok`` for the same bag and options are not replayed again (their
+records are read back); a bag recorded with other options is an error, not a silent mix.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+from ..errors import BagError, BagExistsError
+from ..replay.core import METRICS_FILE, ReplayOptions
+from ..report.pictures import write_atomic
+from .ray_tasks import RayOptions, cluster_cpus, ray_runtime
+from .replay_tasks import OK, aggregate, bag_names, evaluate_bags, find_bags, options_record
+
+SUMMARY_FILE, RECORD_FILE, BAGS_DIR = "summary.json", "evaluate.json", "bags"
+
+
+@dataclass(frozen=True)
+class EvaluateOptions:
+    """Everything :func:`evaluate` needs.
+
+    Args:
+        bags: bags (rosbag2 directories, ``.mcap`` / ``.db3`` files) or directories holding bags.
+        out: output directory.
+        replay: the replay of each bag (its ``bag`` / ``out`` / ``force`` / ``progress`` are set
+            per bag).
+        ray_address: join this Ray cluster (:data:`~bags.fleet.ray_tasks.ADDRESS_HELP`; the code and
+            the shipped weights are uploaded with the job); ``None`` = start a local Ray runtime
+            of ``workers`` CPUs for the command and stop it at the end.
+        workers: bags replayed at once (``None`` = the CPUs of this machine, or of the cluster).
+        resume: keep the bags an earlier run of the same options completed.
+        force: start over in an ``out`` that holds an earlier evaluation.
+        progress: tqdm bars over bags and frames on stderr.
+    """
+
+    bags: tuple[Path, ...]
+    out: Path
+    replay: ReplayOptions
+    ray_address: str | None = None
+    workers: int | None = None
+    resume: bool = False
+    force: bool = False
+    progress: bool = False
+
+    def __post_init__(self) -> None:
+        if not self.bags:
+            raise BagError("no bags given")
+        if self.resume and self.force:
+            raise BagError("--resume keeps earlier results and --force discards them: pass one")
+        RayOptions(self.ray_address, self.workers)  # checks workers and the address
+
+    @property
+    def ray(self) -> RayOptions:
+        """Where the tasks run."""
+        return RayOptions(self.ray_address, self.workers)
+
+
+@dataclass
+class EvaluateResult:
+    """The summary (as written to ``summary.json``) and every bag's record, in input order."""
+
+    summary: dict
+    records: list[dict] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        """Every bag replayed completely and is in the aggregate."""
+        return self.summary["complete"]
+
+
+def evaluate(options: EvaluateOptions) -> EvaluateResult:
+    """Replay every bag as a Ray task and write the outputs (see module docstring).
+
+    Raises:
+        BagError: no bags, a path that is no bag, ``out`` holding an earlier evaluation
+            without ``resume`` / ``force``, a resumed bag recorded with other options, no Ray
+            or no cluster at ``ray_address``. A problem of a single bag is not raised: it is
+            that bag's ``failed`` / ``damaged`` record.
+    """
+    t0 = time.perf_counter()
+    out = Path(options.out)
+    bags = find_bags(options.bags)
+    names = bag_names(bags)
+    _check_out(out, options)
+    wanted = options_record(options.replay)
+    records: dict[str, dict] = {}
+    jobs = []
+    for bag, name in zip(bags, names):
+        bag_out = out / BAGS_DIR / name
+        done = _finished(bag, bag_out, wanted) if options.resume else None
+        if done is not None:
+            records[name] = {**done, "resumed": True}
+        else:
+            _remove_partials(bag_out)
+            jobs.append((name, replace(options.replay, bag=bag, out=bag_out, force=True, progress=False)))
+
+    def on_record(record: dict) -> None:
+        bag_out = out / BAGS_DIR / record["name"]
+        record = {**record, "bag": str(Path(record["bag"]).resolve()), "options": wanted,
+                  "resumed": False}
+        bag_out.mkdir(parents=True, exist_ok=True)
+        write_atomic(bag_out / RECORD_FILE, _json(record))
+        records[record["name"]] = record
+
+    timing = {"ray_start_s": 0.0, "tasks_s": 0.0, "ray_stop_s": 0.0}
+    workers = options.workers
+    if jobs:
+        t = time.perf_counter()
+        with ray_runtime(options.ray, weights=True) as ray:  # leaving stops a local runtime
+            timing["ray_start_s"] = time.perf_counter() - t
+            workers = workers or cluster_cpus(ray)
+            t = time.perf_counter()
+            evaluate_bags(ray, jobs, workers, show_progress=options.progress, on_record=on_record)
+            t_stop = time.perf_counter()
+            timing["tasks_s"] = t_stop - t
+        timing["ray_stop_s"] = time.perf_counter() - t_stop
+    ordered = [records[n] for n in names]
+    t = time.perf_counter()
+    agg = aggregate(ordered)
+    timing["aggregate_s"] = time.perf_counter() - t
+    counts = {s: sum(r["status"] == s for r in ordered) for s in ("ok", "damaged", "failed")}
+    timing["total_s"] = time.perf_counter() - t0
+    summary = {
+        "complete": counts["ok"] == len(ordered) and not agg["excluded"],
+        "bags": {"total": len(ordered), **counts, "resumed": sum(r["resumed"] for r in ordered)},
+        "aggregate": agg,
+        "per_bag": [_entry(r) for r in ordered],
+        "options": wanted,
+        "ray": {"address": options.ray_address or "local", "workers": workers},
+        "timing": {k: round(v, 3) for k, v in timing.items()},
+    }
+    write_atomic(out / SUMMARY_FILE, _json(summary))
+    return EvaluateResult(summary, ordered)
+
+
+def _json(d: dict) -> bytes:
+    return (json.dumps(d, indent=1, allow_nan=False) + "\n").encode()
+
+
+def _check_out(out: Path, options: EvaluateOptions) -> None:
+    if out.exists() and not out.is_dir():
+        raise BagExistsError(f"{out} exists and is not a directory")
+    earlier = (out / SUMMARY_FILE).exists() or any((out / BAGS_DIR).glob("*"))
+    if earlier and not (options.resume or options.force):
+        raise BagExistsError(f"{out} holds an earlier evaluation: pass --resume to continue it "
+                             "or --force to start over")
+
+
+def _remove_partials(bag_out: Path) -> None:
+    """Remove what an interrupted earlier run left under temporary names (a killed worker
+    cannot clean up; the bag is replayed again now and nothing else writes there).
+    """
+    for p in bag_out.glob(".*.partial-*"):
+        if p.is_dir():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            p.unlink(missing_ok=True)
+
+
+def _finished(bag: Path, bag_out: Path, wanted: dict) -> dict | None:
+    """The record of a bag an earlier run completed with the same options, else ``None``.
+
+    Raises:
+        BagError: the bag was completed with other options.
+    """
+    try:
+        record = json.loads((bag_out / RECORD_FILE).read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(record, dict) or record.get("status") != OK or \
+            record.get("bag") != str(bag.resolve()) or not (bag_out / METRICS_FILE).exists():
+        return None
+    if record.get("options") != wanted:
+        theirs = record.get("options") or {}
+        diff = sorted(k for k in set(wanted) | set(theirs) if wanted.get(k) != theirs.get(k))
+        raise BagError(f"{bag_out} was evaluated with other options (they differ in {diff}); "
+                       "pass the same options to resume, or --force to start over")
+    return record
+
+
+def _entry(r: dict) -> dict:
+    m = r.get("metrics") or {}
+    lat = m.get("latency_ms") or {}
+    return {"name": r["name"], "bag": r["bag"], "status": r["status"], "error": r["error"],
+            "out": f"{BAGS_DIR}/{r['name']}", "frames": m.get("frames"),
+            "frames_scored": m.get("frames_scored"), "miou": m.get("miou"),
+            "latency_p50_ms": lat.get("p50"), "seconds": _round(r["seconds"]),
+            "cpu_seconds": _round(r.get("cpu_seconds")), "resumed": r["resumed"]}
+
+
+def _round(v: float | None) -> float | None:
+    return None if v is None else round(v, 3)

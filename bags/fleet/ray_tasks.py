@@ -1,0 +1,215 @@
+"""Independent jobs as Ray tasks: a local Ray runtime that lives as long as the command, or an
+existing cluster joined with ``ray.init(address=...)``.
+
+:func:`ray_runtime` starts (or joins) Ray so that its workers import the same code as this
+process: a local runtime gets this checkout on the workers' ``PYTHONPATH``; a joined cluster
+gets the packages uploaded with the job (``runtime_env`` ``py_modules``; the nodes still need
+the third-party dependencies: numpy, torch, rosbags). :func:`run_tasks` runs one task per item
+and yields the results as they complete; per-item failures are results, not exceptions.
+
+Ray is the optional ``fleet`` extra (``pip install .[fleet]``); it is imported only here.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import signal
+import socket
+import threading
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from bev_mapper_core.errors import BevMapperError
+
+from ..errors import BagError
+
+log = logging.getLogger(__name__)
+
+#: The directory holding ``bags``, ``bev_mapper_core`` and ``msg_adapters``.
+CODE_ROOT = Path(__file__).resolve().parents[2]
+#: Packages a joined cluster's workers import from this checkout.
+PACKAGES = ("bags", "bev_mapper_core", "msg_adapters")
+#: Not uploaded to a joined cluster.
+UPLOAD_EXCLUDES = ("__pycache__", "*.pyc")
+#: ... unless the tasks map with the shipped weights: also not those.
+WEIGHTS_EXCLUDES = ("*.safetensors",)
+#: ``--ray-address`` forms: ``auto`` (the cluster this machine is part of), ``HOST:PORT`` of a
+#: head node's GCS, or ``ray://HOST:PORT`` (Ray client, needs ``ray[client]``).
+ADDRESS_HELP = "auto | HOST:PORT | ray://HOST:PORT"
+
+
+@dataclass(frozen=True)
+class RayOptions:
+    """Where the tasks run.
+
+    Args:
+        address: ``None``: start a local Ray runtime for the command (stopped at its end);
+            ``auto`` (the cluster this machine belongs to), ``host:port`` (a cluster's GCS) or
+            ``ray://host:port`` (Ray client): join that cluster (``ray.init(address=...)``).
+        workers: local runtime: its CPUs, i.e. tasks at once (``None``: all of the machine's);
+            joined cluster: the most tasks in flight at once (``None``: no limit, the cluster's
+            CPUs decide).
+    """
+
+    address: str | None = None
+    workers: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.workers is not None and (isinstance(self.workers, bool) or not isinstance(self.workers, int)
+                                         or self.workers < 1):
+            raise BagError(f"--workers must be an integer >= 1, got {self.workers!r}")
+        a = self.address
+        if a is not None and not (a == "auto" or a.startswith("ray://") or _host_port(a)):
+            raise BagError(f"--ray-address must be {ADDRESS_HELP}, got {a!r}")
+
+
+def add_ray_args(p, what: str) -> None:
+    """``--workers`` and ``--ray-address`` (defaults: :class:`RayOptions`'s) on parser or group
+    ``p``; ``what``: what one task does, for the help ("drives rendered", "bags replayed").
+    """
+    p.add_argument("--workers", type=int, default=RayOptions.workers, metavar="N",
+                   help=f"{what} at once: a local runtime of N CPUs (default: all of this machine's); with "
+                        "--ray-address, the most tasks in flight (default: the cluster's CPUs)")
+    p.add_argument("--ray-address", default=RayOptions.address, metavar="ADDR",
+                   help=f"join an existing Ray cluster instead of starting a local runtime: {ADDRESS_HELP} "
+                        "(this checkout's code is uploaded with the job; the nodes need its dependencies)")
+
+
+def _host_port(a: str) -> bool:
+    host, _, port = a.rpartition(":")
+    return bool(host) and port.isdigit()
+
+
+def _check_reachable(address: str, timeout_s: float = 10.0) -> None:
+    """Raise :class:`BagError` unless a TCP connection to ``HOST:PORT`` opens (``ray.init``
+    itself would retry for minutes).
+    """
+    host, _, port = address.rpartition(":")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
+    except OSError as exc:
+        raise BagError(f"cannot join the Ray cluster at {address}: {exc}") from None
+
+
+def _runtime_env(local: bool, weights: bool) -> dict:
+    """Workers import this checkout: on ``PYTHONPATH`` locally, uploaded to a joined cluster
+    (with the shipped weights when ``weights``).
+    """
+    if local:
+        path = [str(CODE_ROOT)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
+        return {"env_vars": {"PYTHONPATH": os.pathsep.join(dict.fromkeys(path))}}
+    excludes = UPLOAD_EXCLUDES + (() if weights else WEIGHTS_EXCLUDES)
+    return {"py_modules": [str(CODE_ROOT / p) for p in PACKAGES], "excludes": list(excludes)}
+
+
+def import_ray():
+    """The ``ray`` module, or BagError saying how to install it."""
+    try:
+        import ray
+    except ImportError as exc:
+        raise BagError(f"this command runs on Ray, which is not installed ({exc}); "
+                       "install the 'fleet' extra: pip install '.[fleet]'") from None
+    return ray
+
+
+@contextlib.contextmanager
+def ray_runtime(options: RayOptions, weights: bool = False) -> Iterator[Any]:
+    """Start or join Ray for the duration of the ``with`` block; yields the ``ray`` module.
+    ``weights``: a joined cluster also gets the shipped weights (tasks that map).
+
+    ``ray.init`` replaces the SIGTERM handler; the previous one is put back, so that the
+    command's own handling (see :mod:`bags.cli.main`) still applies.
+
+    Raises:
+        BagError: Ray is not installed, or the cluster cannot be joined / the runtime started.
+    """
+    ray = import_ray()
+    local = options.address is None
+    main = threading.current_thread() is threading.main_thread()
+    previous = signal.getsignal(signal.SIGTERM) if main else None
+    kw: dict[str, Any] = dict(log_to_driver=False, logging_level=logging.WARNING,
+                              runtime_env=_runtime_env(local, weights))
+    if local:  # "local": never attach to a runtime that happens to run on this machine
+        kw.update(address="local", num_cpus=options.workers, include_dashboard=False)
+    else:
+        if options.address != "auto" and not options.address.startswith("ray://"):
+            _check_reachable(options.address)
+        kw.update(address=options.address)
+    try:
+        ray.init(**kw)
+    except (ConnectionError, RuntimeError, ValueError, TimeoutError) as exc:
+        where = "start a local Ray runtime" if local else f"join the Ray cluster at {options.address!r}"
+        raise BagError(f"cannot {where}: {exc}") from None
+    finally:
+        if main and previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    try:
+        res = ray.cluster_resources()
+        log.debug("Ray %s: %s CPUs", "local runtime" if local else options.address, res.get("CPU"))
+        yield ray
+    finally:
+        ray.shutdown()  # a local runtime stops; a joined cluster is only disconnected from
+
+
+def cluster_cpus(ray) -> int:
+    """The CPUs of the runtime this process is connected to (at least 1)."""
+    return max(1, int(ray.cluster_resources().get("CPU", 1)))
+
+
+@dataclass(frozen=True)
+class TaskFailure:
+    """A task that raised (or whose worker died): ``message`` says why."""
+
+    message: str
+
+
+def failure_message(exc: BaseException) -> str:
+    """One line for a task's exception: the message of the project's own errors, else the type too."""
+    cause = getattr(exc, "cause", None)  # RayTaskError: the exception raised in the task
+    if isinstance(cause, BaseException):
+        exc = cause
+    if isinstance(exc, (BevMapperError, OSError)):
+        return str(exc)
+    text = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {text[-1] if text else ''}".rstrip(": ")
+
+
+def run_tasks(ray, fn: Callable, items: Iterable, *args, max_in_flight: int | None = None,
+              num_cpus: float = 1, max_retries: int = 3, poll: Callable[[], None] | None = None,
+              poll_every_s: float = 0.2) -> Iterator[tuple[Any, Any]]:
+    """Run ``fn(item, *args)`` as one Ray task per item (``num_cpus`` each; a task whose worker
+    dies is run again up to ``max_retries`` times, Ray's default); yield ``(item, result)`` in
+    completion order, ``result`` a :class:`TaskFailure` when the task failed. At most
+    ``max_in_flight`` tasks are submitted at once (``None``: all). ``poll()`` is called at least
+    every ``poll_every_s`` while tasks run (e.g. to refresh progress bars).
+
+    Leaving early (an exception in the consumer, Ctrl-C) cancels the tasks still running.
+    """
+    remote = ray.remote(num_cpus=num_cpus, max_retries=max_retries)(fn)
+    shared = [ray.put(a) for a in args]  # once, not once per task
+    todo = list(items)
+    todo.reverse()
+    pending: dict[Any, Any] = {}
+    try:
+        while todo or pending:
+            while todo and (max_in_flight is None or len(pending) < max_in_flight):
+                item = todo.pop()
+                pending[remote.remote(item, *shared)] = item
+            done, _ = ray.wait(list(pending), num_returns=1, timeout=None if poll is None else poll_every_s)
+            for ref in done:
+                item = pending.pop(ref)
+                try:
+                    result = ray.get(ref)
+                except ray.exceptions.RayError as exc:
+                    result = TaskFailure(failure_message(exc))
+                yield item, result
+            if poll is not None:
+                poll()
+    finally:
+        for ref in pending:
+            with contextlib.suppress(Exception):
+                ray.cancel(ref, force=True)

@@ -1,0 +1,403 @@
+"""Label images from other segmenters: upstream ids (or palette colours) -> this package's :class:`Label`.
+
+The mappers read label images in this package's own ids (:class:`~bev_mapper_core.labels.classes.Label`,
+mono8). A :class:`LabelMap` converts what a real segmenter publishes into those ids with ONE
+lookup table, applied once per image before any mapper sees it (the node and the bag tools do
+that as they decode an image). :func:`label_map` resolves the ``label_map`` setting:
+
+* ``native`` (the default): mono8 images of this package's :class:`Label` ids, passed through;
+* ``cityscapes_ids``: mono8 Cityscapes ``labelIds`` 0..33;
+* ``cityscapes_train_ids``: mono8 Cityscapes ``trainIds`` 0..18, 255 = ignore;
+* ``cam2bev``: rgb8 colour-coded semantic images in Cam2BEV's palette (RGB order);
+* the path of a YAML file (format below), mono8 ids or an rgb8 palette.
+
+Cityscapes classes map onto :class:`Label` as: road, parking -> ROAD; sidewalk -> SIDEWALK;
+car, truck, bus, caravan, trailer, train, motorcycle, bicycle -> VEHICLE; person, rider ->
+PEDESTRIAN; building, wall -> BUILDING; fence, guard rail, pole, polegroup, traffic light,
+traffic sign, static, dynamic -> OBSTACLE; vegetation, terrain, ground -> TERRAIN; everything
+else (unlabeled, ego vehicle, rectification border, out of roi, rail track, bridge, tunnel, sky,
+trainId 255) -> UNLABELED (there is no sky label; a bridge or tunnel does not stand on the
+ground where it shows in the image). **Cityscapes has no lane-marking, crossing or curb class**:
+markings are part of ``road``, so a Cityscapes segmenter never yields LANE_DIVIDER,
+PED_CROSSING or ROAD_BOUNDARY, and the ``lane_divider``, ``ped_crossing`` and ``road_boundary``
+layers stay empty (drivable, sidewalk, vehicle and pedestrian work). Cam2BEV's palette holds the
+same classes in Cityscapes' colours and maps the same way.
+
+YAML format (any other segmenter)::
+
+    # mono8 label images: upstream id (0..255) -> label name
+    encoding: mono8        # optional, mono8 is the default
+    labels:
+      0: road
+      1: sidewalk
+      13: vehicle
+
+    # rgb8 label images (a colour palette): colour -> label name
+    encoding: rgb8
+    labels:
+      "128,64,128": road   # "R,G,B", "R G B" or "#RRGGBB"
+      "#F423E8": sidewalk
+
+Label names are the :class:`Label` members in lower case (:data:`LABEL_NAMES`: ``road``,
+``lane_divider``, ``ped_crossing``, ``road_boundary``, ``sidewalk``, ``vehicle``,
+``pedestrian``, ``obstacle``, ``building``, ``terrain``, ``unlabeled``). Ids or colours the map
+does not name become UNLABELED; an rgb8 colour must match exactly (no nearest colour: label
+images must travel losslessly, raw or PNG, never JPEG). The file is read with limits
+(:data:`MAX_FILE_BYTES`, no YAML aliases, no duplicate keys); every defect is a
+:class:`~bev_mapper_core.errors.ConfigError`.
+"""
+
+from __future__ import annotations
+
+import functools
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import ConfigError, InputError
+from .classes import NUM_LABELS, Label
+
+NATIVE = "native"
+#: The preset names (the one source of the CLI choices and parameter texts), default first.
+PRESET_NAMES: tuple[str, ...] = (NATIVE, "cityscapes_ids", "cityscapes_train_ids", "cam2bev")
+#: Image encodings a label map expects.
+LABEL_MAP_ENCODINGS: tuple[str, ...] = ("mono8", "rgb8")
+#: Label names a YAML file may use (the :class:`Label` members, lower case).
+LABEL_NAMES: tuple[str, ...] = tuple(m.name.lower() for m in Label)
+#: Largest label-map YAML file read (bytes).
+MAX_FILE_BYTES = 1 << 20
+#: Most colours of an rgb8 palette.
+MAX_PALETTE_COLORS = 4096
+_BLOCK_PIXELS = 1 << 20
+
+_U = Label
+# Cityscapes (cityscapesScripts, cityscapesscripts/helpers/labels.py): name, labelId, trainId
+# (255 = ignored in training) -> Label. The one place the Cityscapes semantics are written.
+_CITYSCAPES: tuple[tuple[str, int, int, Label], ...] = (
+    ("unlabeled", 0, 255, _U.UNLABELED), ("ego vehicle", 1, 255, _U.UNLABELED),
+    ("rectification border", 2, 255, _U.UNLABELED), ("out of roi", 3, 255, _U.UNLABELED),
+    ("static", 4, 255, _U.OBSTACLE), ("dynamic", 5, 255, _U.OBSTACLE), ("ground", 6, 255, _U.TERRAIN),
+    ("road", 7, 0, _U.ROAD), ("sidewalk", 8, 1, _U.SIDEWALK), ("parking", 9, 255, _U.ROAD),
+    ("rail track", 10, 255, _U.UNLABELED), ("building", 11, 2, _U.BUILDING), ("wall", 12, 3, _U.BUILDING),
+    ("fence", 13, 4, _U.OBSTACLE), ("guard rail", 14, 255, _U.OBSTACLE), ("bridge", 15, 255, _U.UNLABELED),
+    ("tunnel", 16, 255, _U.UNLABELED), ("pole", 17, 5, _U.OBSTACLE), ("polegroup", 18, 255, _U.OBSTACLE),
+    ("traffic light", 19, 6, _U.OBSTACLE), ("traffic sign", 20, 7, _U.OBSTACLE),
+    ("vegetation", 21, 8, _U.TERRAIN), ("terrain", 22, 9, _U.TERRAIN), ("sky", 23, 10, _U.UNLABELED),
+    ("person", 24, 11, _U.PEDESTRIAN), ("rider", 25, 12, _U.PEDESTRIAN), ("car", 26, 13, _U.VEHICLE),
+    ("truck", 27, 14, _U.VEHICLE), ("bus", 28, 15, _U.VEHICLE), ("caravan", 29, 255, _U.VEHICLE),
+    ("trailer", 30, 255, _U.VEHICLE), ("train", 31, 16, _U.VEHICLE), ("motorcycle", 32, 17, _U.VEHICLE),
+    ("bicycle", 33, 18, _U.VEHICLE),
+)
+_CITYSCAPES_LABEL = {name: label for name, _, _, label in _CITYSCAPES}
+# Cam2BEV's input palette (RGB), from ika-rwth-aachen/Cam2BEV
+# model/one_hot_conversion/convert_30.xml (every class of its semantic camera images, the
+# ``fromColour`` attributes; Cam2BEV reads its PNGs as RGB, model/utils.py load_image). Names
+# are Cityscapes', so the classes map as above. Unlike Cityscapes, it gives person
+# (255, 0, 0) and rider (220, 20, 60); "static" is black. Its "occluded" (150, 150, 150) only
+# occurs in the BEV ground truth and stays unmapped.
+_CAM2BEV_PALETTE: tuple[tuple[str, tuple[int, int, int]], ...] = (
+    ("static", (0, 0, 0)), ("dynamic", (111, 74, 0)), ("ground", (81, 0, 81)), ("road", (128, 64, 128)),
+    ("sidewalk", (244, 35, 232)), ("parking", (250, 170, 160)), ("rail track", (230, 150, 140)),
+    ("building", (70, 70, 70)), ("wall", (102, 102, 156)), ("fence", (190, 153, 153)),
+    ("guard rail", (180, 165, 180)), ("bridge", (150, 100, 100)), ("tunnel", (150, 120, 90)),
+    ("pole", (153, 153, 153)), ("polegroup", (153, 153, 153)), ("traffic light", (250, 170, 30)),
+    ("traffic sign", (220, 220, 0)), ("vegetation", (107, 142, 35)), ("terrain", (152, 251, 152)),
+    ("sky", (70, 130, 180)), ("person", (255, 0, 0)), ("rider", (220, 20, 60)), ("car", (0, 0, 142)),
+    ("truck", (0, 0, 70)), ("bus", (0, 60, 100)), ("caravan", (0, 0, 90)), ("trailer", (0, 0, 110)),
+    ("train", (0, 80, 100)), ("motorcycle", (0, 0, 230)), ("bicycle", (119, 11, 32)),
+)
+
+
+def pack_rgb(rgb) -> np.ndarray:
+    """Colours ``(..., 3)`` uint8 -> packed ``0xRRGGBB`` uint32 ``(...)``."""
+    a = np.asarray(rgb, dtype=np.uint32)
+    return (a[..., 0] << 16) | (a[..., 1] << 8) | a[..., 2]
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    a = np.array(a, copy=True)
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True, eq=False)
+class LabelMap:
+    """One lookup table from upstream label images to :class:`Label` ids.
+
+    Attributes:
+        name: the spec it came from (a preset name or the YAML path).
+        encoding: the label images it expects: ``mono8`` (ids) or ``rgb8`` (a colour palette).
+        table: mono8: ``(256,)`` uint8, the Label id of each upstream id. rgb8: ``(K,)`` uint8,
+            the Label id of each colour in ``colors``.
+        colors: rgb8: ``(K,)`` uint32 packed ``0xRRGGBB``, strictly ascending; mono8: empty.
+            (Applied through a dense table over all 2^24 colours, built on first use: exact
+            matches only, anything else is UNLABELED.)
+
+    Raises:
+        ConfigError: tables of the wrong shape, type or order, or ids that are no Label.
+    """
+
+    name: str
+    encoding: str
+    table: np.ndarray
+    colors: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint32))
+
+    def __post_init__(self) -> None:
+        if self.encoding not in LABEL_MAP_ENCODINGS:
+            raise ConfigError(f"label map {self.name!r}: encoding must be one of {list(LABEL_MAP_ENCODINGS)}, "
+                              f"got {self.encoding!r}")
+        table, colors = np.asarray(self.table), np.asarray(self.colors)
+        if table.dtype != np.uint8 or table.ndim != 1 or (table >= NUM_LABELS).any():
+            raise ConfigError(f"label map {self.name!r}: the table must be uint8 Label ids (< {NUM_LABELS})")
+        if self.encoding == "mono8":
+            if table.shape != (256,) or colors.size:
+                raise ConfigError(f"label map {self.name!r}: a mono8 table has 256 entries and no colours")
+        elif colors.dtype != np.uint32 or colors.shape != table.shape or not 0 < colors.size <= MAX_PALETTE_COLORS \
+                or (np.diff(colors.astype(np.int64)) <= 0).any() or (colors > 0xFFFFFF).any():
+            raise ConfigError(f"label map {self.name!r}: an rgb8 map needs 1..{MAX_PALETTE_COLORS} ascending "
+                              "packed colours, one Label id each")
+        object.__setattr__(self, "table", _frozen(table))
+        object.__setattr__(self, "colors", _frozen(colors))
+        object.__setattr__(self, "_passthrough", self.encoding == "mono8" and bool(
+            np.array_equal(table, _native_table())))
+
+    @property
+    def passthrough(self) -> bool:
+        """True for the native table: :meth:`apply` returns the image itself (ids >=
+        NUM_LABELS, which the table sends to UNLABELED, already mean unlabeled to every mapper).
+        """
+        return self._passthrough
+
+    def apply(self, image) -> np.ndarray:
+        """Upstream label image -> ``(H, W)`` uint8 :class:`Label` ids (unmapped: UNLABELED).
+
+        Args:
+            image: mono8 maps: ``(H, W)`` uint8 ids; rgb8 maps: ``(H, W, 3)`` uint8 RGB.
+
+        Raises:
+            InputError: the image has another shape or dtype.
+        """
+        img = np.asarray(image)
+        if self.encoding == "mono8":
+            if img.ndim != 2 or img.dtype != np.uint8:
+                raise InputError(f"label map {self.name!r} takes (H, W) uint8 mono8 label images, "
+                                 f"got shape {img.shape} {img.dtype}")
+            return img if self.passthrough else self.table[img]
+        if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
+            raise InputError(f"label map {self.name!r} takes (H, W, 3) uint8 rgb8 label images, "
+                             f"got shape {img.shape} {img.dtype}")
+        lut = self._dense()
+        out = np.empty(img.shape[:2], np.uint8)
+        rows = max(1, _BLOCK_PIXELS // max(1, img.shape[1]))  # bounded temporaries, also for 8K images
+        for r in range(0, img.shape[0], rows):
+            block = img[r:r + rows]
+            packed = block[..., 0].astype(np.uint32) << 16  # (h, W, 3) -> (h, W) 0xRRGGBB
+            packed |= block[..., 1].astype(np.uint32) << 8
+            packed |= block[..., 2]
+            out[r:r + rows] = lut[packed]
+        return out
+
+    def _dense(self) -> np.ndarray:
+        """rgb8: the table spread over every 24-bit colour (16 MiB, built on first use): one
+        lookup per pixel, 10-20x faster than a search among the palette colours.
+        """
+        lut = getattr(self, "_lut", None)
+        if lut is None:
+            lut = np.full(1 << 24, Label.UNLABELED, np.uint8)
+            lut[self.colors] = self.table
+            object.__setattr__(self, "_lut", lut)
+        return lut
+
+    def to_dict(self) -> dict:
+        """The YAML file's mapping (see the module docstring); unmapped entries are left out."""
+        if self.encoding == "mono8":
+            labels = {int(i): LABEL_NAMES[v] for i, v in enumerate(self.table) if v != Label.UNLABELED}
+        else:
+            labels = {f"{c >> 16},{(c >> 8) & 255},{c & 255}": LABEL_NAMES[v]
+                      for c, v in zip(self.colors.tolist(), self.table.tolist())}
+        return {"encoding": self.encoding, "labels": labels}
+
+
+@functools.lru_cache(maxsize=1)
+def _native_table() -> np.ndarray:
+    t = np.arange(256, dtype=np.uint8)
+    t[NUM_LABELS:] = Label.UNLABELED
+    return _frozen(t)
+
+
+def _mono8(name: str, pairs) -> LabelMap:
+    table = np.full(256, Label.UNLABELED, np.uint8)
+    for upstream, label in pairs:
+        table[upstream] = label
+    return LabelMap(name, "mono8", table)
+
+
+def _rgb8(name: str, pairs) -> LabelMap:
+    entries: dict[int, int] = {}
+    for color, label in pairs:
+        entries[int(pack_rgb(color))] = int(label)
+    keys = sorted(entries)
+    return LabelMap(name, "rgb8", np.array([entries[k] for k in keys], np.uint8), np.array(keys, np.uint32))
+
+
+@functools.cache
+def _preset(name: str) -> LabelMap:
+    if name == NATIVE:
+        return LabelMap(NATIVE, "mono8", _native_table())
+    if name == "cityscapes_ids":
+        return _mono8(name, ((i, lab) for _, i, _, lab in _CITYSCAPES))
+    if name == "cityscapes_train_ids":
+        return _mono8(name, ((t, lab) for _, _, t, lab in _CITYSCAPES if t != 255))
+    if name == "cam2bev":
+        return _rgb8(name, ((rgb, _CITYSCAPES_LABEL[n]) for n, rgb in _CAM2BEV_PALETTE))
+    raise ConfigError(f"unknown label map preset {name!r}; presets: {list(PRESET_NAMES)}")
+
+
+def label_map(spec: str) -> LabelMap:
+    """The :class:`LabelMap` a ``label_map`` setting names: a preset (:data:`PRESET_NAMES`) or
+    the path of a YAML file (see the module docstring).
+
+    Raises:
+        ConfigError: neither a preset nor a readable, valid label-map file.
+    """
+    if not isinstance(spec, str) or not spec.strip():
+        raise ConfigError(f"label_map must be one of {list(PRESET_NAMES)} or the path of a YAML file, got {spec!r}")
+    if spec in PRESET_NAMES:
+        return _preset(spec)
+    path = Path(spec).expanduser()
+    if not path.is_file():
+        raise ConfigError(f"label_map {spec!r} is no preset ({', '.join(PRESET_NAMES)}) and no such file exists "
+                          "(a YAML file of upstream id -> label name)")
+    return load_label_map(path, name=spec)
+
+
+def _yaml_text(path: Path) -> str:
+    try:
+        size = path.stat().st_size
+        if size > MAX_FILE_BYTES:
+            raise ConfigError(f"label map {path}: {size} bytes, more than the {MAX_FILE_BYTES} a label map may have")
+        return path.read_bytes().decode("utf-8")
+    except OSError as exc:
+        raise ConfigError(f"cannot read label map {path}: {exc.strerror or exc}") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"label map {path} is not UTF-8 text") from None
+
+
+def _parse_yaml(text: str, where: str):
+    """The YAML document of ``text``: safe loader, no aliases, no duplicate keys."""
+    import yaml  # noqa: PLC0415 - only label-map files need it
+
+    class Loader(yaml.SafeLoader):
+        def construct_mapping(self, node, deep=False):
+            seen = set()
+            for key_node, _ in node.value:
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    duplicate = key in seen
+                except TypeError:  # unhashable: the base class says so
+                    break
+                if duplicate:
+                    raise ConfigError(f"{where}: key {key!r} appears twice")
+                seen.add(key)
+            return super().construct_mapping(node, deep=deep)
+
+    try:
+        if any(isinstance(ev, yaml.AliasEvent) for ev in yaml.parse(text, Loader=yaml.SafeLoader)):
+            raise ConfigError(f"{where}: YAML aliases (*name) are not allowed in a label map")
+        return yaml.load(text, Loader=Loader)  # a SafeLoader subclass
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{where} is not valid YAML: {' '.join(str(exc).split())}") from None
+
+
+def load_label_map(path: str | Path, name: str | None = None) -> LabelMap:
+    """Read a label-map YAML file (format: module docstring).
+
+    Raises:
+        ConfigError: unreadable, too large, not YAML, or not a label map (naming what is wrong).
+    """
+    path = Path(path)
+    where = f"label map {path}"
+    return label_map_from_dict(_parse_yaml(_yaml_text(path), where), name or str(path), where)
+
+
+_COLOR = re.compile(r"^\s*(\d{1,3})\s*[, ]\s*(\d{1,3})\s*[, ]\s*(\d{1,3})\s*$")
+_HEX = re.compile(r"^\s*#([0-9a-fA-F]{6})\s*$")
+
+
+def _color(key, where: str) -> tuple[int, int, int]:
+    m = _COLOR.match(key) if isinstance(key, str) else None
+    if m:
+        rgb = tuple(int(v) for v in m.groups())
+        if max(rgb) <= 255:
+            return rgb
+    m = _HEX.match(key) if isinstance(key, str) else None
+    if m:
+        v = int(m.group(1), 16)
+        return v >> 16, (v >> 8) & 255, v & 255
+    raise ConfigError(f"{where}: colour {key!r} must be 'R,G,B' (0..255 each), 'R G B' or '#RRGGBB', quoted")
+
+
+def _upstream_id(key, where: str) -> int:
+    if isinstance(key, str) and key.strip().isdigit():
+        key = int(key)
+    if isinstance(key, bool) or not isinstance(key, int) or not 0 <= key <= 255:
+        raise ConfigError(f"{where}: upstream id {key!r} must be an integer 0..255 (mono8)")
+    return key
+
+
+def _label(value, key, where: str) -> int:
+    name = value.strip().lower() if isinstance(value, str) else None
+    if name not in LABEL_NAMES:
+        raise ConfigError(f"{where}: {key!r} maps to {value!r}, which is no label; labels: {list(LABEL_NAMES)}")
+    return LABEL_NAMES.index(name)
+
+
+def label_map_from_dict(doc, name: str, where: str | None = None) -> LabelMap:
+    """A :class:`LabelMap` from the YAML file's mapping (module docstring); ``where`` names the
+    source in error messages.
+
+    Raises:
+        ConfigError: not such a mapping: unknown keys, a bad encoding, ids or colours, unknown
+            label names, an id or colour given twice, or no entry at all.
+    """
+    where = where or f"label map {name!r}"
+    if not isinstance(doc, dict):
+        raise ConfigError(f"{where} must be a mapping with 'labels' (and optionally 'encoding'), got {type(doc).__name__}")
+    unknown = sorted(map(str, set(doc) - {"encoding", "labels"}))
+    if unknown:
+        raise ConfigError(f"{where}: unknown keys {unknown}; a label map has 'encoding' and 'labels'")
+    encoding = doc.get("encoding", "mono8")
+    if encoding not in LABEL_MAP_ENCODINGS:
+        raise ConfigError(f"{where}: encoding must be one of {list(LABEL_MAP_ENCODINGS)}, got {encoding!r}")
+    labels = doc.get("labels")
+    if not isinstance(labels, dict) or not labels:
+        raise ConfigError(f"{where}: 'labels' must be a non-empty mapping of upstream "
+                          f"{'id' if encoding == 'mono8' else 'colour'} -> label name")
+    if encoding == "rgb8" and len(labels) > MAX_PALETTE_COLORS:
+        raise ConfigError(f"{where}: {len(labels)} colours, more than {MAX_PALETTE_COLORS}")
+    seen: dict = {}
+    for key, value in labels.items():
+        k = _upstream_id(key, where) if encoding == "mono8" else _color(key, where)
+        if k in seen:
+            raise ConfigError(f"{where}: {key!r} names the same {'id' if encoding == 'mono8' else 'colour'} "
+                              f"as {seen[k][0]!r}")
+        seen[k] = (key, _label(value, key, where))
+    pairs = [(k, lab) for k, (_, lab) in seen.items()]
+    return _mono8(name, pairs) if encoding == "mono8" else _rgb8(name, pairs)
+
+
+__all__ = [
+    "LABEL_MAP_ENCODINGS",
+    "LABEL_NAMES",
+    "MAX_FILE_BYTES",
+    "MAX_PALETTE_COLORS",
+    "NATIVE",
+    "PRESET_NAMES",
+    "LabelMap",
+    "label_map",
+    "label_map_from_dict",
+    "load_label_map",
+    "pack_rgb",
+]

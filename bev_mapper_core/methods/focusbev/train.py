@@ -1,0 +1,179 @@
+"""FocusBEV's training plug-in (``bev-train --method focusbev --rig front1 --input rgb``).
+
+Each sample is a window of ``window`` consecutive frames of one drive with their ego poses
+(:meth:`~.data.FrameSet.windows`; before a drive's first frame the missing history is absent
+and the reference feature stands in, as after a memory reset, so the model also learns to map
+without history). The history frames run forward only (no gradient: the paper's "history BEV
+features only participate in the forward propagation"), newest first into the
+:class:`~bev_mapper_core.methods.focusbev.blocks.EgoMotionFusion`; the loss (Eq. 10,
+:func:`~bev_mapper_core.methods.focusbev.losses.focusbev_loss`) is the last frame's.
+
+The history is as far back as the training frames are apart: ``stride`` synthetic steps,
+``stride / rate_hz`` seconds (0.3 s by default). The weights record it
+(``memory_interval_s``), and the mapper's memory bank picks history frames that far apart
+whatever the camera rate (:mod:`~bev_mapper_core.methods.focusbev.mapper`).
+
+Optimizer: AdamW (the paper's); the trainer's step schedule replaces the paper's warm-up and
+linear decay. Positive weights of the BCE: the project's ``auto`` weights, as Bi-Mapper's
+(PON's weighted BCE weighs classes too; its exact weights are dataset statistics).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from typing_extensions import override
+
+from bev_mapper_core.errors import ConfigError
+from bev_mapper_core.synth.config import SynthConfig
+from bev_mapper_core.training.method import CliFlag, TrainMethod
+from bev_mapper_core.training.sources import DataNeeds, TrainData
+
+from ..bimapper.train import POS_WEIGHTS, class_pos_weight
+from .losses import FocusBEVLossConfig, focusbev_loss
+from .model import FocusBEV, FocusBEVConfig
+from .weights import load_state_focusbev, save_focusbev
+
+
+@dataclass(frozen=True)
+class FocusBEVTraining:
+    """FocusBEV's training settings.
+
+    Args:
+        uncertainty_weight, iou_weight: the loss weights (:class:`FocusBEVLossConfig`).
+        pos_weight: ``auto`` (per-class BCE weights from the training set) or ``none``.
+        weight_decay: AdamW's (PyTorch's default 0.01; the paper does not give it).
+    """
+
+    uncertainty_weight: float = FocusBEVLossConfig.uncertainty_weight
+    iou_weight: float = FocusBEVLossConfig.iou_weight
+    pos_weight: str = "auto"
+    weight_decay: float = 0.01
+
+    def __post_init__(self) -> None:
+        if self.pos_weight not in POS_WEIGHTS:
+            raise ConfigError(f"pos_weight must be one of {POS_WEIGHTS}, got {self.pos_weight!r}")
+        v = self.weight_decay
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or v < 0:
+            raise ConfigError(f"weight_decay must be a finite number >= 0, got {v!r}")
+        self.loss_config()
+
+    def loss_config(self) -> FocusBEVLossConfig:
+        """The loss weights of a run."""
+        return FocusBEVLossConfig(self.uncertainty_weight, self.iou_weight)
+
+
+def history(model: FocusBEV, x: torch.Tensor, poses: torch.Tensor, present: torch.Tensor) -> list:
+    """The fusion's history for the last frame of windows: model inputs ``x`` ``(B, T, C_in, h, w)``,
+    ``poses`` ``(B, T, 4, 4)`` (odom_from_base), ``present`` ``(B, T)`` -> newest-first
+    ``(feature, prev_from_cur, present)`` of frames ``T-2 .. 0``, computed without gradient.
+    """
+    T = x.shape[1]
+    cur = poses[:, -1].double()
+    out = []
+    with torch.no_grad():
+        for t in range(T - 2, -1, -1):
+            feat = model.bev_features(x[:, t])
+            prev_from_cur = torch.linalg.inv(poses[:, t].double()) @ cur  # (B, 4, 4)
+            out.append((feat, prev_from_cur, present[:, t]))
+    return out
+
+
+class FocusBEVMethod(TrainMethod):
+    """FocusBEV trained on windows of consecutive frames (see the module docstring)."""
+
+    name = "focusbev"
+    model_config_type = FocusBEVConfig
+    loss_config_type = FocusBEVTraining
+    cli_flags = (
+        CliFlag("--input-width", "input_width", min_value=32),
+        CliFlag("--backbone-depth", "backbone_depth", min_value=18, help="ResNet depth: 18, 34, 50 or 101"),
+        CliFlag("--backbone-width", "backbone_width", min_value=4, help="ResNet stem width (paper 64)"),
+        CliFlag("--fpn-levels", "fpn_levels", min_value=1),
+        CliFlag("--channels", "channels", min_value=4, help="hidden dimension d"),
+        CliFlag("--decoder-layers", "decoder_layers", min_value=0, help="0 = the column-wise MLP baseline"),
+        CliFlag("--heads", "heads", min_value=1),
+        CliFlag("--no-cycle", "cycle", action="store_false", help="ablation: no BEV-PV-BEV cycle"),
+        CliFlag("--window", "window", min_value=1, help="frames of the temporal fusion (1 = off; paper 2)"),
+        CliFlag("--bev-downsample", "bev_downsample", min_value=1, help="BEV feature map = grid / this"),
+        CliFlag("--decoder-channels", "decoder_channels", min_value=1),
+        CliFlag("--uncertainty-weight", "uncertainty_weight", number=True, help="lambda_u (paper 0.001)"),
+        CliFlag("--iou-weight", "iou_weight", number=True, help="lambda_iou of the OA-IoU loss (paper 0.01)"),
+        CliFlag("--pos-weight", "pos_weight", choices=POS_WEIGHTS, help="BCE class weights (none = plain)"),
+    )
+
+    @override
+    def build_model(self) -> FocusBEV:
+        return FocusBEV(self.cfg.model, self.rig, self.grid)
+
+    @override
+    def configure_optimizer(self, lr: float) -> torch.optim.Optimizer:
+        return torch.optim.AdamW(self.model.parameters(), lr=lr, weight_decay=self.cfg.loss.weight_decay)
+
+    @override
+    def describe(self) -> str:
+        m, c = self.model, self.cfg.model
+        return (f"input {m.input_size}, ResNet-{c.backbone_depth} width {c.backbone_width}, FPN {m.level_hw}, "
+                f"depth ranges {[f'{a:.1f}-{b:.1f}' for a, b in m.ranges]} m in {m.depths} bins, "
+                f"{c.decoder_layers} decoder layers x {c.heads} heads, cycle {'on' if c.cycle else 'off'}, "
+                f"window {c.window}, BEV features {m.fgrid.shape}, classes {list(self.cfg.class_names)}")
+
+    @override
+    def schedule(self) -> str:
+        t = self.cfg.loss
+        return f"AdamW (wd {t.weight_decay}), loss BCE + {t.uncertainty_weight} uncertainty + {t.iou_weight} OA-IoU"
+
+    @override
+    def data_needs(self) -> DataNeeds:
+        w = self.cfg.model.window
+        return DataNeeds(image_size=self.model.input_size, sequence_length=w, poses=w > 1,
+                         rgb=self.cfg.model.input_kind == "rgb")
+
+    @override
+    def prepare(self, data: TrainData, log: Callable[[str], None]) -> None:
+        pw = class_pos_weight(data.train) if self.cfg.loss.pos_weight == "auto" else None
+        self.pos_weight = None if pw is None else torch.tensor(pw, dtype=torch.float32)
+        self.loss_cfg = self.cfg.loss.loss_config()
+        if pw is not None:
+            log(f"BCE positive weights {dict(zip(self.cfg.class_names, pw))}")
+
+    def _forward(self, batch: dict) -> dict[str, torch.Tensor]:
+        """The model on a batch: single frames, or windows whose last frame is mapped."""
+        raw = batch["rgb"] if self.cfg.model.input_kind == "rgb" else batch["images"]
+        if self.cfg.model.window == 1:
+            return self.model(self.model.preprocess(raw.to(self.device)))  # (B, 1, h, w[, 3])
+        B, T = raw.shape[:2]
+        x = self.model.preprocess(raw.flatten(0, 1).to(self.device))  # (B*T, 1, ...) -> (B*T, C_in, h, w)
+        x = x.view(B, T, *x.shape[1:])  # (B*T, C_in, h, w) -> (B, T, C_in, h, w)
+        hist = history(self.model, x, batch["poses"].to(self.device), batch["present"].to(self.device))
+        return self.model(x[:, -1], hist)
+
+    @override
+    def loss(self, batch: dict, epoch: int, step: int) -> tuple[torch.Tensor, dict[str, float]]:
+        out = self._forward(batch)
+        return focusbev_loss(out["logits"], batch["target"].to(self.device), batch["mask"].to(self.device),
+                             self.loss_cfg, self.pos_weight)
+
+    @override
+    def predict(self, batch: dict) -> tuple[np.ndarray, np.ndarray]:
+        probs = torch.sigmoid(self._forward(batch)["logits"]).float().cpu().numpy()  # (B, K, H, W)
+        known = self.model.known().cpu().numpy()
+        return probs, np.broadcast_to(known, (len(probs), *known.shape))
+
+    def memory_interval_s(self) -> float:
+        """Seconds between the frames of a training window (saved with the weights)."""
+        return self.cfg.stride / SynthConfig.rate_hz
+
+    @override
+    def save(self, path) -> None:
+        save_focusbev(self.model, path, self.memory_interval_s())
+
+    @override
+    def load(self, path) -> None:
+        load_state_focusbev(self.model, path)
+
+
+__all__ = ["FocusBEVMethod", "FocusBEVTraining", "history"]

@@ -1,0 +1,247 @@
+"""Inverse perspective mapping (IPM): the classical, training-free baseline.
+
+Each BEV cell centre is placed on the ground plane (z = 0 in ``base_link``) and projected into
+every camera once per calibration; the resulting lookup tables warp each frame with
+``cv2.remap`` (nearest for label images, linear for RGB). Cameras overlapping on a cell are
+averaged; cells no camera sees are unknown. Objects that stand off the ground are smeared away
+from the camera: the known flat-ground limitation of IPM. With ``MapperConfig.ipm_occlusion``
+(the default) a camera gives no value to the cells it cannot see behind an object's near edge
+(:mod:`~bev_mapper_core.methods.ipm.occlusion`), so the smear becomes unknown instead of object.
+:class:`LineOfSight` holds those rays for a rig; the learned methods use it on label input too.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from bev_mapper_core.errors import ConfigError, InputError
+from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.geometry.rig import Rig, RigCamera
+from bev_mapper_core.geometry.transforms import transform_points
+from bev_mapper_core.labels.classes import label_lut
+from bev_mapper_core.mapper import BevPrediction, Mapper, MapperConfig
+
+from .occlusion import NEAR_EDGE_SLACK_CELLS, OcclusionModel, ray_raster
+
+#: bits per class of IPM's packed per-cell class counts (up to 15 cameras, 16 classes per uint64)
+CODE_BITS = 4
+
+
+@dataclass(frozen=True)
+class RemapTable:
+    """Pixel lookup for a set of 3-D points seen by one camera.
+
+    Attributes:
+        map_x, map_y: float32 arrays of the target shape; pixel coordinates for ``cv2.remap``
+            (-1 where the point is not seen).
+        valid: bool array of the target shape: the point is in front of the camera and inside
+            its image.
+    """
+
+    map_x: np.ndarray
+    map_y: np.ndarray
+    valid: np.ndarray
+
+    def warp(self, image: np.ndarray, interpolation: int = cv2.INTER_NEAREST) -> np.ndarray:
+        """Sample ``image`` at the table's pixels (edges replicated; mask with ``valid``)."""
+        return cv2.remap(
+            image, self.map_x, self.map_y, interpolation,
+            borderMode=cv2.BORDER_REPLICATE,
+        )
+
+
+@dataclass(frozen=True)
+class GatherTable:
+    """A :class:`RemapTable` (nearest) as flat indices: per-frame IPM is then one gather.
+
+    Attributes:
+        cells: ``(n,)`` int64 flat indices of the target cells the camera sees (``valid``), in
+            increasing order.
+        pixels: ``(n,)`` int64 flat index into the camera image of the pixel each of those
+            cells takes, exactly the pixel ``cv2.remap(..., INTER_NEAREST, BORDER_REPLICATE)``
+            picks (found by remapping an image of pixel indices, so the rounding is cv2's own).
+        image_shape: ``(h, w)`` of the camera image the indices are for.
+    """
+
+    cells: np.ndarray
+    pixels: np.ndarray
+    image_shape: tuple[int, int]
+
+    @classmethod
+    def from_remap(cls, table: RemapTable, image_shape: tuple[int, int]) -> "GatherTable":
+        """The gather form of ``table`` for images of ``image_shape`` = ``(h, w)``."""
+        h, w = image_shape
+        if h * w >= 2 ** 24:
+            raise ValueError(f"images of {w}x{h} have more pixels than float32 indexes exactly")
+        index_image = np.arange(h * w, dtype=np.float32).reshape(h, w)
+        picked = table.warp(index_image, cv2.INTER_NEAREST)  # (H, W) float32 pixel indices
+        cells = np.flatnonzero(table.valid)
+        return cls(cells, picked.ravel()[cells].astype(np.int64), (h, w))
+
+    def gather(self, image: np.ndarray) -> np.ndarray:
+        """``(n,)`` values of ``image`` (``image_shape``) at the seen cells."""
+        return image.reshape(-1)[self.pixels]
+
+
+def remap_table(camera: RigCamera, points_ego: np.ndarray, shape: tuple[int, int]) -> RemapTable:
+    """Project ego-frame points ``(N, 3)`` into ``camera``; arrange the result as ``shape``.
+
+    ``N`` must equal ``shape[0] * shape[1]`` (points in row-major order of the target).
+    """
+    if points_ego.shape != (shape[0] * shape[1], 3):
+        raise ValueError(f"points {points_ego.shape} do not fill target shape {shape}")
+    pts_cam = transform_points(camera.cam_from_ego, points_ego)
+    uv, in_front = camera.model.project(pts_cam)
+    valid = in_front & camera.model.in_image(uv)
+    uv = np.where(valid[:, None], uv, -1.0)
+    # (N, 2) -> two (H, W) maps
+    map_x = uv[:, 0].reshape(shape).astype(np.float32)
+    map_y = uv[:, 1].reshape(shape).astype(np.float32)
+    return RemapTable(map_x, map_y, valid.reshape(shape))
+
+
+def ground_tables(rig: Rig, grid: BevGrid, z: float = 0.0) -> dict[str, RemapTable]:
+    """Lookup tables from every BEV cell centre (at height ``z``) to each camera's pixels."""
+    pts = grid.points(z)
+    return {cam.name: remap_table(cam, pts, grid.shape) for cam in rig.cameras}
+
+
+class LineOfSight:
+    """Which ground cells each camera of a rig sees, from its label image (IPM's rays).
+
+    A camera sees the cells of its ground table (:func:`ground_tables`) that its occlusion
+    model does not hide behind the near edge of an object in its warped labels
+    (:class:`~bev_mapper_core.methods.ipm.occlusion.OcclusionModel`). Built once per calibration.
+
+    Args:
+        rig, grid: the calibration and the BEV grid.
+        occlusion: the occlusion model (its priors); ``None`` = no occlusion reasoning (a camera
+            sees its whole ground table, the classical IPM).
+        tables: the rig's ground tables when already built (else built here).
+    """
+
+    def __init__(self, rig: Rig, grid: BevGrid, occlusion: OcclusionModel | None,
+                 tables: dict[str, RemapTable] | None = None) -> None:
+        self.grid = grid
+        self.tables = ground_tables(rig, grid) if tables is None else tables
+        self.occlusion = occlusion
+        self.rays = ({} if occlusion is None else
+                     {c.name: ray_raster(c, grid, self.tables[c.name].valid) for c in rig.cameras})
+
+    def camera_valid(self, name: str, warped: np.ndarray) -> np.ndarray:
+        """``(H, W)`` bool: the cells camera ``name`` sees, given its warped labels ``(H, W)``."""
+        valid = self.tables[name].valid
+        if self.occlusion is None:
+            return valid
+        slack = self.grid.resolution * NEAR_EDGE_SLACK_CELLS
+        return valid & ~self.occlusion.occluded(self.rays[name], warped, valid, slack)
+
+    def known(self, images: Mapping[str, np.ndarray]) -> np.ndarray:
+        """``(H, W)`` bool: the cells some camera in ``images`` (name -> label image) sees."""
+        known = np.zeros(self.grid.shape, bool)
+        for name, labels in images.items():
+            known |= self.camera_valid(name, self.tables[name].warp(labels, cv2.INTER_NEAREST))
+        return known
+
+
+class IpmMapper(Mapper):
+    """IPM of semantic label images onto the ground plane.
+
+    On label input each pixel's class becomes the class of the ground cell it projects to; on
+    RGB input there is no class to transfer, so :meth:`map` refuses and :meth:`warp_rgb` gives
+    the BEV colour mosaic instead. ``config.ipm_occlusion`` turns the occlusion reasoning on.
+    """
+
+    name = "ipm"
+
+    def __init__(self, rig: Rig, grid: BevGrid, config: MapperConfig) -> None:
+        self.preflight(config, rig.name)
+        self._occlusion = OcclusionModel()
+        super().__init__(rig, grid, config)  # calls set_rig
+        self._lut = label_lut(self.classes).astype(np.float32)  # (NUM_LABELS, C)
+        self._lut_t = np.ascontiguousarray(self._lut.T)  # (C, NUM_LABELS): one class row per gather
+        #: label id -> its class indicators packed CODE_BITS per class (None: too many classes
+        #: or cameras for one uint64 counter per cell; the float path then sums class rows)
+        self._codes = None
+        if len(self.classes) * CODE_BITS <= 64 and len(self.rig.cameras) < 2 ** CODE_BITS:
+            self._shifts = np.uint64(CODE_BITS) * np.arange(len(self.classes), dtype=np.uint64)  # (C,)
+            self._codes = (label_lut(self.classes).astype(np.uint64) << self._shifts[None]).sum(1, dtype=np.uint64)
+
+    @classmethod
+    def preflight(cls, config: MapperConfig, rig_name: str, grid: BevGrid | None = None,
+                  cameras: tuple[str, ...] | None = None) -> None:
+        """IPM needs label images."""
+        if config.input_kind != "labels":
+            raise ConfigError(
+                "IPM maps semantic label images only (input_kind 'labels'); RGB input needs a "
+                "learned method such as 'bimapper'"
+            )
+
+    def set_rig(self, rig: Rig) -> None:
+        """Recompute the ground lookup tables (and their gather form) for a new calibration."""
+        super().set_rig(rig)
+        self.tables = ground_tables(rig, self.grid)
+        self.gathers = {c.name: GatherTable.from_remap(self.tables[c.name], c.model.image_size[::-1])
+                        for c in rig.cameras}
+        self.sight = LineOfSight(rig, self.grid, self._occlusion if self.config.ipm_occlusion else None,
+                                 self.tables)
+
+    def map(self, images: Mapping[str, np.ndarray], ego_pose=None, stamp_ns=None) -> BevPrediction:
+        """Warp each camera's labels to the ground and average the class indicators.
+
+        Per camera one gather of the seen cells' pixels (:class:`GatherTable`) and one lookup of
+        their class indicators; the sums run over the cameras in order, so the result is the
+        same float32 arithmetic as warping whole images and accumulating them.
+        """
+        images = self.check_images(images)
+        H, W = self.grid.shape
+        C = len(self.classes)
+        codes = self._codes
+        acc = np.zeros(H * W, np.uint64) if codes is not None else np.zeros((C, H * W), np.float32)
+        count = np.zeros(H * W, np.float32)
+        n_labels = self._lut_t.shape[1]
+        occlusion = self.sight.occlusion is not None
+        for name, labels in images.items():
+            g = self.gathers[name]
+            ids = g.gather(labels)  # (n,) label ids of the seen cells
+            cells = g.cells
+            if occlusion:  # the occlusion model reads the warped image
+                warped = np.zeros(H * W, labels.dtype)
+                warped[cells] = ids
+                keep = self.sight.camera_valid(name, warped.reshape(H, W)).reshape(-1)[cells]
+                cells, ids = cells[keep], ids[keep]
+            ids = np.where(ids < n_labels, ids, 0)  # ids unknown to us -> unlabeled
+            # cells are unique within a camera, so fancy-indexed += adds once per cell
+            if codes is not None:
+                acc[cells] += codes[ids]  # every class's count in one integer
+            else:
+                acc[:, cells] += self._lut_t[:, ids]
+            count[cells] += 1.0
+        if codes is not None:  # unpack: class c's count is bits [c*CODE_BITS, (c+1)*CODE_BITS)
+            acc = ((acc[None] >> self._shifts[:, None]) & np.uint64(2 ** CODE_BITS - 1)).astype(np.float32)  # (C, H*W)
+        known = (count > 0).reshape(H, W)
+        # a sum of class indicators (0 / 1) is exact in float32 either way
+        probs = (acc / np.maximum(count, 1.0)[None]).reshape(C, H, W)  # (C, H*W) -> (C, H, W)
+        return BevPrediction(self.class_names, probs, known)
+
+    def warp_rgb(self, images: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """BEV colour mosaic ``(H, W, 3)`` uint8 of RGB images (linear), and its known mask."""
+        H, W = self.grid.shape
+        acc = np.zeros((H, W, 3), np.float32)
+        count = np.zeros((H, W), np.float32)
+        for name, img in images.items():
+            if name not in self.tables:
+                raise InputError(f"image from unknown camera {name!r}")
+            img = np.asarray(img)
+            if img.ndim != 3 or img.shape[2] != 3:
+                raise InputError(f"camera {name!r}: RGB image must be (H, W, 3), got {img.shape}")
+            table = self.tables[name]
+            warped = table.warp(img, cv2.INTER_LINEAR).astype(np.float32)
+            acc[table.valid] += warped[table.valid]
+            count += table.valid
+        known = count > 0
+        return (acc / np.maximum(count, 1.0)[..., None]).round().astype(np.uint8), known
