@@ -17,8 +17,8 @@ parallel (training seeds ``0..train_drives-1``, validation 900000000-05 for mode
 ``bev-train eval``; print a markdown table (per-class IoU, mIoU, static / dynamic mIoU, mIoU by
 range) and write ``results.json``.
 
-    python bench/focusbev_ablation.py --out runs/fb --device cuda                 # GPU: every row at once
-    python bench/focusbev_ablation.py --out runs/fb --rows mlp,full --jobs 2       # CPU
+    python experiments/focusbev_ablation.py --out runs/fb --device cuda                 # GPU: every row at once
+    python experiments/focusbev_ablation.py --out runs/fb --rows mlp,full --jobs 2       # CPU
 """
 
 from __future__ import annotations

@@ -7,10 +7,10 @@ Each bag is read and mapped as ``bev-bag replay`` does (its own rig and grid, th
 over all frames) instead of averaging per-drive results.
 
     .venv/bin/bev-bag synth /tmp/d950000010 --rig surround6 --frames 20 --seed 950000010  # ...
-    .venv/bin/python bench/honest_maps.py /tmp/d9500000{10,11,12} --method ipm [--no-ipm-occlusion]
-    .venv/bin/python bench/honest_maps.py /tmp/d9500000{10,11,12} --json out.json  # Bi-Mapper
-    .venv/bin/python bench/honest_maps.py /tmp/d9000000{10,11,12} --weights W --unknown-below 0.3 0.5 0.7
-    .venv/bin/python bench/honest_maps.py BAGS --input rgb --method segipm   # RGB: + segmenter pixel IoU
+    .venv/bin/python experiments/honest_maps.py /tmp/d9500000{10,11,12} --method ipm [--no-ipm-occlusion]
+    .venv/bin/python experiments/honest_maps.py /tmp/d9500000{10,11,12} --json out.json  # Bi-Mapper
+    .venv/bin/python experiments/honest_maps.py /tmp/d9000000{10,11,12} --weights W --unknown-below 0.3 0.5 0.7
+    .venv/bin/python experiments/honest_maps.py BAGS --input rgb --method segipm   # RGB: + segmenter pixel IoU
 
 On RGB input, a method with a segmenter stage (``segipm``, Bi-Mapper chained on label weights)
 also gets its segmenter's pixel IoU per label against the bags' label images.

@@ -10,7 +10,7 @@ images are scored on the same drives for scale. Prints markdown tables (mIoU and
 per-class IoU and IoU by range on the target style) and writes every result as JSON beside the
 run (``eval_<split>_<style>_<branch>.json``).
 
-    .venv/bin/python bench/s2g2_results.py runs/f1/sup runs/f1/semi40 ... [--threads 1]
+    .venv/bin/python experiments/s2g2_results.py runs/f1/sup runs/f1/semi40 ... [--threads 1]
 """
 
 from __future__ import annotations
