@@ -20,7 +20,8 @@ from bev_mapper_core.methods.bimapper.losses import BiMapperLossConfig, bimapper
 from bev_mapper_core.methods.bimapper.mapper import BiMapperMapper
 from bev_mapper_core.methods.bimapper.model import BiMapper
 from bev_mapper_core.methods.bimapper.train import init_from
-from bev_mapper_core.methods.bimapper.weights import META_KEY, WeightsError, WeightsFile, save_weights
+from bev_mapper_core.methods.bimapper.weights import WeightsFile, save_weights
+from bev_mapper_core.nn.weights import META_KEY, WeightsError
 
 torch.set_num_threads(1)
 VIS = replace(TINY, ipm_skip=True, visibility_head=True)

@@ -12,19 +12,22 @@ import torch
 from bev_mapper_core.errors import BevMapperError, ConfigError
 from bev_mapper_core.geometry.camera import CameraModel
 from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.geometry.projection import ground_tables, remap_table
 from bev_mapper_core.geometry.rig import Rig, RigCamera
 from bev_mapper_core.geometry.transforms import ego_from_optical, transform_points
 from bev_mapper_core.labels.classes import NUM_LABELS, Label, label_lut, labels_to_layers, resolve_classes
 from bev_mapper_core.mapper import MapperConfig
-from bev_mapper_core.methods.bimapper.config import RGB_MEAN, RGB_STD, BiMapperConfig
+from bev_mapper_core.methods.bimapper.config import BiMapperConfig
 from bev_mapper_core.methods.bimapper.geometry import BiMapperGeometry
 from bev_mapper_core.methods.bimapper.losses import BiMapperLossConfig, bimapper_loss, mutual_loss, mutual_teachers, warp_target_to_planes
 from bev_mapper_core.methods.bimapper.lv import merge_planes_to_ego, warp_to_planes
 from bev_mapper_core.methods.bimapper.mapper import BiMapperMapper
 from bev_mapper_core.methods.bimapper.model import BiMapper
-from bev_mapper_core.methods.bimapper.weights import WeightsError, load_bimapper, load_state, save_weights
-from bev_mapper_core.methods.ipm.mapper import IpmMapper, ground_tables, remap_table
+from bev_mapper_core.methods.bimapper.weights import load_bimapper, load_state, save_weights
+from bev_mapper_core.methods.ipm.mapper import IpmMapper
+from bev_mapper_core.nn.config import RGB_MEAN, RGB_STD
 from bev_mapper_core.nn.efficientnet import EfficientNet, EfficientNetConfig, round_filters
+from bev_mapper_core.nn.weights import WeightsError
 
 # One thread: on this project's 2 shared cores, 2 OpenMP threads spin-wait for a busy core
 # (this module took 24-30 s with 2 threads and 4-7 s with 1, back to back under load).

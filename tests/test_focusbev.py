@@ -12,10 +12,8 @@ import torch
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.geometry.bev_warp import warp_batch
 from bev_mapper_core.geometry.grid import BevGrid
-from bev_mapper_core.geometry.rig import preset_rig
+from bev_mapper_core.geometry.rig import preset_rig, scaled_camera
 from bev_mapper_core.mapper import MapperConfig, create_mapper
-from bev_mapper_core.methods.bimapper.geometry import scaled_camera
-from bev_mapper_core.methods.bimapper.weights import WeightsError
 from bev_mapper_core.methods.focusbev.blocks import (
     ColumnTransformer,
     EgoMotionFusion,
@@ -28,6 +26,7 @@ from bev_mapper_core.methods.focusbev.losses import FocusBEVLossConfig, focusbev
 from bev_mapper_core.methods.focusbev.model import FocusBEV, FocusBEVConfig, input_size
 from bev_mapper_core.methods.focusbev.weights import load_focusbev, read_focusbev_metadata, save_focusbev
 from bev_mapper_core.nn.resnet import FPN, ResNet
+from bev_mapper_core.nn.weights import WeightsError
 from bev_mapper_core.training.config import TrainConfig
 from bev_mapper_core.training.data import FrameSet, drive_poses, render_drive
 from bev_mapper_core.training.sources import DataNeeds, InMemorySource

@@ -8,11 +8,12 @@ import pytest
 from bev_mapper_core.errors import ConfigError, InputError
 from bev_mapper_core.geometry.camera import CameraModel
 from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.geometry.projection import ground_tables
 from bev_mapper_core.geometry.rig import Rig, RigCamera
 from bev_mapper_core.geometry.transforms import ego_from_optical, transform_points
 from bev_mapper_core.labels.classes import BEV_CLASS_NAMES, Label
 from bev_mapper_core.mapper import MapperConfig, available_methods, create_mapper
-from bev_mapper_core.methods.ipm.mapper import IpmMapper, ground_tables
+from bev_mapper_core.methods.ipm.mapper import IpmMapper
 
 GRID = BevGrid(x_min=-10, x_max=20, y_min=-6, y_max=6, resolution=0.25)
 

@@ -224,7 +224,8 @@ def test_bag_grid_check_and_weights_check_share_the_tolerance():
     """A grid within GRID_TOL_M of another is the same grid for the bag reader (GT layers) and
     for the weights check; a bit more is not, for both."""
     from bev_mapper_core.methods.bimapper.mapper import default_weights_path
-    from bev_mapper_core.methods.bimapper.weights import WeightsError, WeightsFile
+    from bev_mapper_core.methods.bimapper.weights import WeightsFile
+    from bev_mapper_core.nn.weights import WeightsError
 
     wf = WeightsFile.open(default_weights_path("front1", "labels"))
     stored = wf.grid
@@ -279,9 +280,10 @@ def test_node_start_up_reads_the_weights_file_once(monkeypatch):
     from bev_mapper_core.geometry.rig import preset_rig
     from bev_mapper_core.mapper import create_mapper, preflight
     from bev_mapper_core.methods.bimapper import weights
+    from bev_mapper_core.nn import weights as generic
 
-    counter = _CountingSafeOpen(weights.safe_open)
-    monkeypatch.setattr(weights, "safe_open", counter)
+    counter = _CountingSafeOpen(generic.safe_open)
+    monkeypatch.setattr(generic, "safe_open", counter)
     weights.WeightsFile.clear_cache()
     rig, grid, cfg = preset_rig("front1"), BevGrid(), MapperConfig(threads=1)
     preflight(cfg, rig.name, grid, rig.names)
@@ -293,12 +295,13 @@ def test_node_start_up_reads_the_weights_file_once(monkeypatch):
 def test_weights_cache_sees_a_replaced_file(tmp_path, monkeypatch):
     from bev_mapper_core.methods.bimapper import weights
     from bev_mapper_core.methods.bimapper.mapper import default_weights_path
+    from bev_mapper_core.nn import weights as generic
 
     src = default_weights_path("front1", "labels")
     path = tmp_path / "w.safetensors"
     path.write_bytes(src.read_bytes())
-    counter = _CountingSafeOpen(weights.safe_open)
-    monkeypatch.setattr(weights, "safe_open", counter)
+    counter = _CountingSafeOpen(generic.safe_open)
+    monkeypatch.setattr(generic, "safe_open", counter)
     assert weights.WeightsFile.open(path).rig_name == "front1"
     assert weights.WeightsFile.open(path).rig_name == "front1"
     assert counter.metadata_reads == 1

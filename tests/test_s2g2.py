@@ -19,7 +19,7 @@ from bev_mapper_core.labels.classes import NUM_LABELS, S2G2_CLASSES, Label, labe
 from bev_mapper_core.mapper import MapperConfig, available_methods, create_mapper
 from bev_mapper_core.methods.bimapper.config import BiMapperConfig
 from bev_mapper_core.methods.bimapper.model import BiMapper
-from bev_mapper_core.methods.bimapper.weights import WeightsError, save_weights
+from bev_mapper_core.methods.bimapper.weights import save_weights
 from bev_mapper_core.methods.s2g2.blocks import (
     CrossViewAttention,
     InterViewAttention,
@@ -43,6 +43,7 @@ from bev_mapper_core.methods.s2g2.train import S2G2Training
 from bev_mapper_core.methods.s2g2.weights import load_s2g2, read_s2g2_metadata, save_s2g2
 from bev_mapper_core.methods.segipm.mapper import shipped_segmenter
 from bev_mapper_core.methods.segmenter.weights import load_segmenter
+from bev_mapper_core.nn.weights import WeightsError
 from bev_mapper_core.training.config import TrainConfig
 from bev_mapper_core.training.data import FrameSet
 from bev_mapper_core.training.method import method_class, train_methods

@@ -14,11 +14,12 @@ from bev_mapper_core.labels.classes import NUM_LABELS, Label
 from bev_mapper_core.mapper import MapperConfig, create_mapper
 from bev_mapper_core.methods.bimapper.mapper import BiMapperMapper
 from bev_mapper_core.methods.bimapper.model import BiMapper
-from bev_mapper_core.methods.bimapper.weights import WeightsError, save_weights
+from bev_mapper_core.methods.bimapper.weights import save_weights
 from bev_mapper_core.methods.ipm.mapper import IpmMapper
 from bev_mapper_core.methods.segipm.mapper import SegmenterStage
 from bev_mapper_core.methods.segmenter.model import Segmenter, SegmenterConfig, class_weights, pixel_iou
 from bev_mapper_core.methods.segmenter.weights import load_segmenter, save_segmenter
+from bev_mapper_core.nn.weights import WeightsError
 
 torch.set_num_threads(1)
 SMALL = SegmenterConfig(input_width=32, width_mult=0.25, depth_mult=0.25, encoder_stages=3, decoder_channels=8)

@@ -216,9 +216,11 @@ from bev_mapper_core.methods.bimapper.config import (  # noqa: E402
     STREAMS,
     BiMapperConfig,  # noqa: E402
 )
-from bev_mapper_core.methods.bimapper.losses import MUTUAL_MODES, masked_bce  # noqa: E402
-from bev_mapper_core.methods.bimapper.train import POS_WEIGHTS, BiMapperMethod, BiMapperTraining  # noqa: E402
+from bev_mapper_core.methods.bimapper.losses import MUTUAL_MODES  # noqa: E402
+from bev_mapper_core.methods.bimapper.train import BiMapperMethod, BiMapperTraining  # noqa: E402
+from bev_mapper_core.nn.losses import masked_bce  # noqa: E402
 from bev_mapper_core.training import method as method_mod  # noqa: E402
+from bev_mapper_core.training.class_weights import POS_WEIGHTS  # noqa: E402
 from bev_mapper_core.training.method import CliFlag, TrainMethod, method_class, register_train_method, train_methods  # noqa: E402
 from bev_mapper_core.training.sources import DataNeeds, InMemorySource, SynthSource  # noqa: E402
 

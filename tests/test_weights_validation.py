@@ -15,7 +15,8 @@ from bev_mapper_core.geometry.grid import BevGrid
 from bev_mapper_core.geometry.rig import preset_rig
 from bev_mapper_core.mapper import MapperConfig, create_mapper, preflight
 from bev_mapper_core.methods.bimapper.mapper import default_weights_path
-from bev_mapper_core.methods.bimapper.weights import META_KEY, WeightsError, WeightsFile
+from bev_mapper_core.methods.bimapper.weights import WeightsFile
+from bev_mapper_core.nn.weights import META_KEY, WeightsError
 
 SHIPPED = default_weights_path("front1", "labels")
 
@@ -94,7 +95,7 @@ def test_hostile_metadata_is_refused_before_allocating(tmp_path, edit, match):
 
 def test_good_weights_pass_and_the_model_reuses_the_checked_tensors(monkeypatch):
     """The shipped file passes; after the preflight the mapper reads no tensor file again."""
-    import bev_mapper_core.methods.bimapper.weights as W
+    import bev_mapper_core.nn.weights as W
 
     WeightsFile.clear_cache()
     _preflight(SHIPPED)

@@ -154,3 +154,9 @@ def preset_rig(name: str) -> Rig:
         return PRESETS[name]()
     except KeyError:
         raise ConfigError(f"unknown rig {name!r}; presets: {sorted(PRESETS)}") from None
+
+
+def scaled_camera(camera: RigCamera, input_width: int) -> RigCamera:
+    """``camera`` seen at the model's input width (intrinsics rescaled with ``model.scaled``)."""
+    w, _ = camera.model.image_size
+    return replace(camera, model=camera.model.scaled(input_width / w))

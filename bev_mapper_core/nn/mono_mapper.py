@@ -17,9 +17,9 @@ from ..geometry.grid import BevGrid
 from ..geometry.rig import Rig
 from ..mapper import Mapper, MapperConfig
 from ..methods import WEIGHTS_DIR, shipped_weights
-from ..methods.bimapper.geometry import check_one_camera
-from ..methods.bimapper.weights import WeightsError
 from .backends import resolve_backend
+from .mono_geometry import check_one_camera
+from .weights import WeightsError
 
 
 class MonocularMapper(Mapper):

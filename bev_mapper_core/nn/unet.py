@@ -15,8 +15,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from ..methods.bimapper.gv import conv_bn_relu
 from .efficientnet import EfficientNet, EfficientNetConfig
+from .layers import conv_bn_relu
 
 
 class EffUNet(nn.Module):

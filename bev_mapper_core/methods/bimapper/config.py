@@ -7,46 +7,14 @@ from dataclasses import asdict, dataclass, fields
 
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.labels.classes import BEV_CLASS_NAMES, NUM_LABELS, resolve_classes
+from bev_mapper_core.nn.config import MAX_CHANNELS, MAX_DOWNSAMPLE, MAX_WIDTH_PX
 from bev_mapper_core.nn.efficientnet import EfficientNetConfig
 
 from .geometry import PlaneSpec
 
 STREAMS = ("gv", "lv", "both", "none")
-#: Sanity bounds of the size knobs, far above any model this package trains (the paper's sizes
-#: included): a configuration beyond them, e.g. from a damaged or hostile weights file, is
-#: refused before anything is allocated.
-MAX_WIDTH_PX = 4096  # input_width
-MAX_CHANNELS = 4096  # neck, BEV, U-Net, decoder widths; gv_hidden
 MAX_PLANE_CELLS = 4096 * 4096  # plane_shape[0] * plane_shape[1] (paper: 800 x 400)
-MAX_DOWNSAMPLE = 64
 FUSIONS = ("sum", "concat")
-#: ImageNet statistics used to normalise RGB input (no pretrained weights; just a standard scale).
-RGB_MEAN = (0.485, 0.456, 0.406)
-RGB_STD = (0.229, 0.224, 0.225)
-
-
-class DictConfig:
-    """``to_dict`` / ``from_dict`` of a frozen config dataclass (JSON-ready: tuples as lists;
-    unknown keys refused), as the weights files store it.
-    """
-
-    def to_dict(self) -> dict:
-        """JSON-ready dict (tuples as lists)."""
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
-
-    @classmethod
-    def from_dict(cls, d: dict):
-        """Inverse of :meth:`to_dict`.
-
-        Raises:
-            ConfigError: not a mapping, unknown keys, or bad values.
-        """
-        if not isinstance(d, dict):
-            raise ConfigError(f"{cls.__name__} must be a mapping, got {type(d).__name__}")
-        extra = sorted(set(d) - {f.name for f in fields(cls)})
-        if extra:
-            raise ConfigError(f"unknown {cls.__name__} fields {extra}")
-        return cls(**d)
 
 
 @dataclass(frozen=True)

@@ -17,11 +17,7 @@ import torch
 from torch import nn
 
 from bev_mapper_core.nn.efficientnet import EfficientNet, EfficientNetConfig
-
-
-def conv_bn_relu(cin: int, cout: int, k: int = 3) -> nn.Sequential:
-    """``k x k`` convolution (same padding, no bias) + BatchNorm + ReLU."""
-    return nn.Sequential(nn.Conv2d(cin, cout, k, padding=k // 2, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
+from bev_mapper_core.nn.layers import conv_bn_relu
 
 
 class CamEncoder(nn.Module):

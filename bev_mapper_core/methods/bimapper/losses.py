@@ -34,6 +34,7 @@ import torch
 from torch.nn import functional as F
 
 from bev_mapper_core.errors import ConfigError
+from bev_mapper_core.nn.losses import masked_bce
 
 MUTUAL_MODES = ("async", "sync", "lv", "gv", "none")
 
@@ -89,21 +90,6 @@ def mutual_teachers(epoch: int, start_epoch: int = 4, mode: str = "async") -> tu
     if mode == "none":
         return False, False
     raise ConfigError(f"unknown mutual_mode {mode!r}")
-
-
-def masked_bce(logits: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None,
-               pos_weight: torch.Tensor | None = None) -> torch.Tensor:
-    """Mean binary cross-entropy with logits over the elements where ``mask`` is true.
-
-    ``logits``/``target`` (B, K, ...); ``mask`` broadcastable to them (e.g. (B, 1, ...)) or None.
-    ``pos_weight`` (K,) multiplies the positive term per class. Returns 0 if nothing is masked in.
-    """
-    pw = None if pos_weight is None else pos_weight.view(1, -1, *([1] * (logits.dim() - 2)))
-    loss = F.binary_cross_entropy_with_logits(logits, target.to(logits.dtype), pos_weight=pw, reduction="none")
-    if mask is None:
-        return loss.mean()
-    m = mask.to(loss.dtype).expand_as(loss)
-    return (loss * m).sum() / m.sum().clamp(min=1.0)
 
 
 def uncertainty_loss(logits: torch.Tensor, hidden: torch.Tensor) -> torch.Tensor:

@@ -24,6 +24,7 @@ from bev_mapper_core.geometry.rig import Rig
 from bev_mapper_core.mapper import BevPrediction, Mapper, MapperConfig
 from bev_mapper_core.nn.backends import backend_runner, resolve_backend
 from bev_mapper_core.nn.runtime import inference_device, inference_threads
+from bev_mapper_core.nn.weights import WeightsError
 
 from .. import WEIGHTS_DIR, shipped_weights
 from ..ipm.mapper import LineOfSight
@@ -31,7 +32,7 @@ from ..ipm.occlusion import OcclusionModel, learned_footprints
 from ..segipm.mapper import SegmenterStage, segmenter_path
 from ..segmenter.weights import load_segmenter
 from .model import BiMapper
-from .weights import WeightsError, WeightsFile
+from .weights import WeightsFile
 
 
 def default_weights_path(rig_name: str, input_kind: str) -> Path:

@@ -17,8 +17,8 @@ import torch
 from typing_extensions import override
 
 from bev_mapper_core.errors import ConfigError
+from bev_mapper_core.training.class_weights import POS_WEIGHTS, class_pos_weight
 from bev_mapper_core.training.config import PAPER_EPOCHS
-from bev_mapper_core.training.data import FrameSet
 from bev_mapper_core.training.method import CliFlag, TrainMethod
 from bev_mapper_core.training.sources import DataNeeds, TrainData
 
@@ -27,8 +27,6 @@ from .losses import MUTUAL_MODES, BiMapperLossConfig, bimapper_loss
 from .model import BiMapper
 from .weights import load_state, save_weights
 
-#: ``pos_weight`` settings: ``auto`` (see :func:`class_pos_weight`) or ``none`` (plain BCE, paper).
-POS_WEIGHTS = ("auto", "none")
 #: Paper: mutual learning both ways from the 5th of 30 epochs (0-based 4; the loss config's
 #: default), scaled to the run's epochs.
 PAPER_MUTUAL_START = BiMapperLossConfig.mutual_start_epoch
@@ -101,20 +99,6 @@ class BiMapperTraining:
                                   uncertainty_weight=float(self.uncertainty_weight))
 
 
-def class_pos_weight(frames: FrameSet, max_weight: float = 10.0) -> tuple[float, ...]:
-    """Per-class BCE positive weights ``clip(sqrt(neg / pos), 1, max_weight)`` over visible cells.
-
-    A deviation from the paper (plain BCE): with a training budget of a few hundred steps the
-    thin and rare layers (lane dividers, crossings, boundaries, pedestrians: 0.05-2 % of the
-    cells) otherwise stay at zero IoU; the square root keeps the weighting mild.
-    """
-    m = frames.mask[:, None]  # (M, 1, H, W)
-    pos = np.count_nonzero(frames.target & m, axis=(0, 2, 3)).astype(np.float64)
-    tot = float(np.count_nonzero(frames.mask))
-    w = np.sqrt(np.maximum(tot - pos, 1.0) / np.maximum(pos, 1.0))
-    return tuple(float(round(v, 3)) for v in np.clip(w, 1.0, max_weight))
-
-
 def init_from(model: BiMapper, path: str) -> list[str]:
     """Load the tensors of the weights file ``path`` into ``model`` for fine-tuning.
 
@@ -127,7 +111,9 @@ def init_from(model: BiMapper, path: str) -> list[str]:
     """
     from safetensors.torch import load_file
 
-    from .weights import WeightsError, WeightsFile
+    from bev_mapper_core.nn.weights import WeightsError
+
+    from .weights import WeightsFile
 
     wf = WeightsFile.open(path)
     stored = replace(wf.config, visibility_head=model.config.visibility_head, temperature=model.config.temperature)

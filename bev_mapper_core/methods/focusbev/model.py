@@ -36,16 +36,16 @@ from torch import nn
 
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.geometry.grid import BevGrid
-from bev_mapper_core.geometry.rig import Rig
+from bev_mapper_core.geometry.projection import ground_tables
+from bev_mapper_core.geometry.rig import Rig, scaled_camera
 from bev_mapper_core.labels.classes import BEV_CLASS_NAMES, NUM_LABELS, resolve_classes
+from bev_mapper_core.nn.config import MAX_CHANNELS, MAX_DOWNSAMPLE, MAX_WIDTH_PX, RGB_MEAN, RGB_STD, DictConfig
+from bev_mapper_core.nn.decoder import BevDecoder
 from bev_mapper_core.nn.efficientnet import downsampled_size
 from bev_mapper_core.nn.inputs import preprocess_one_camera
+from bev_mapper_core.nn.mono_geometry import check_same_camera, one_camera_input_size
 from bev_mapper_core.nn.resnet import FPN, RESNET_DEPTHS, ResNet
 
-from ..bimapper.config import MAX_CHANNELS, MAX_DOWNSAMPLE, MAX_WIDTH_PX, RGB_MEAN, RGB_STD, DictConfig
-from ..bimapper.geometry import check_one_camera, check_same_camera, one_camera_input_size, scaled_camera
-from ..bimapper.model import BevDecoder
-from ..ipm.mapper import ground_tables
 from .blocks import ColumnTransformer, EgoMotionFusion, depth_bins, depth_ranges, feature_grid, polar_grids, polar_to_cartesian
 
 
@@ -131,11 +131,6 @@ class FocusBEVConfig(DictConfig):
     def in_channels(self) -> int:
         """Model input channels."""
         return NUM_LABELS if self.input_kind == "labels" else 3
-
-
-def check_monocular(rig: Rig) -> None:
-    """Raise ConfigError unless ``rig`` has exactly one camera (FocusBEV maps one front camera)."""
-    check_one_camera(rig, "FocusBEV")
 
 
 def input_size(config: FocusBEVConfig, rig: Rig) -> tuple[int, int]:
@@ -246,4 +241,4 @@ class FocusBEV(nn.Module):
         return self.frustum
 
 
-__all__ = ["FocusBEV", "FocusBEVConfig", "check_monocular", "input_size", "max_depth"]
+__all__ = ["FocusBEV", "FocusBEVConfig", "input_size", "max_depth"]

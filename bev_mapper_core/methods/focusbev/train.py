@@ -29,10 +29,10 @@ from typing_extensions import override
 
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.synth.config import SynthConfig
+from bev_mapper_core.training.class_weights import POS_WEIGHTS, class_pos_weight
 from bev_mapper_core.training.method import CliFlag, TrainMethod
 from bev_mapper_core.training.sources import DataNeeds, TrainData
 
-from ..bimapper.train import POS_WEIGHTS, class_pos_weight
 from .losses import FocusBEVLossConfig, focusbev_loss
 from .model import FocusBEV, FocusBEVConfig
 from .weights import load_state_focusbev, save_focusbev

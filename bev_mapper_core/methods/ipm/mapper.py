@@ -20,8 +20,8 @@ import numpy as np
 
 from bev_mapper_core.errors import ConfigError, InputError
 from bev_mapper_core.geometry.grid import BevGrid
-from bev_mapper_core.geometry.rig import Rig, RigCamera
-from bev_mapper_core.geometry.transforms import transform_points
+from bev_mapper_core.geometry.projection import RemapTable, ground_tables
+from bev_mapper_core.geometry.rig import Rig
 from bev_mapper_core.labels.classes import label_lut
 from bev_mapper_core.mapper import BevPrediction, Mapper, MapperConfig
 
@@ -29,29 +29,6 @@ from .occlusion import NEAR_EDGE_SLACK_CELLS, OcclusionModel, ray_raster
 
 #: bits per class of IPM's packed per-cell class counts (up to 15 cameras, 16 classes per uint64)
 CODE_BITS = 4
-
-
-@dataclass(frozen=True)
-class RemapTable:
-    """Pixel lookup for a set of 3-D points seen by one camera.
-
-    Attributes:
-        map_x, map_y: float32 arrays of the target shape; pixel coordinates for ``cv2.remap``
-            (-1 where the point is not seen).
-        valid: bool array of the target shape: the point is in front of the camera and inside
-            its image.
-    """
-
-    map_x: np.ndarray
-    map_y: np.ndarray
-    valid: np.ndarray
-
-    def warp(self, image: np.ndarray, interpolation: int = cv2.INTER_NEAREST) -> np.ndarray:
-        """Sample ``image`` at the table's pixels (edges replicated; mask with ``valid``)."""
-        return cv2.remap(
-            image, self.map_x, self.map_y, interpolation,
-            borderMode=cv2.BORDER_REPLICATE,
-        )
 
 
 @dataclass(frozen=True)
@@ -85,29 +62,6 @@ class GatherTable:
     def gather(self, image: np.ndarray) -> np.ndarray:
         """``(n,)`` values of ``image`` (``image_shape``) at the seen cells."""
         return image.reshape(-1)[self.pixels]
-
-
-def remap_table(camera: RigCamera, points_ego: np.ndarray, shape: tuple[int, int]) -> RemapTable:
-    """Project ego-frame points ``(N, 3)`` into ``camera``; arrange the result as ``shape``.
-
-    ``N`` must equal ``shape[0] * shape[1]`` (points in row-major order of the target).
-    """
-    if points_ego.shape != (shape[0] * shape[1], 3):
-        raise ValueError(f"points {points_ego.shape} do not fill target shape {shape}")
-    pts_cam = transform_points(camera.cam_from_ego, points_ego)
-    uv, in_front = camera.model.project(pts_cam)
-    valid = in_front & camera.model.in_image(uv)
-    uv = np.where(valid[:, None], uv, -1.0)
-    # (N, 2) -> two (H, W) maps
-    map_x = uv[:, 0].reshape(shape).astype(np.float32)
-    map_y = uv[:, 1].reshape(shape).astype(np.float32)
-    return RemapTable(map_x, map_y, valid.reshape(shape))
-
-
-def ground_tables(rig: Rig, grid: BevGrid, z: float = 0.0) -> dict[str, RemapTable]:
-    """Lookup tables from every BEV cell centre (at height ``z``) to each camera's pixels."""
-    pts = grid.points(z)
-    return {cam.name: remap_table(cam, pts, grid.shape) for cam in rig.cameras}
 
 
 class LineOfSight:

@@ -35,8 +35,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from bev_mapper_core.errors import ConfigError
-
-from ..bimapper.losses import masked_bce
+from bev_mapper_core.nn.losses import masked_bce
 
 #: ``S2G2LossConfig.bev_tie`` choices.
 BEV_TIES = ("l1", "ce")

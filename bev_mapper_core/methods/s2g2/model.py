@@ -42,15 +42,15 @@ from torch import nn
 
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.geometry.projection import ground_tables
 from bev_mapper_core.geometry.rig import Rig
 from bev_mapper_core.labels.classes import BEV_CLASS_NAMES, NUM_LABELS, resolve_classes
+from bev_mapper_core.nn.config import MAX_CHANNELS, MAX_DOWNSAMPLE, MAX_WIDTH_PX, RGB_MEAN, RGB_STD, DictConfig
+from bev_mapper_core.nn.decoder import BevDecoder
 from bev_mapper_core.nn.efficientnet import EfficientNet, EfficientNetConfig, downsampled_size
 from bev_mapper_core.nn.inputs import preprocess_one_camera
+from bev_mapper_core.nn.mono_geometry import check_same_camera, one_camera_input_size
 
-from ..bimapper.config import MAX_CHANNELS, MAX_DOWNSAMPLE, MAX_WIDTH_PX, RGB_MEAN, RGB_STD, DictConfig
-from ..bimapper.geometry import check_one_camera, check_same_camera, one_camera_input_size
-from ..bimapper.model import BevDecoder
-from ..ipm.mapper import ground_tables
 from .blocks import VIEW_TRANSFORMS, CrossViewAttention, InterViewAttention, ViewTransform
 
 #: The two branches of the double branch generator.
@@ -139,11 +139,6 @@ class S2G2Config(DictConfig):
         if self.depth_mult is not None:
             over["depth_mult"] = self.depth_mult
         return EfficientNetConfig.variant(self.encoder_variant, **over)
-
-
-def check_monocular(rig: Rig) -> None:
-    """Raise ConfigError unless ``rig`` has exactly one camera (S2G2 maps one front camera)."""
-    check_one_camera(rig, "S2G2")
 
 
 def input_size(config: S2G2Config, rig: Rig) -> tuple[int, int]:
@@ -257,4 +252,4 @@ class S2G2(nn.Module):
         return self.frustum
 
 
-__all__ = ["BRANCHES", "S2G2", "S2G2Config", "check_monocular", "input_size"]
+__all__ = ["BRANCHES", "S2G2", "S2G2Config", "input_size"]

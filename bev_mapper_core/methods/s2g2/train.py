@@ -74,10 +74,10 @@ import torch
 from typing_extensions import override
 
 from bev_mapper_core.errors import ConfigError
+from bev_mapper_core.training.class_weights import POS_WEIGHTS, class_pos_weight
 from bev_mapper_core.training.method import CliFlag, TrainMethod
 from bev_mapper_core.training.sources import DataNeeds, TrainData
 
-from ..bimapper.train import POS_WEIGHTS, class_pos_weight
 from ..segipm.mapper import shipped_segmenter
 from ..segmenter.weights import load_segmenter_trunk
 from .blocks import VIEW_TRANSFORMS

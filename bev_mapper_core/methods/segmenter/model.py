@@ -26,9 +26,8 @@ from torch.nn import functional as F
 
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.labels.classes import NUM_LABELS, Label
+from bev_mapper_core.nn.config import MAX_CHANNELS, MAX_WIDTH_PX, RGB_MEAN, RGB_STD
 from bev_mapper_core.nn.efficientnet import EfficientNet, EfficientNetConfig
-
-from ..bimapper.config import MAX_CHANNELS, MAX_WIDTH_PX, RGB_MEAN, RGB_STD
 
 #: Label names in id order: stored with the weights, so a file for another label set is refused.
 LABEL_NAMES: tuple[str, ...] = tuple(label.name.lower() for label in Label)

@@ -14,17 +14,15 @@ version (cached), as Bi-Mapper's :class:`~.weights.WeightsFile`.
 
 from __future__ import annotations
 
-import json
 import os
 import threading
 from pathlib import Path
 
 import torch
-from safetensors.torch import save_file
 
 from bev_mapper_core.errors import BevMapperError, ConfigError
+from bev_mapper_core.nn.weights import WeightsError, read_checked_tensors, read_document, save_document
 
-from ..bimapper.weights import META_KEY, WeightsError, read_checked_tensors, read_document
 from .model import Segmenter, SegmenterConfig
 
 FORMAT = "bev_mapper.segmenter"
@@ -39,11 +37,7 @@ def save_segmenter(model: Segmenter, path: str | os.PathLike, rig_name: str = ""
     path = Path(path)
     meta = {"format": FORMAT, "version": VERSION, "method": "segmenter", "rig": rig_name,
             "config": model.config.to_dict()}
-    tensors = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
-    tmp = path.with_name(path.name + ".tmp")
-    save_file(tensors, str(tmp), metadata={META_KEY: json.dumps(meta, sort_keys=True)})
-    os.replace(tmp, path)
-    return path
+    return save_document(model, path, meta)
 
 
 def read_segmenter_metadata(path: str | os.PathLike) -> dict:
