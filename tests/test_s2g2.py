@@ -41,7 +41,7 @@ from bev_mapper_core.methods.s2g2.mapper import shipped_s2g2
 from bev_mapper_core.methods.s2g2.model import S2G2, S2G2Config, input_size
 from bev_mapper_core.methods.s2g2.train import S2G2Training
 from bev_mapper_core.methods.s2g2.weights import load_s2g2, read_s2g2_metadata, save_s2g2
-from bev_mapper_core.methods.segipm.mapper import shipped_segmenter
+from bev_mapper_core.methods.segmenter.stage import shipped_segmenter
 from bev_mapper_core.methods.segmenter.weights import load_segmenter
 from bev_mapper_core.nn.weights import WeightsError
 from bev_mapper_core.training.config import TrainConfig

@@ -16,8 +16,8 @@ from bev_mapper_core.methods.bimapper.mapper import BiMapperMapper
 from bev_mapper_core.methods.bimapper.model import BiMapper
 from bev_mapper_core.methods.bimapper.weights import save_weights
 from bev_mapper_core.methods.ipm.mapper import IpmMapper
-from bev_mapper_core.methods.segipm.mapper import SegmenterStage
 from bev_mapper_core.methods.segmenter.model import Segmenter, SegmenterConfig, class_weights, pixel_iou
+from bev_mapper_core.methods.segmenter.stage import SegmenterStage
 from bev_mapper_core.methods.segmenter.weights import load_segmenter, save_segmenter
 from bev_mapper_core.nn.weights import WeightsError
 

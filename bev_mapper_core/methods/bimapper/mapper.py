@@ -29,7 +29,7 @@ from bev_mapper_core.nn.weights import WeightsError
 from .. import WEIGHTS_DIR, shipped_weights
 from ..ipm.mapper import LineOfSight
 from ..ipm.occlusion import OcclusionModel, learned_footprints
-from ..segipm.mapper import SegmenterStage, segmenter_path
+from ..segmenter.stage import SegmenterStage, segmenter_path
 from ..segmenter.weights import load_segmenter
 from .model import BiMapper
 from .weights import WeightsFile

@@ -78,7 +78,7 @@ from bev_mapper_core.training.class_weights import POS_WEIGHTS, class_pos_weight
 from bev_mapper_core.training.method import CliFlag, TrainMethod
 from bev_mapper_core.training.sources import DataNeeds, TrainData
 
-from ..segipm.mapper import shipped_segmenter
+from ..segmenter.stage import shipped_segmenter
 from ..segmenter.weights import load_segmenter_trunk
 from .blocks import VIEW_TRANSFORMS
 from .losses import BEV_TIES, S2G2LossConfig, ema_decay_at, ema_update, s2g2_loss
@@ -183,7 +183,7 @@ def running_batchnorm(model: torch.nn.Module) -> Iterator[None]:
 
 def encoder_source(spec: str, input_kind: str, rig_name: str) -> Path | None:
     """The segmenter file whose trunk initializes S2G2's encoder (``None``: from scratch); the
-    shipped one is the rig's (:func:`~bev_mapper_core.methods.segipm.mapper.shipped_segmenter`).
+    shipped one is the rig's (:func:`~bev_mapper_core.methods.segmenter.stage.shipped_segmenter`).
 
     Raises:
         ConfigError: a segmenter asked for on label input (its first layer reads RGB), no shipped

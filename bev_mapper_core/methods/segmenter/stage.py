@@ -1,0 +1,79 @@
+"""The segmenter as a stage in front of label models: which file (``MapperConfig.segmenter``:
+``auto`` = the shipped file, or a path) and :class:`SegmenterStage`, RGB camera images -> label
+images of the same size. ``segipm`` puts IPM behind it; Bi-Mapper's label weights run on RGB
+cameras behind it (chained input); S2G2 starts its encoder from the shipped file.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from bev_mapper_core.errors import ConfigError
+from bev_mapper_core.mapper import MapperConfig
+
+from .. import WEIGHTS_DIR
+from .model import Segmenter
+from .weights import load_segmenter
+
+#: The shipped segmenter used for rigs without their own (a segmenter works per camera image).
+GENERAL_SEGMENTER = "segmenter.safetensors"
+
+
+def shipped_segmenter(rig_name: str) -> Path | None:
+    """The shipped segmenter for a rig: ``segmenter_<rig>.safetensors``, else the general one."""
+    for name in (f"segmenter_{rig_name}.safetensors", GENERAL_SEGMENTER):
+        if (WEIGHTS_DIR / name).is_file():
+            return WEIGHTS_DIR / name
+    return None
+
+
+def segmenter_path(config: MapperConfig, rig_name: str) -> Path:
+    """The segmenter file ``config.segmenter`` names for this rig.
+
+    Raises:
+        ConfigError: ``none``, or ``auto`` with no shipped segmenter.
+    """
+    spec = config.segmenter
+    if spec == "none":
+        raise ConfigError("RGB input needs a segmenter here, but segmenter is 'none'")
+    if spec == "auto":
+        path = shipped_segmenter(rig_name)
+        if path is None:
+            raise ConfigError("no segmenter shipped; train one (bev-train --method segmenter) and pass "
+                              "segmenter=<file>")
+        return path
+    return Path(spec)
+
+
+class SegmenterStage:
+    """RGB camera images -> label images of the same size, with a segmenter file.
+
+    Raises (constructor):
+        WeightsError: the file is not valid segmenter weights.
+    """
+
+    def __init__(self, path: Path, device: torch.device | str = "cpu") -> None:
+        self.device = torch.device(device)
+        self.path = path
+        self.model: Segmenter = load_segmenter(path, self.device)
+
+    def segment(self, images: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """``{camera: (H, W, 3) uint8}`` -> ``{camera: (H, W) uint8 label ids}``; cameras of one
+        size are segmented as one batch.
+        """
+        out: dict[str, np.ndarray] = {}
+        by_size: dict[tuple, list[str]] = {}
+        for name, img in images.items():
+            by_size.setdefault(img.shape, []).append(name)
+        for names in by_size.values():
+            x = torch.from_numpy(np.stack([images[n] for n in names])).to(self.device)  # (B, H, W, 3)
+            labels = self.model.segment(x).cpu().numpy()  # (B, H, W)
+            out.update({n: np.ascontiguousarray(labels[i]) for i, n in enumerate(names)})
+        return out
+
+
+__all__ = ["GENERAL_SEGMENTER", "SegmenterStage", "segmenter_path", "shipped_segmenter"]
