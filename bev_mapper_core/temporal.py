@@ -33,7 +33,6 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
-import torch
 
 from .errors import CalibrationError, ConfigError
 from .geometry.bev_warp import warp_layers
@@ -116,8 +115,8 @@ class FusionResult:
 
 @dataclass
 class _Entry:
-    logits: torch.Tensor  # (C, H, W) float32 log-odds, 0 where unknown
-    known: torch.Tensor  # (H, W) bool
+    logits: np.ndarray  # (C, H, W) float32 log-odds, 0 where unknown
+    known: np.ndarray  # (H, W) bool
     odom_from_base: np.ndarray  # (4, 4)
     stamp_ns: int
 
@@ -159,28 +158,30 @@ class TemporalFusion:
             self.reset()
         if self.config.window == 1 or bad_pose:
             return FusionResult(pred, 1, note)
-        p = torch.from_numpy(np.clip(pred.probs, EPS, 1.0 - EPS).astype(np.float32))  # (C, H, W)
-        known = torch.from_numpy(np.asarray(pred.known, dtype=bool))  # (H, W)
-        logits = torch.log(p) - torch.log1p(-p)
+        p = np.clip(pred.probs, EPS, 1.0 - EPS).astype(np.float32)  # (C, H, W)
+        known = np.asarray(pred.known, dtype=bool)  # (H, W)
+        logits = np.log(p) - np.log1p(-p)
         T_cur = np.asarray(odom_from_base, dtype=np.float64)
         fused_layers = [i for i, c in enumerate(pred.classes) if self.config.layers == "all" or bev_class(c).flat]
-        kept = torch.where(known, logits, torch.zeros_like(logits))  # (C, H, W)
-        total = kept[fused_layers].clone()  # (F, H, W)
-        count = known.to(torch.float32)  # (H, W)
+        zero = np.float32(0.0)
+        kept = np.where(known, logits, zero)  # (C, H, W)
+        total = kept[fused_layers].copy()  # (F, H, W)
+        count = known.astype(np.float32)  # (H, W)
         frames = 1 + len(self._memory)
         for e in self._memory:
             prev_from_cur = np.linalg.inv(e.odom_from_base) @ T_cur
-            both = torch.cat([e.logits[fused_layers], e.known[None].to(torch.float32)])  # (F + 1, H, W)
+            both = np.concatenate([e.logits[fused_layers], e.known[None].astype(np.float32)])  # (F + 1, H, W)
             moved, valid = warp_layers(both, self.grid, prev_from_cur)
             # a cell counts only where the current frame and every bilinear neighbour then knew it
-            k = known & valid & (moved[-1] > 1.0 - 1e-4)
-            total += torch.where(k, moved[:-1], torch.zeros_like(moved[:-1]))
-            count += k.to(torch.float32)
+            k = known & valid & (moved[-1] > np.float32(1.0 - 1e-4))
+            total += np.where(k, moved[:-1], zero)
+            count += k.astype(np.float32)
         self._memory.append(_Entry(kept, known, T_cur, int(stamp_ns)))
-        probs = torch.from_numpy(pred.probs.astype(np.float32, copy=True))  # (C, H, W)
-        fused = torch.sigmoid(total / count.clamp(min=1.0))  # (F, H, W) mean log-odds
-        probs[fused_layers] = torch.where(known, fused, probs[fused_layers])
-        return FusionResult(BevPrediction(pred.classes, probs.numpy(), np.asarray(pred.known, dtype=bool)), frames,
+        probs = pred.probs.astype(np.float32, copy=True)  # (C, H, W)
+        mean = total / np.maximum(count, np.float32(1.0))  # (F, H, W) mean log-odds
+        fused = np.float32(1.0) / (np.float32(1.0) + np.exp(-mean))  # sigmoid
+        probs[fused_layers] = np.where(known, fused, probs[fused_layers])
+        return FusionResult(BevPrediction(pred.classes, probs, known.copy()), frames,
                             note)
 
 

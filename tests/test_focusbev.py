@@ -10,7 +10,6 @@ import pytest
 import torch
 
 from bev_mapper_core.errors import ConfigError
-from bev_mapper_core.geometry.bev_warp import warp_batch
 from bev_mapper_core.geometry.grid import BevGrid
 from bev_mapper_core.geometry.rig import preset_rig, scaled_camera
 from bev_mapper_core.mapper import MapperConfig, create_mapper
@@ -25,6 +24,7 @@ from bev_mapper_core.methods.focusbev.blocks import (
 from bev_mapper_core.methods.focusbev.losses import FocusBEVLossConfig, focusbev_loss, occupancy_agnostic_iou_loss, uncertainty_loss
 from bev_mapper_core.methods.focusbev.model import FocusBEV, FocusBEVConfig, input_size
 from bev_mapper_core.methods.focusbev.weights import load_focusbev, read_focusbev_metadata, save_focusbev
+from bev_mapper_core.nn.bev_warp import warp_batch
 from bev_mapper_core.nn.resnet import FPN, ResNet
 from bev_mapper_core.nn.weights import WeightsError
 from bev_mapper_core.training.config import TrainConfig
@@ -342,7 +342,7 @@ def test_replay_maps_a_front1_bag_with_the_shipped_focusbev_and_its_memory(tmp_p
     fed the same frames in order, and from the third frame on the memory bank is used."""
     from bags.cli.main import main
     from bags.io.reader import BagReader
-    from bags.replay.core import BAG_DIR, METRICS_FILE
+    from bags.replay import BAG_DIR, METRICS_FILE
     from bev_mapper_core.geometry.grid import grid_preset
 
     bag, out = tmp_path / "bag", tmp_path / "out"

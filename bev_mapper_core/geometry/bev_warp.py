@@ -13,11 +13,7 @@ the point :meth:`~bev_mapper_core.geometry.grid.BevGrid.cell_to_metric` names, i
 
 from __future__ import annotations
 
-from functools import lru_cache
-
 import numpy as np
-import torch
-from torch.nn import functional as F
 
 from ..errors import CalibrationError, ConfigError
 from .grid import BevGrid
@@ -45,49 +41,43 @@ def source_points(grid: BevGrid, prev_from_cur) -> tuple[np.ndarray, np.ndarray]
     return T[0, 0] * xs + T[0, 1] * ys + T[0, 3], T[1, 0] * xs + T[1, 1] * ys + T[1, 3]
 
 
-def warp_layers(layers: torch.Tensor, grid: BevGrid, prev_from_cur) -> tuple[torch.Tensor, torch.Tensor]:
+def warp_layers(layers: np.ndarray, grid: BevGrid, prev_from_cur) -> tuple[np.ndarray, np.ndarray]:
     """Earlier layers ``(B, C, H, W)`` (or ``(C, H, W)``) on ``grid`` -> the same layers seen from the
     current pose, and ``valid`` ``(H, W)`` bool: current cells whose earlier point lies inside the
-    grid (elsewhere the warped layers are 0). One motion for the whole batch (:func:`warp_batch`).
+    grid (elsewhere the warped layers are 0). Numpy, no torch: bilinear sampling as
+    ``torch.nn.functional.grid_sample(mode="bilinear", padding_mode="zeros", align_corners=False)``
+    computes it (its CPU kernel's unnormalization and corner weights, in the layers' float dtype;
+    the batched torch version the learned methods train with is
+    :func:`bev_mapper_core.nn.bev_warp.warp_batch`).
 
     Raises:
         ConfigError: ``prev_from_cur`` is not a finite rigid 4x4 transform.
         ValueError: layers not of ``grid``'s shape.
     """
-    T = torch.from_numpy(_check_transform(prev_from_cur))
-    squeeze = layers.dim() == 3
-    x = layers[None] if squeeze else layers  # (B, C, H, W)
-    out, valid = warp_batch(x, grid, T[None].expand(x.shape[0], -1, -1))  # (4, 4) -> (B, 4, 4)
-    return (out[0] if squeeze else out), valid[0]
-
-
-@lru_cache(maxsize=16)
-def _centers(grid: BevGrid, device: str) -> tuple[torch.Tensor, torch.Tensor]:
-    """The grid's cell centres ``(xs, ys)`` as float64 tensors on ``device`` (built once)."""
-    return tuple(torch.tensor(a, device=device) for a in grid.centers)
-
-
-def warp_batch(layers: torch.Tensor, grid: BevGrid, prev_from_cur: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Earlier layers ``(B, C, H, W)`` on ``grid`` with one motion per sample, ``prev_from_cur``
-    ``(B, 4, 4)`` (rigid, not checked here: :func:`warp_layers` and the callers' poses are) ->
-    warped ``(B, C, H, W)`` (bilinear, 0 outside) and ``valid`` ``(B, H, W)`` bool: current cells
-    whose earlier point lies inside the grid.
-
-    Raises:
-        ValueError: layers not of ``grid``'s shape.
-    """
-    if layers.dim() != 4 or tuple(layers.shape[-2:]) != grid.shape:
-        raise ValueError(f"layers must be (B, C, {grid.height}, {grid.width}), got {tuple(layers.shape)}")
-    T = prev_from_cur.to(device=layers.device, dtype=torch.float64)
-    xs, ys = _centers(grid, str(layers.device))  # (H, W) float64 each; the cells lie at z = 0
-    px = T[:, 0, 0, None, None] * xs + T[:, 0, 1, None, None] * ys + T[:, 0, 3, None, None]  # (B, H, W)
-    py = T[:, 1, 0, None, None] * xs + T[:, 1, 1, None, None] * ys + T[:, 1, 3, None, None]
-    u = 2.0 * (px - grid.x_min) / (grid.x_max - grid.x_min) - 1.0  # along columns (x)
-    v = 2.0 * (py - grid.y_min) / (grid.y_max - grid.y_min) - 1.0  # along rows (y)
-    g = torch.stack([u, v], dim=-1).to(layers.dtype)  # (B, H, W, 2)
-    out = F.grid_sample(layers, g, mode="bilinear", padding_mode="zeros", align_corners=False)  # (B, C, H, W)
+    x = np.asarray(layers)
+    if x.ndim not in (3, 4) or tuple(x.shape[-2:]) != grid.shape:
+        raise ValueError(f"layers must be (B, C, {grid.height}, {grid.width}) or (C, ...), got {tuple(x.shape)}")
+    px, py = source_points(grid, prev_from_cur)  # (H, W) float64 each
+    dtype = x.dtype if np.issubdtype(x.dtype, np.floating) else np.dtype(np.float32)
+    x = x.astype(dtype, copy=False)
+    u = (2.0 * (px - grid.x_min) / (grid.x_max - grid.x_min) - 1.0).astype(dtype)  # along columns (x)
+    v = (2.0 * (py - grid.y_min) / (grid.y_max - grid.y_min) - 1.0).astype(dtype)  # along rows (y)
+    H, W = grid.shape
+    ix = (u + dtype.type(1)) * dtype.type(W / 2) - dtype.type(0.5)  # pixel coordinates, torch's kernel order
+    iy = (v + dtype.type(1)) * dtype.type(H / 2) - dtype.type(0.5)
+    x0, y0 = np.floor(ix), np.floor(iy)
+    we, wn = ix - x0, iy - y0  # distances to the west / north neighbour
+    ee, es = dtype.type(1) - we, dtype.type(1) - wn
+    c0, r0 = x0.astype(np.int64), y0.astype(np.int64)
+    out = np.zeros(x.shape, dtype)
+    # corners nw, ne, sw, se in torch's summation order; a corner outside the grid adds 0
+    for dr, dc, weight in ((0, 0, es * ee), (0, 1, es * we), (1, 0, wn * ee), (1, 1, wn * we)):
+        r, c = r0 + dr, c0 + dc
+        inside = (r >= 0) & (r < H) & (c >= 0) & (c < W)
+        vals = x[..., np.clip(r, 0, H - 1), np.clip(c, 0, W - 1)]  # (..., H, W)
+        out += np.where(inside, vals, dtype.type(0)) * weight
     valid = (px >= grid.x_min) & (px < grid.x_max) & (py >= grid.y_min) & (py < grid.y_max)
     return out, valid
 
 
-__all__ = ["source_points", "warp_batch", "warp_layers"]
+__all__ = ["source_points", "warp_layers"]

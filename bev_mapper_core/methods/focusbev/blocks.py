@@ -15,7 +15,7 @@ reading of the paper is stated where it is made).
   camera model (focal length, principal point and distortion from the calibration) to find its
   image column and depth: the cell samples ray ``u`` at depth ``z`` of the level covering ``z``.
 * :class:`EgoMotionFusion`: the reference BEV feature and ``window - 1`` history features, each
-  warped to the current pose (:func:`~bev_mapper_core.geometry.bev_warp.warp_batch`; rotation and
+  warped to the current pose (:func:`~bev_mapper_core.nn.bev_warp.warp_batch`; rotation and
   translation of the ego motion), concatenated along channels and fused by a 3x3 convolution
   (Eq. 8). A history cell is replaced by the reference feature where the history frame did not
   see it (its point lies outside that frame's grid) and a whole history frame where there is
@@ -31,10 +31,10 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from bev_mapper_core.geometry.bev_warp import warp_batch
 from bev_mapper_core.geometry.grid import BevGrid
 from bev_mapper_core.geometry.rig import RigCamera
 from bev_mapper_core.geometry.transforms import transform_points
+from bev_mapper_core.nn.bev_warp import warp_batch
 
 
 class ColumnTransformer(nn.Module):
