@@ -1,0 +1,135 @@
+"""The node's reference tables for README.md, generated from the code that defines them.
+
+* parameters: one row per entry of :data:`~bev_mapper_ros.params.PARAMETERS` (the declarations
+  of :data:`~bev_mapper_ros.config.PARAM_FIELDS`, defaults from the dataclass fields they set),
+  the same table ``mapper_node --help`` prints;
+* diagnostics keys: the key/values of :func:`~bev_mapper_ros.stats.diagnostic_values`, with the
+  text of :data:`DIAGNOSTIC_KEYS` (a key the node publishes that has no text here is an error).
+
+README.md holds each table between ``<!-- NAME:begin -->`` and ``<!-- NAME:end -->``
+(``params``, ``diagnostics``); ``tests/test_readme.py`` checks that they equal what this module
+renders, and ``--write`` puts them there::
+
+    .venv/bin/python -m bev_mapper_ros.reference              # print both tables
+    .venv/bin/python -m bev_mapper_ros.reference --write      # ... and write them into README.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+import sys
+
+from .config import PARAM_FIELDS, NodeConfig
+from .params import _EXTRINSICS_TEXT, _TYPE_NAMES, PARAMETERS, _shown
+from .stats import NodeStats, diagnostic_values
+
+README = pathlib.Path(__file__).resolve().parents[1] / "README.md"
+
+#: ``/diagnostics`` key -> what it says (the node's ``DiagnosticStatus`` values, in order).
+DIAGNOSTIC_KEYS: dict[str, str] = {
+    "mapped_sets": "synchronized sets mapped and published since start-up",
+    "dropped_sets": "sets dropped since start-up (a newer set replaced it in the one-slot mailbox, or the synchronizer gave it up)",
+    "bad_input": "messages refused since start-up (wrong encoding, size mismatch, truncated data, uncalibrated CameraInfo, ...)",
+    "errors": "failures of the mapping step since start-up (logged; the node keeps running)",
+    "sets_with_missing_cameras": "sets mapped without every camera (timed out after `sync_timeout_s`)",
+    "cameras_missing": "cameras missing from the last mapped set, comma-separated",
+    "waiting_for": "cameras still without CameraInfo or extrinsics, comma-separated",
+    "last_error": "the last bad input or error message",
+    "rate_hz": "sets mapped per second over the last `diagnostics_window_s`",
+    "processing_ms": "mean time to decode, map and publish a set over the window",
+    "clock_offset_s": "node clock minus the stamp of the last image",
+    "latency_ms": "mean of (node clock once the set is published - image stamp) over the window; `clock mismatch` when "
+                  "the offset exceeds `clock_mismatch_s` (`use_sim_time`?)",
+    "dropped_in_window": "sets dropped over the window",
+    "drop_ratio": "dropped / (dropped + mapped) over the window; WARN above `drop_warn_ratio`",
+    "temporal_frames": "frames fused into the last published set (only with `temporal_window` > 1 or a method "
+                       "with a memory, e.g. FocusBEV)",
+    "temporal_note": "why the last set was mapped without its history ('' = it was not); same condition",
+}
+#: Keys the node adds to :func:`~bev_mapper_ros.stats.diagnostic_values`'s (``mapper_node``).
+NODE_DIAGNOSTIC_KEYS: dict[str, str] = {
+    "use_sim_time": "the node's `use_sim_time` (`true` / `false`)",
+}
+
+
+def _cell(text: str) -> str:
+    """``text`` for a markdown table cell: ``|`` escaped, ``<`` / ``>`` as entities (not HTML tags)."""
+    return text.replace("|", "\\|").replace("<", "&lt;").replace(">", "&gt;")
+
+
+def parameter_table() -> str:
+    """Markdown table of the node's parameters: name, type, default, run-time changeable, description."""
+    lines = ["| parameter | type | default | runtime | description |", "|---|---|---|---|---|"]
+    for name, (default, ptype, read_only, text) in PARAMETERS.items():
+        owner = PARAM_FIELDS[name]
+        lines.append(f"| `{name}` | {_TYPE_NAMES[ptype]} | `{_cell(_shown(name, default))}` | "
+                     f"{'' if read_only else 'yes'} | {_cell(text)} (`{owner.owner.__name__}.{owner.field}`) |")
+    lines.append(f"| `extrinsics.<camera>` | double array | the preset rig's | | {_cell(_EXTRINSICS_TEXT)} |")
+    return "\n".join(lines)
+
+
+def diagnostic_keys() -> list[str]:
+    """Every key the node's ``/diagnostics`` status can carry, in the order it publishes them."""
+    temporal = PARAM_FIELDS["temporal_window"].owner(window=2)
+    cfg = NodeConfig(cameras=("front",), temporal=temporal)
+    _, _, values = diagnostic_values(NodeStats(), 0.0, cfg, 0)
+    return [*values, *NODE_DIAGNOSTIC_KEYS]
+
+
+def diagnostics_table() -> str:
+    """Markdown table of the ``/diagnostics`` keys and what each says."""
+    keys = diagnostic_keys()
+    texts = {**DIAGNOSTIC_KEYS, **NODE_DIAGNOSTIC_KEYS}
+    missing = [k for k in keys if k not in texts]
+    if missing:
+        raise KeyError(f"diagnostics keys without a description in DIAGNOSTIC_KEYS: {missing}")
+    lines = ["| key | value |", "|---|---|"]
+    lines += [f"| `{k}` | {_cell(texts[k])} |" for k in keys]
+    return "\n".join(lines)
+
+
+#: README block name -> the function that renders it
+TABLES = {"params": parameter_table, "diagnostics": diagnostics_table}
+
+
+def markers(name: str) -> tuple[str, str]:
+    """The README's begin and end markers of block ``name``."""
+    return f"<!-- {name}:begin (generated: python -m bev_mapper_ros.reference --write) -->", f"<!-- {name}:end -->"
+
+
+def readme_block(text: str, name: str) -> str | None:
+    """The text between the markers of block ``name`` (None when the markers are missing)."""
+    begin, end = markers(name)
+    if begin not in text or end not in text:
+        return None
+    return text.split(begin, 1)[1].split(end, 1)[0].strip("\n")
+
+
+def write_readme(path: pathlib.Path = README) -> None:
+    """Replace every generated block of ``path`` with the table rendered now."""
+    text = path.read_text()
+    for name, render in TABLES.items():
+        begin, end = markers(name)
+        if readme_block(text, name) is None:
+            raise SystemExit(f"error: {path} has no {begin} ... {end} block")
+        head, rest = text.split(begin, 1)
+        _, tail = rest.split(end, 1)
+        text = f"{head}{begin}\n{render()}\n{end}{tail}"
+    path.write_text(text)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Print the tables; ``--write``: also write them into README.md."""
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--write", action="store_true", help="write the tables into README.md between their markers")
+    args = ap.parse_args(argv)
+    for name, render in TABLES.items():
+        print(f"{name}:\n{render()}\n")
+    if args.write:
+        write_readme()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
