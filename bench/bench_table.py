@@ -1,8 +1,8 @@
-"""The README's speed table, generated: runs the benchmarks one after another on this machine,
+"""The speed table of docs/SPEED.md, generated: runs the benchmarks one after another on this machine,
 each printing ours next to its reference measured in the same run, and collects their rows.
 
     .venv/bin/python bench/bench_table.py            # print the table (a few minutes)
-    .venv/bin/python bench/bench_table.py --readme   # ... and write it into README.md
+    .venv/bin/python bench/bench_table.py --write    # ... and write it into docs/SPEED.md
 
 Rows: IPM against its earlier algorithm (``bench_ipm.py``); Bi-Mapper by inference backend
 against torch eager, and by thread count with a competing process (``bench_backends.py
@@ -24,7 +24,7 @@ import tempfile
 from bench_rows import machine
 
 BENCH = pathlib.Path(__file__).resolve().parent
-README = BENCH.parent / "README.md"
+TARGET = BENCH.parent / "docs" / "SPEED.md"
 START, END = "<!-- bench-table:start -->", "<!-- bench-table:end -->"
 
 #: (script, arguments) in the order the table shows them
@@ -58,7 +58,7 @@ def run_all(log) -> list[dict]:
 
 def markdown(rows: list[dict]) -> str:
     """The table, with the machine, the date and the command that made it."""
-    lines = [f"Measured by `.venv/bin/python bench/bench_table.py --readme` on {machine()}, "
+    lines = [f"Measured by `.venv/bin/python bench/bench_table.py --write` on {machine()}, "
              f"{datetime.date.today().isoformat()}. Ratio: the reference's time over ours (above 1: ours is "
              "faster); for the node, sets mapped over sets published; for replay, the pipeline's speed over one thread.",
              "",
@@ -70,24 +70,24 @@ def markdown(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def write_readme(table: str) -> None:
-    """Replace the text between the README's table markers."""
-    text = README.read_text()
+def write_table(table: str) -> None:
+    """Replace the text between the table markers of :data:`TARGET`."""
+    text = TARGET.read_text()
     if START not in text or END not in text:
-        raise SystemExit(f"error: {README} has no {START} ... {END} block")
+        raise SystemExit(f"error: {TARGET} has no {START} ... {END} block")
     head, rest = text.split(START, 1)
     _, tail = rest.split(END, 1)
-    README.write_text(f"{head}{START}\n{table}\n{END}{tail}")
+    TARGET.write_text(f"{head}{START}\n{table}\n{END}{tail}")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--readme", action="store_true", help="write the table into README.md")
+    ap.add_argument("--write", action="store_true", help="write the table into docs/SPEED.md")
     args = ap.parse_args()
     table = markdown(run_all(lambda s: print(s, file=sys.stderr, flush=True)))
     print(table)
-    if args.readme:
-        write_readme(table)
+    if args.write:
+        write_table(table)
 
 
 if __name__ == "__main__":
