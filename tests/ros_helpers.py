@@ -87,6 +87,13 @@ def stop_process(proc: subprocess.Popen, timeout: float = 10.0) -> int:
     return proc.returncode
 
 
+def loaded_torch(pid: int) -> list[str]:
+    """The torch libraries a running process has mapped (``/proc/PID/maps``): what ``import torch``
+    leaves in a process, seen from outside it."""
+    with open(f"/proc/{pid}/maps") as f:
+        return sorted({line.split()[-1] for line in f if "/torch/" in line.split()[-1]})
+
+
 def spin_until(node, predicate, timeout: float, step: float = 0.02) -> bool:
     """Spin ``node`` until ``predicate()`` is true or ``timeout`` seconds pass."""
     end = time.monotonic() + timeout

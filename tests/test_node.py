@@ -13,7 +13,7 @@ from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from nav_msgs.msg import OccupancyGrid  # noqa: E402
 from rclpy.qos import qos_profile_sensor_data  # noqa: E402
 from rclpy.signals import uninstall_signal_handlers
-from ros_helpers import REPO, core_map_as_received, rclpy, spin_until, start_process, stop_process
+from ros_helpers import REPO, core_map_as_received, loaded_torch, rclpy, spin_until, start_process, stop_process
 from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 
 from bev_mapper_core.geometry.grid import BevGrid, grid_preset
@@ -185,6 +185,7 @@ def test_node_publishes_the_cores_grids(ros, drive):
             want = GRID.to_occupancy(pred.probs[ci], pred.known)
             np.testing.assert_array_equal(got, want, err_msg=f"class {c} frame {f.index}")
     assert complete >= 1, "every set lost a camera"
+    assert loaded_torch(proc.pid) == []  # IPM runs without torch
     # The drive has road in view: the comparison is not between two empty maps.
     assert (np.asarray(d.grids["drivable"][frames[0].stamp_ns].data) == 100).sum() > 500
 

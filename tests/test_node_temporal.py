@@ -7,7 +7,7 @@ from dataclasses import replace
 
 import numpy as np
 from nav_msgs.msg import Odometry
-from ros_helpers import REPO, rclpy, spin_until, start_process, stop_process
+from ros_helpers import REPO, loaded_torch, rclpy, spin_until, start_process, stop_process
 from test_node import Driver, node_view_of_rig
 
 from bev_mapper_core.geometry.grid import grid_preset
@@ -54,6 +54,7 @@ def test_node_fuses_frames_by_odometry_exactly_as_the_core(tmp_path, ros_domain)
             spin_until(node, lambda: False, 0.1)  # the pose is there before the image
             d.send_frame(f)
             assert d.wait_for(f.stamp_ns, 60.0), f"no grids for frame {f.index}:\n{log.read_text()}"
+        assert loaded_torch(proc.pid) == []  # IPM with temporal fusion runs without torch
     finally:
         if node is not None:
             node.destroy_node()
