@@ -2,8 +2,8 @@
 
 A :class:`TrainConfig` holds the run settings (rig, data, schedule, output), the BEV grid as a
 :class:`~bev_mapper_core.geometry.grid.BevGrid`, and the training method's own config objects: ``model``
-(its architecture, e.g. :class:`~bev_mapper_core.models.BiMapperConfig`) and ``loss`` (its
-training settings, e.g. :class:`~.bimapper_method.BiMapperTraining`). Serialised (``to_dict``,
+(its architecture, e.g. :class:`~bev_mapper_core.methods.bimapper.config.BiMapperConfig`) and ``loss`` (its
+training settings, e.g. :class:`~bev_mapper_core.methods.bimapper.train.BiMapperTraining`). Serialised (``to_dict``,
 saved in ``last.json``) it is a mapping with ``grid``, ``model`` and ``loss`` sub-mappings.
 
 :meth:`TrainConfig.from_dict` also reads the flat form that ``bev-train`` flags produce and that

@@ -21,7 +21,7 @@ Per run the trainer does, in this order::
             opt.zero_grad(); loss.backward(); opt.step()
             m.after_step(step)                       # e.g. an EMA update
         validate(m, data.val, ...)                   # m.predict(batch) -> probs, known: the one scorer
-        m.save(path)                                 # weights (safetensors via models.save_weights)
+        m.save(path)                                 # weights (safetensors: the method's weights.py)
 
 ``cfg.model`` is the method's architecture config (:attr:`TrainMethod.model_config_type`, a
 frozen dataclass with ``input_kind``, ``classes``, ``to_dict`` / ``from_dict``) and ``cfg.loss``

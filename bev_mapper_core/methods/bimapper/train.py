@@ -1,7 +1,7 @@
 """Bi-Mapper's training plug-in: model build, ``BCE + ASL + 0.1 * AML`` loss, class weights,
 the asynchronous mutual-learning schedule (see :mod:`bev_mapper_core.methods.bimapper.losses`).
 
-``cfg.model`` is a :class:`~bev_mapper_core.models.BiMapperConfig`, ``cfg.loss`` a
+``cfg.model`` is a :class:`~bev_mapper_core.methods.bimapper.config.BiMapperConfig`, ``cfg.loss`` a
 :class:`BiMapperTraining`; the ``bev-train`` flags ``--streams --fusion --lv-full-res --ipm-skip
 --input-width --gv-hidden`` set the former, ``--no-asl --mutual --mutual-start-epoch
 --pos-weight`` the latter.

@@ -105,7 +105,7 @@ class S2G2Training:
             (also in the released S2G2 code; Eq. 5 alone would leave the passive branch near its
             initial weights for the first thousands of steps).
         pos_weight: ``auto``: per-class positive weights of L_seg, as Bi-Mapper's
-            (:func:`~.bimapper_method.class_pos_weight`; not in the paper); ``none``: plain BCE.
+            (:func:`~bev_mapper_core.training.class_weights.class_pos_weight`; not in the paper); ``none``: plain BCE.
         optimizer: ``adam`` (default, every measured run) or ``sgd`` (the paper's; see the
             module docstring).
         inference_branch: the branch that maps (``active``: the one trained by gradient descent;
