@@ -1,0 +1,435 @@
+r"""Train the package's 2-D segmenter on synthetic + real (CamVid) frames; compare several sizes.
+
+Read top to bottom. One run:
+
+1. renders the synthetic training drives (fine labels) with a process pool, once (about 480
+   frames x 6 cameras of 400x225: ~40 s on 15 processes), into a
+   temporary folder (``--synth-drives`` x ``--synth-frames`` x 6 surround cameras, style
+   ``mixed``, the seeds of ``bev-train --seed 0``; plus a few held-out validation drives);
+2. trains every config of ``--configs`` (each in its own process, ``--parallel`` at a time, all
+   on the one GPU), each for ``--budget-s`` seconds of wall clock:
+   * every step a batch of CamVid train crops (coarse labels, the partial-label loss of
+     :mod:`bev_mapper_core.nn.label_space`) and a batch of synthetic crops (fine labels,
+     ordinary cross-entropy through the same function), both augmented on the device
+     (:mod:`bev_mapper_core.nn.augment`), softened median-frequency class weights;
+   * AdamW, linear warm-up then cosine decay over the time budget, bf16 autocast on CUDA, an
+     exponential moving average (EMA) of the weights, which is what is evaluated and saved;
+   * evaluation every ``--eval-every-s`` on CamVid val (pooled pixel IoU per CamVid class, fine
+     argmax mapped to CamVid's classes) and on held-out synthetic frames (fine pixel IoU); the
+     best by CamVid val (mean of road, sidewalk, car, pedestrian, building) is kept;
+3. writes, per config, ``OUT/<name>.safetensors`` (the package's ``save_segmenter`` format, read
+   by ``load_segmenter``) and ``OUT/<name>.json`` (config, loss curve, every evaluation, steps,
+   wall time; rewritten at every evaluation, so a killed run still leaves its best so far), and
+   scores CamVid test if ``DIR/test`` exists.
+
+CPU smoke run::
+
+    PYTHONPATH=. python experiments/segmenter_real.py --camvid /work/data/camvid --out /tmp/o \\
+        --configs tiny --budget-s 30 --synth-drives 1 --synth-frames 2 --limit-real 32 --device cpu
+
+Nothing here imports ROS or downloads anything.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.nn import functional as F
+
+from bev_mapper_core.datasets import CamVid
+from bev_mapper_core.labels.classes import BEV_CLASS_NAMES, NUM_LABELS
+from bev_mapper_core.methods.segmenter.model import Segmenter, SegmenterConfig, class_weights
+from bev_mapper_core.methods.segmenter.weights import load_segmenter, save_segmenter
+from bev_mapper_core.nn.augment import Augment, AugmentConfig
+from bev_mapper_core.nn.label_space import (
+    CAMVID,
+    COMMON_CAMVID,
+    FINE,
+    IGNORE,
+    coarse_predict,
+    confusion,
+    iou_from_confusion,
+    joint_cover,
+    marginal_nll,
+)
+
+# ----------------------------------------------------------------------------------------------
+# the configs this script knows (SegmenterConfig fields); "tiny" is for smoke runs only
+CONFIGS: dict[str, dict] = {
+    "w200": dict(input_width=200, width_mult=0.75, depth_mult=0.5, encoder_stages=5, decoder_channels=48),  # shipped size
+    "w320": dict(input_width=320, width_mult=1.0, depth_mult=0.5, encoder_stages=5, decoder_channels=64),
+    "w320s6": dict(input_width=320, width_mult=1.0, depth_mult=1.0, encoder_stages=6, decoder_channels=64),
+    "w480s6": dict(input_width=480, width_mult=1.0, depth_mult=1.0, encoder_stages=6, decoder_channels=96),
+    "tiny": dict(input_width=96, width_mult=0.25, depth_mult=0.25, encoder_stages=4, decoder_channels=16),
+}
+SYNTH_RIG = "surround6"
+SYNTH_SIZE = (225, 400)  # (h, w) of the surround6 cameras
+SYNTH_VAL_FRAMES = 10
+
+
+def parse_config(spec: str) -> tuple[str, SegmenterConfig]:
+    """``name`` (one of CONFIGS) or ``name=key:value/key:value`` (a new config, SegmenterConfig fields)."""
+    name, _, rest = spec.partition("=")
+    if not rest:
+        if name not in CONFIGS:
+            raise SystemExit(f"error: unknown config {name!r}; known: {sorted(CONFIGS)} or name=key:value/key:value")
+        return name, SegmenterConfig(**CONFIGS[name])
+    d = {}
+    for kv in rest.split("/"):
+        k, _, v = kv.partition(":")
+        d[k] = float(v) if k.endswith("_mult") else int(v)
+    return name, SegmenterConfig(**d)
+
+
+def get_args(argv=None) -> argparse.Namespace:
+    """The command line."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--camvid", required=True, help="CamVid folder (train/ trainannot/ val/ valannot/ [test/ testannot/])")
+    ap.add_argument("--out", required=True, help="output folder (weights + JSON log per config)")
+    ap.add_argument("--configs", default="w200,w320,w320s6,w480s6",
+                    help="comma list of config names (see CONFIGS) or name=input_width:320/width_mult:1.0/...")
+    ap.add_argument("--budget-s", type=float, default=420.0, help="training wall-clock seconds per config")
+    ap.add_argument("--deadline-s", type=float, default=0.0,
+                    help="whole command's wall-clock limit: a config's budget shrinks so that it ends 20 s before "
+                         "(0: none)")
+    ap.add_argument("--parallel", type=int, default=0, help="configs trained at once (0: all)")
+    ap.add_argument("--device", default="auto", help="auto | cpu | cuda")
+    ap.add_argument("--threads", type=int, default=1, help="torch CPU threads per process")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--synth-drives", type=int, default=40, help="synthetic training drives (0: real frames only)")
+    ap.add_argument("--synth-frames", type=int, default=12)
+    ap.add_argument("--synth-stride", type=int, default=3)
+    ap.add_argument("--synth-val-drives", type=int, default=2)
+    ap.add_argument("--synth-procs", type=int, default=0, help="render processes (0: CPU count - 1)")
+    ap.add_argument("--batch-real", type=int, default=16)
+    ap.add_argument("--batch-synth", type=int, default=8)
+    ap.add_argument("--synth-weight", type=float, default=1.0, help="weight of the synthetic loss")
+    ap.add_argument("--lr", type=float, default=2.5e-3)
+    ap.add_argument("--wd", type=float, default=0.01)
+    ap.add_argument("--warmup", type=float, default=0.03, help="warm-up fraction of the budget")
+    ap.add_argument("--ema", type=float, default=0.999)
+    ap.add_argument("--eval-every-s", type=float, default=0.0, help="0: budget / 8")
+    ap.add_argument("--max-steps", type=int, default=0, help="stop after this many steps (0: budget only)")
+    ap.add_argument("--limit-real", type=int, default=0, help="use only the first N CamVid train / val frames (smoke)")
+    ap.add_argument("--no-flip", action="store_true")
+    ap.add_argument("--worker", default="", help=argparse.SUPPRESS)  # internal: train this one config
+    ap.add_argument("--synth-dir", default="", help=argparse.SUPPRESS)  # internal: rendered drives
+    ap.add_argument("--end-at", type=float, default=0.0, help=argparse.SUPPRESS)  # internal: epoch seconds
+    return ap.parse_args(argv)
+
+
+# ----------------------------------------------------------------------------------------------
+# 1. synthetic drives (fine labels), rendered in parallel processes
+
+
+def _render_one(job: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """One drive -> (rgb (F*6, h, w, 3) uint8, labels (F*6, h, w) uint8)."""
+    seed, frames, stride = job
+    torch.set_num_threads(1)
+    from bev_mapper_core.geometry.grid import BevGrid
+    from bev_mapper_core.geometry.rig import preset_rig
+    from bev_mapper_core.training.data import render_drive
+
+    d = render_drive(preset_rig(SYNTH_RIG), BevGrid(), BEV_CLASS_NAMES, seed, frames, stride, rgb=SYNTH_SIZE)
+    return d["rgb"].reshape(-1, *SYNTH_SIZE, 3), d["labels"].reshape(-1, *SYNTH_SIZE)
+
+
+def render_synth(args, folder: Path) -> None:
+    """Render training and held-out drives into ``folder`` (``{train,val}_{rgb,labels}.npy``)."""
+    import multiprocessing as mp
+
+    from bev_mapper_core.training.data import train_seeds, val_seeds
+
+    t0 = time.time()
+    jobs = {"train": [(s, args.synth_frames, args.synth_stride) for s in train_seeds(args.seed, args.synth_drives)],
+            "val": [(s, SYNTH_VAL_FRAMES, args.synth_stride) for s in val_seeds(max(1, args.synth_val_drives))]}
+    procs = args.synth_procs or max(1, (os.cpu_count() or 2) - 1)
+    with mp.get_context("spawn").Pool(procs) as pool:  # one map: the validation drives fill idle workers
+        parts = pool.map(_render_one, jobs["train"] + jobs["val"], chunksize=1)
+    split_parts = {"train": parts[:len(jobs["train"])], "val": parts[len(jobs["train"]):]}
+    for split, ps in split_parts.items():
+        np.save(folder / f"{split}_rgb.npy", np.concatenate([p[0] for p in ps]))
+        np.save(folder / f"{split}_labels.npy", np.concatenate([p[1] for p in ps]))
+    n = len(np.load(folder / "train_labels.npy", mmap_mode="r"))
+    print(f"synthetic: {n} training images rendered by {procs} processes in {time.time() - t0:.0f} s", flush=True)
+
+
+# ----------------------------------------------------------------------------------------------
+# 2. one config's training (the worker process)
+
+
+def load_camvid(root: str, split: str, limit: int, device) -> tuple[torch.Tensor, torch.Tensor]:
+    """A CamVid split as ``(images (N, H, W, 3) uint8, labels (N, H, W) uint8)`` on ``device``."""
+    ds = CamVid(root, split)
+    n = len(ds) if not limit else min(limit, len(ds))
+    samples = [ds.read(i) for i in range(n)]
+    imgs = torch.from_numpy(np.stack([s.image for s in samples]))
+    labs = torch.from_numpy(np.stack([s.labels for s in samples]))
+    return imgs.to(device), labs.to(device)
+
+
+def base_copy(images: torch.Tensor, labels: torch.Tensor, out_hw: tuple[int, int],
+              factor: float = 1.5) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pre-shrink ``(N, H, W, 3)`` uint8 images (antialiased) and labels (nearest) to at most
+    ``factor`` x the model input, so the augmentation's bilinear resampling does not alias.
+    Returns ``(N, 3, h, w)`` uint8 and ``(N, h, w)`` uint8.
+    """
+    H, W = images.shape[1:3]
+    h, w = min(H, round(out_hw[0] * factor)), min(W, round(out_hw[1] * factor))
+    imgs, labs = [], []
+    for i in range(0, len(images), 64):
+        x = images[i:i + 64].permute(0, 3, 1, 2).float()  # (b, H, W, 3) -> (b, 3, H, W)
+        if (h, w) != (H, W):
+            x = F.interpolate(x, size=(h, w), mode="bilinear", align_corners=False, antialias=True)
+        imgs.append(x.round().clamp(0, 255).to(torch.uint8))
+        y = labels[i:i + 64].unsqueeze(1).float()
+        labs.append(F.interpolate(y, size=(h, w), mode="nearest-exact").squeeze(1).to(torch.uint8))
+    return torch.cat(imgs), torch.cat(labs)
+
+
+@torch.no_grad()
+def evaluate(model: Segmenter, images: torch.Tensor, labels: torch.Tensor, space, amp: bool) -> np.ndarray:
+    """Pooled pixel IoU per class of ``space`` at the images' own size (fine argmax -> home class)."""
+    model.eval()
+    conf = torch.zeros(space.num_classes, space.num_classes + 1, dtype=torch.long)
+    for i in range(0, len(images), 16):
+        x = model.preprocess(images[i:i + 16])
+        with torch.autocast(x.device.type, dtype=torch.bfloat16, enabled=amp):
+            logits = model(x, size=tuple(images.shape[1:3]))
+        conf += confusion(coarse_predict(logits.float(), space), labels[i:i + 16], space.num_classes)
+    return iou_from_confusion(conf)
+
+
+def camvid_report(iou: np.ndarray) -> dict:
+    """IoU (%) per CamVid class, the five common classes and their mean."""
+    per = {c: round(100 * float(v), 2) for c, v in zip(CAMVID.classes, iou)}
+    common = {k: per[c] for k, c in COMMON_CAMVID.items()}
+    return {"per_class": per, "common": common, "common_mean": round(float(np.mean(list(common.values()))), 2)}
+
+
+def run_worker(args, name: str, cfg: SegmenterConfig) -> None:
+    """Train one config for the time budget; write its weights and JSON log (module docstring)."""
+    t_start = time.time()
+    dev = torch.device("cuda" if args.device == "auto" and torch.cuda.is_available() else
+                       "cpu" if args.device == "auto" else args.device)
+    amp = dev.type == "cuda"
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(args.seed)
+    torch.backends.cudnn.benchmark = True
+    out = Path(args.out)
+    say = lambda msg: print(f"[{name}] {msg}", flush=True)  # noqa: E731
+
+    # data: CamVid train/val (coarse) and synthetic drives (fine), all on the device
+    real_x, real_y = load_camvid(args.camvid, "train", args.limit_real, dev)
+    val_x, val_y = load_camvid(args.camvid, "val", args.limit_real, dev)
+    real_hw = cfg.input_size((real_x.shape[2], real_x.shape[1]))  # (h, w) of the model input
+    real_x, real_y = base_copy(real_x, real_y, real_hw)
+    use_synth = bool(args.synth_dir) and args.synth_drives > 0
+    if use_synth:
+        sd = Path(args.synth_dir)
+        syn_x = torch.from_numpy(np.load(sd / "train_rgb.npy")).to(dev)
+        syn_y = torch.from_numpy(np.load(sd / "train_labels.npy")).to(dev)
+        sval_x = torch.from_numpy(np.load(sd / "val_rgb.npy")).to(dev)
+        sval_y = torch.from_numpy(np.load(sd / "val_labels.npy")).to(dev)
+        syn_y = torch.where(syn_y < NUM_LABELS, syn_y, torch.zeros_like(syn_y))  # as the segmenter method
+        syn_hw = cfg.input_size((SYNTH_SIZE[1], SYNTH_SIZE[0]))
+        syn_x, syn_y = base_copy(syn_x, syn_y, syn_hw)
+
+    # one code space for both: codes 0..10 = fine labels, 11.. = CamVid classes
+    cover, (fine_off, cam_off) = joint_cover([FINE, CAMVID])
+    cover = cover.to(dev)
+    real_counts = torch.bincount(real_y[real_y != IGNORE].long().flatten(), minlength=CAMVID.num_classes).cpu()
+    weights = [torch.ones(NUM_LABELS), class_weights(real_counts)]
+    if use_synth:
+        weights[0] = class_weights(torch.bincount(syn_y.long().flatten(), minlength=NUM_LABELS)[:NUM_LABELS].cpu())
+    weight = torch.cat(weights).to(dev)
+    say("class weights CamVid " + " ".join(f"{c}={w:.2f}" for c, w in zip(CAMVID.classes, weights[1].tolist())))
+
+    # model, optimiser, EMA
+    model = Segmenter(cfg).to(dev)
+    if dev.type == "cuda":
+        model = model.to(memory_format=torch.channels_last)
+    n_params = sum(p.numel() for p in model.parameters())
+    decay = [p for p in model.parameters() if p.ndim > 1]
+    no_decay = [p for p in model.parameters() if p.ndim <= 1]
+    opt = torch.optim.AdamW([{"params": decay, "weight_decay": args.wd}, {"params": no_decay, "weight_decay": 0.0}],
+                            lr=args.lr, betas=(0.9, 0.99), fused=dev.type == "cuda")
+    ema = Segmenter(cfg).to(dev)
+    ema.load_state_dict(model.state_dict())
+    if dev.type == "cuda":
+        ema = ema.to(memory_format=torch.channels_last)
+    ema.eval().requires_grad_(False)
+    ema_t, model_t = list(ema.state_dict().values()), list(model.state_dict().values())
+    float_pairs = [(e, m) for e, m in zip(ema_t, model_t) if e.is_floating_point()]
+    int_pairs = [(e, m) for e, m in zip(ema_t, model_t) if not e.is_floating_point()]
+    gen = torch.Generator(device=dev).manual_seed(args.seed)
+    aug = Augment(AugmentConfig(flip=not args.no_flip), gen)
+    mean, std = model.rgb_mean, model.rgb_std
+
+    def lr_at(p: float) -> float:
+        if p < args.warmup:
+            return args.lr * (0.1 + 0.9 * p / args.warmup)
+        q = min(1.0, (p - args.warmup) / max(1e-9, 1 - args.warmup))
+        return args.lr * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * q)))
+
+    def batch(x_all, y_all, n, hw, offset):
+        idx = torch.randint(len(x_all), (n,), generator=gen, device=dev)
+        x, y = aug(x_all[idx].float() / 255.0, y_all[idx].long(), hw)
+        y = torch.where(y == IGNORE, y, y + offset)
+        x = (x - mean) / std
+        if dev.type == "cuda":
+            x = x.contiguous(memory_format=torch.channels_last)
+        return x, y
+
+    log = {"name": name, "config": cfg.to_dict(), "params": n_params, "device": str(dev),
+           "gpu": torch.cuda.get_device_name(0) if dev.type == "cuda" else None, "args": vars(args),
+           "real_input_hw": list(real_hw), "loss": [], "evals": [], "best": None}
+
+    def write_log():
+        tmp = out / f".{name}.json.tmp"
+        tmp.write_text(json.dumps(log, indent=1))
+        os.replace(tmp, out / f"{name}.json")
+
+    def do_eval(step, t):
+        rep = camvid_report(evaluate(ema, val_x, val_y, CAMVID, amp))
+        if use_synth:
+            syn_iou = evaluate(ema, sval_x, sval_y, FINE, amp)
+            rep["synth_fine_iou"] = {c: round(100 * float(v), 2) for c, v in zip(FINE.classes, syn_iou)}
+            rep["synth_miou"] = round(100 * float(np.nanmean(syn_iou)), 2)
+        rep.update(step=step, train_s=round(t, 1))
+        log["evals"].append(rep)
+        best = log["best"]
+        if best is None or rep["common_mean"] >= best["common_mean"]:
+            log["best"] = rep
+            save_segmenter(ema, out / f"{name}.safetensors", "camvid+" + SYNTH_RIG)
+        say(f"eval step {step} t={t:.0f}s val common {rep['common']} mean {rep['common_mean']}"
+            + (f" synth mIoU {rep['synth_miou']}" if use_synth else ""))
+        write_log()
+
+    setup_s = time.time() - t_start
+    if args.end_at:  # the whole command's deadline: leave 20 s for the last evaluation and the files
+        args.budget_s = max(10.0, min(args.budget_s, args.end_at - time.time() - 20.0))
+    say(f"{n_params / 1e6:.2f} M params, real input {real_hw}, setup {setup_s:.0f} s on {dev}")
+    eval_every = args.eval_every_s or args.budget_s / 8
+    t0 = time.time()
+    next_eval, step = eval_every, 0
+    model.train()
+    while True:
+        t = time.time() - t0
+        p = t / args.budget_s if not args.max_steps else max(t / args.budget_s, step / args.max_steps)
+        if p >= 1.0:
+            break
+        for g in opt.param_groups:
+            g["lr"] = lr_at(p)
+        xr, yr = batch(real_x, real_y, args.batch_real, real_hw, cam_off)  # augmentation in float32
+        if use_synth:
+            xs, ys = batch(syn_x, syn_y, args.batch_synth, syn_hw, fine_off)
+        with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=amp):
+            loss_r = marginal_nll(model(xr), yr, cover, weight)  # the loss itself runs in float32
+            loss = loss_r
+            if use_synth:
+                loss_s = marginal_nll(model(xs), ys, cover, weight)
+                loss = loss + args.synth_weight * loss_s
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
+        opt.step()
+        step += 1
+        with torch.no_grad():  # EMA (shorter memory at the start)
+            d = min(args.ema, (1 + step) / (10 + step))
+            torch._foreach_lerp_([e for e, _ in float_pairs], [m for _, m in float_pairs], 1 - d)
+            for e, m in int_pairs:
+                e.copy_(m)
+        if step % 25 == 0:
+            lr_ = opt.param_groups[0]["lr"]
+            log["loss"].append([step, round(time.time() - t0, 1), round(loss_r.item(), 4),
+                                round(loss_s.item(), 4) if use_synth else None, lr_])
+        if step % 200 == 0:
+            say(f"step {step} t={time.time() - t0:.0f}s loss real {loss_r.item():.3f}"
+                + (f" synth {loss_s.item():.3f}" if use_synth else ""))
+        if time.time() - t0 >= next_eval:
+            do_eval(step, time.time() - t0)
+            model.train()
+            next_eval += eval_every
+    train_s = time.time() - t0
+    if not log["evals"] or log["evals"][-1]["step"] != step:
+        do_eval(step, train_s)
+    log.update(steps=step, train_s=round(train_s, 1), setup_s=round(setup_s, 1),
+               steps_per_s=round(step / max(train_s, 1e-9), 2),
+               images_seen=step * (args.batch_real + (args.batch_synth if use_synth else 0)))
+
+    # the best (by CamVid val) as saved: reload through the package's loader, score test if present
+    best = load_segmenter(out / f"{name}.safetensors", device=dev)
+    if (Path(args.camvid) / "test").is_dir():
+        tx, ty = load_camvid(args.camvid, "test", 0, dev)
+        log["test"] = camvid_report(evaluate(best, tx, ty, CAMVID, amp))
+        say(f"TEST common {log['test']['common']} mean {log['test']['common_mean']}")
+    log["wall_s"] = round(time.time() - t_start, 1)
+    write_log()
+    say(f"done: {step} steps in {train_s:.0f} s ({log['steps_per_s']} steps/s), best val common mean "
+        f"{log['best']['common_mean']} at step {log['best']['step']}")
+
+
+# ----------------------------------------------------------------------------------------------
+# 3. the driver: render once, then one process per config
+
+
+def main(argv=None) -> int:
+    """Render the synthetic drives, train every config in its own process, print a summary."""
+    args = get_args(argv)
+    if args.worker:
+        name, cfg = parse_config(next(c for c in args.configs.split(",") if c.partition("=")[0] == args.worker))
+        run_worker(args, name, cfg)
+        return 0
+    t0 = time.time()
+    configs = [parse_config(c) for c in args.configs.split(",") if c]
+    end_at = ["--end-at", str(t0 + args.deadline_s)] if args.deadline_s else []
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix="segreal_") as tmp:
+        if args.synth_drives > 0:
+            render_synth(args, Path(tmp))
+        cmd = [sys.executable, os.path.abspath(__file__)] + (argv if argv is not None else sys.argv[1:])
+        cmd += (["--synth-dir", tmp] if args.synth_drives > 0 else []) + end_at
+        width = args.parallel or len(configs)
+        running: list[subprocess.Popen] = []
+        failed = []
+        for name, _ in configs:
+            while len(running) >= width:
+                time.sleep(1)
+                failed += [p for p in running if p.poll() not in (None, 0)]
+                running = [p for p in running if p.poll() is None]
+            running.append(subprocess.Popen(cmd + ["--worker", name]))
+        for p in running:
+            if p.wait() != 0:
+                failed.append(p)
+    print(f"\nall configs done in {time.time() - t0:.0f} s" + (f"; {len(failed)} FAILED" if failed else ""))
+    print(f"{'config':8} {'params':>7} {'steps':>6} {'best step':>9} {'val mean5':>9}  road sidewalk car ped building"
+          "  synth mIoU  [test mean5]")
+    for name, _ in configs:
+        f = out / f"{name}.json"
+        if not f.is_file():
+            print(f"{name:8} (no log)")
+            continue
+        lg = json.loads(f.read_text())
+        b = lg["best"]
+        c = b["common"]
+        test = f"  [{lg['test']['common_mean']}]" if "test" in lg else ""
+        print(f"{name:8} {lg['params'] / 1e6:6.2f}M {lg.get('steps', 0):6} {b['step']:9} {b['common_mean']:9}  "
+              f"{c['road']} {c['sidewalk']} {c['vehicle']} {c['pedestrian']} {c['building']}  "
+              f"{b.get('synth_miou', '-')}{test}")
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
