@@ -49,7 +49,7 @@ setup(
     entry_points={
         "console_scripts": [
             "bev-bag = bags.cli.main:main",
-            "bev-train = bags.cli.train:main",
+            "bev-train = bags.cli.train.main:main",
             "mapper_node = bev_mapper_ros.mapper_node:main",
         ],
     },

@@ -5,7 +5,7 @@ multi-node clusters (``ray.cluster_utils.Cluster``) for the scaling model of doc
 Writes ``--bags`` synthetic surround6 drives (full-size cameras, the standard 400x200 grid at
 0.15 m) of ``--frames`` frames, then, in one process:
 
-1. replays them one after the other in-process with :func:`bags.replay.core.replay` (IPM, the
+1. replays them one after the other in-process with :func:`bags.replay.replay` (IPM, the
    evaluate defaults: pictures of every 10th frame, report.html): seconds per bag and frame;
 2. evaluates them with :func:`bags.fleet.evaluate.evaluate` with 1 and 2 workers (a local Ray
    runtime each): wall time, frames/s, the ratio; Ray's overhead per bag = (task phase with
@@ -37,10 +37,10 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 from bench_rows import machine  # noqa: E402
 
 from bags.cli.synth import SynthBagOptions, synth_bag  # noqa: E402
+from bags.files import write_atomic  # noqa: E402
 from bags.fleet.evaluate import EvaluateOptions, evaluate  # noqa: E402
 from bags.fleet.replay_tasks import aggregate, evaluate_bag  # noqa: E402
-from bags.replay.core import ReplayOptions, replay  # noqa: E402
-from bags.report.pictures import write_atomic  # noqa: E402
+from bags.replay import ReplayOptions, replay  # noqa: E402
 from bev_mapper_core.mapper import MapperConfig  # noqa: E402
 from bev_mapper_core.synth.config import SynthConfig  # noqa: E402
 

@@ -23,7 +23,7 @@ from bench_rows import row, write_rows  # noqa: E402
 
 from bags.cli.synth import SynthBagOptions, synth_bag  # noqa: E402
 from bags.io.reader import BagReader  # noqa: E402
-from bags.replay.core import ReplayOptions, replay  # noqa: E402
+from bags.replay import ReplayOptions, replay  # noqa: E402
 from bev_mapper_core.mapper import MapperConfig  # noqa: E402
 from bev_mapper_core.synth.config import SynthConfig  # noqa: E402
 

@@ -2,7 +2,7 @@
 
 Each bag is read and mapped as ``bev-bag replay`` does (its own rig and grid, the method's
 ``create_mapper``), and every frame of every bag is scored by one
-:class:`bags.replay.core.ReplayScorer` (the replay's scorer: ``MetricAccumulator`` and
+:class:`bags.replay.ReplayScorer` (the replay's scorer: ``MetricAccumulator`` and
 ``WholeGridAccumulator``), so the figures pool all frames (dataset-level IoU, per-frame areas
 over all frames) instead of averaging per-drive results.
 
@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from bags.io.reader import BagReader
-from bags.replay.core import ReplayScorer
+from bags.replay import ReplayScorer
 from bev_mapper_core.labels.classes import NUM_LABELS, Label
 from bev_mapper_core.mapper import INPUT_KINDS, MapperConfig, available_methods, create_mapper
 from bev_mapper_core.metrics import format_table, format_whole_grid_table

@@ -28,7 +28,7 @@ from bags.errors import BagCorruptError
 from bags.io import topics as T
 from bags.io.metadata import MAX_METADATA_NODES, MetadataError, parse_yaml
 from bags.io.reader import BagReader
-from bags.replay.core import BAG_DIR, IMAGE_TOPIC, METRICS_FILE
+from bags.replay import BAG_DIR, IMAGE_TOPIC, METRICS_FILE
 from bev_mapper_core.geometry.grid import MAX_GRID_CELLS
 
 pytestmark = [pytest.mark.slow]

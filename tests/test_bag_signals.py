@@ -3,7 +3,8 @@
 A real subprocess replays a bag long enough to still be running when its temporary output
 directories appear (the readiness signal); SIGTERM then must end it with a non-zero status,
 an ``error:`` line, no traceback and no ``.partial-<pid>`` directory left behind (SIGTERM's
-default action killed the process and left both directories).
+default action killed the process and left both directories). ``bev-train`` shares that
+handling (:mod:`bags.cli.dispatch`): SIGTERM while it renders its drives ends it the same way.
 """
 
 from __future__ import annotations
@@ -59,19 +60,17 @@ def writing(out: Path) -> bool:
                 and len(list(frames[0].glob("*.png"))) >= 2)
 
 
-def test_sigterm_cleans_up_like_sigint(tmp_path):
-    base = D.make_base(tmp_path / "base")
-    bag = long_bag(base, tmp_path / "long")
-    out = tmp_path / "out"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "bags.cli.main", "replay", str(bag), "--out", str(out), "--quiet",
-         "--method", "ipm", "--picture-every", "1"],
-        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+def sigterm_when_ready(argv: list[str], ready, what: str) -> str:
+    """Run ``python -m ARGV``, send SIGTERM once ``ready()`` holds, and check that it ended
+    through the command line's handler (status 143, ``error: terminated``, no traceback);
+    returns its stderr. ``what`` names the readiness in the failure messages.
+    """
+    proc = subprocess.Popen([sys.executable, "-m", *argv], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 120
-        while not writing(out):
-            assert proc.poll() is None, f"replay ended before writing: {proc.stderr.read()}"
-            assert time.monotonic() < deadline, "replay never started writing"
+        while not ready():
+            assert proc.poll() is None, f"{argv[0]} ended before {what}: {proc.stderr.read()}"
+            assert time.monotonic() < deadline, f"{argv[0]} never started {what}"
             time.sleep(0.002)
         proc.send_signal(signal.SIGTERM)
         rc = proc.wait(timeout=60)
@@ -81,4 +80,26 @@ def test_sigterm_cleans_up_like_sigint(tmp_path):
     err = proc.stderr.read()
     assert rc == 128 + signal.SIGTERM, err  # exited through main's handler, not killed
     assert "error: terminated" in err and "Traceback" not in err
+    return err
+
+
+def test_sigterm_cleans_up_like_sigint(tmp_path):
+    base = D.make_base(tmp_path / "base")
+    bag = long_bag(base, tmp_path / "long")
+    out = tmp_path / "out"
+    sigterm_when_ready(["bags.cli.main", "replay", str(bag), "--out", str(out), "--quiet", "--method", "ipm",
+                        "--picture-every", "1"], lambda: writing(out), "writing")
     assert sorted(p.name for p in out.iterdir()) == []  # no partials, no half outputs
+
+
+def test_bev_train_ends_on_sigterm_like_bev_bag(tmp_path):
+    """SIGTERM while ``bev-train`` renders its training drives: status 143, ``error: terminated``,
+    no traceback, no half-written drive in the cache (the readiness signal: the first drive there).
+    """
+    pytest.importorskip("torch")
+    cache = tmp_path / "cache"
+    sigterm_when_ready(["bags.cli.train", "--rig", "cam2bev4", "--classes", "cam2bev", "--train-drives", "200",
+                        "--frames-per-drive", "4", "--cache", str(cache), "--out", str(tmp_path / "run"),
+                        "--threads", "1", "--no-progress"],
+                       lambda: bool(list(cache.glob("*/drive_*.npz"))), "rendering drives")
+    assert not list(cache.glob("*/*.tmp.npz"))  # the drive being written was removed

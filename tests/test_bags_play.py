@@ -18,7 +18,7 @@ from bags.cli.main import main
 from bags.cli.play import jazzy_typestore, to_cdr, to_rclpy
 from bags.io import topics as T
 from bags.io.reader import BagReader
-from bags.replay.core import BAG_DIR
+from bags.replay import BAG_DIR
 from bev_mapper_core.geometry.rig import Rig, RigCamera
 from bev_mapper_core.labels.classes import BEV_CLASS_NAMES
 from bev_mapper_core.mapper import MapperConfig, create_mapper

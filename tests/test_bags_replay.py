@@ -14,7 +14,7 @@ from bags.cli.main import main
 from bags.io import topics as T
 from bags.io.reader import BagReader
 from bags.io.writer import BagWriter
-from bags.replay.core import BAG_DIR, FRAMES_DIR, IMAGE_TOPIC, METRICS_FILE
+from bags.replay import BAG_DIR, FRAMES_DIR, IMAGE_TOPIC, METRICS_FILE
 from bev_mapper_core.errors import BevMapperError
 from bev_mapper_core.geometry.grid import BevGrid
 from bev_mapper_core.labels.classes import BEV_CLASS_NAMES, bev_picture

@@ -16,7 +16,8 @@ torch = pytest.importorskip("torch")
 from safetensors import safe_open  # noqa: E402
 from safetensors.torch import save_file  # noqa: E402
 
-from bags.cli import train as cli  # noqa: E402
+from bags.cli.train.main import main as bev_train  # noqa: E402
+from bags.cli.train.train import train_parser  # noqa: E402
 from bev_mapper_core.errors import ConfigError  # noqa: E402
 from bev_mapper_core.geometry.rig import preset_rig  # noqa: E402
 from bev_mapper_core.labels.classes import NUM_LABELS  # noqa: E402
@@ -237,11 +238,11 @@ def test_a_batch_that_does_not_split_is_refused(tmp_path, capsys):
     assert TrainConfig(batch=4, nproc=2).nproc == 2 and TrainConfig().nproc == 1
     with pytest.raises(ConfigError):
         TrainConfig(nproc=0)
-    assert cli.main(["--nproc", "3", "--batch", "4", "--out", str(tmp_path / "x")]) == 1
+    assert bev_train(["--nproc", "3", "--batch", "4", "--out", str(tmp_path / "x")]) == 1
     assert "error: batch 4 is the global batch of the 3 processes" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
-    assert cli.main(["--nproc", "0"]) == 2
-    assert cli.train_parser().parse_args(["--nproc", "2"]).nproc == 2
+    assert bev_train(["--nproc", "0"]) == 2
+    assert train_parser().parse_args(["--nproc", "2"]).nproc == 2
 
 
 def test_a_failing_rank_ends_the_run_with_its_error(tmp_path, toy):

@@ -15,7 +15,7 @@ from bags.cli.main import build_parser, main
 from bags.fleet.evaluate import RECORD_FILE, SUMMARY_FILE
 from bags.fleet.replay_tasks import bag_names
 from bags.io.reader import BagReader
-from bags.replay.core import METRICS_FILE, ReplayScorer, _percentiles
+from bags.replay import METRICS_FILE, ReplayScorer, percentiles
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.geometry.grid import BevGrid
 from bev_mapper_core.labels.label_maps import label_map
@@ -148,7 +148,7 @@ def test_aggregate_equals_all_frames_through_one_scorer(fleet):
     names = [e["name"] for e in s["per_bag"] if e["status"] == "ok"]
     lat = [v for n in names for v in json.loads((fleet["out"] / "bags" / n / RECORD_FILE).read_text())["latencies_ms"]]
     assert len(lat) == agg["frames"] == 19
-    assert agg["latency_ms"] == _percentiles(lat)
+    assert agg["latency_ms"] == percentiles(lat)
 
 
 @pytest.mark.slow

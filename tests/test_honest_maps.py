@@ -17,7 +17,7 @@ from bags.cli.main import main
 from bags.io import topics as T
 from bags.io.reader import BagReader
 from bags.io.writer import write_drive
-from bags.replay.core import METRICS_FILE, RELIABILITY_FILE
+from bags.replay import METRICS_FILE, RELIABILITY_FILE
 from bev_mapper_core.geometry.camera import CameraModel
 from bev_mapper_core.geometry.grid import BevGrid
 from bev_mapper_core.geometry.rig import Rig, RigCamera, preset_rig

@@ -12,7 +12,7 @@ import yaml
 from bag_helpers import replay_ipm
 from label_map_helpers import equivalent_native, relabel_bag, to_upstream
 
-from bags.cli.train import train_parser
+from bags.cli.train.train import train_parser
 from bags.io.train_data import bag_frameset, bag_rig_grid
 from bev_mapper_core.labels.classes import NUM_LABELS
 from bev_mapper_core.training.config import TrainConfig

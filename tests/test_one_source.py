@@ -15,11 +15,12 @@ from bags.cli.main import build_parser
 from bags.cli.synth import SynthBagOptions
 from bags.io.reader import DEFAULT_SYNC
 from bags.io.writer import STORAGES
-from bags.replay.core import SCOPES, ReplayOptions
+from bags.replay import ReplayOptions
 from bev_mapper_core.errors import GridError
 from bev_mapper_core.geometry.grid import GRID_TOL_M, BevGrid
 from bev_mapper_core.geometry.rig import PRESETS
 from bev_mapper_core.mapper import INPUT_KINDS, MapperConfig, available_methods
+from bev_mapper_core.metrics import SCOPES
 from bev_mapper_core.synth.config import SynthConfig
 from bev_mapper_core.synth.styles import STYLE_CHOICES
 from bev_mapper_core.temporal import TemporalConfig

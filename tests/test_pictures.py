@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from bags.cli.main import main
-from bags.replay.core import FRAMES_DIR, REPORT_FILE, ReplayOptions
+from bags.replay import FRAMES_DIR, REPORT_FILE, ReplayOptions
 from bags.replay.frame_scores import FrameScores
 from bags.report.pictures import comparison_picture, panel_boxes, panel_scale
 from bev_mapper_core.display import EGO_CENTER_X_M, EGO_LENGTH_M, EGO_WIDTH_M, STRIP_FG, BevPainter, painter
@@ -385,7 +385,7 @@ def test_report_renders_in_headless_chromium(replays, tmp_path):
     rc, console, dom = _render(browser, html, None, tmp_path, "--dump-dom")
     assert rc == 0 and console == [] and "(1 / 3)" in dom
     # a report without pictures (no viewer) runs its script without errors too
-    from bags.replay.core import ReplayResult  # noqa: PLC0415
+    from bags.replay import ReplayResult  # noqa: PLC0415
     from bags.report.html import render_report  # noqa: PLC0415
 
     metrics = json.loads((outs["every"] / "metrics.json").read_text())
@@ -414,7 +414,7 @@ def test_report_without_pictures_or_ground_truth(replays, tmp_path):
     html = (out / REPORT_FILE).read_text()
     assert "No pictures were written" in html and 'id="frames-data"' not in html
     assert "mIoU / mAP" in html
-    from bags.replay.core import ReplayResult  # noqa: PLC0415
+    from bags.replay import ReplayResult  # noqa: PLC0415
     from bags.report.html import render_report  # noqa: PLC0415
 
     metrics = json.loads((out / "metrics.json").read_text())

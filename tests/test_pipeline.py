@@ -9,7 +9,7 @@ import threading
 
 import pytest
 
-from bags.replay.core import ReplayOptions, replay
+from bags.replay import ReplayOptions, replay
 from bags.replay.pipeline import InOrder, Prefetch
 from bev_mapper_core.mapper import MapperConfig
 

@@ -11,7 +11,8 @@ import torch
 from safetensors.torch import load_file, save_file
 from torch.nn import functional as F
 
-from bags.cli import train as cli
+from bags.cli.train.main import main as bev_train
+from bags.cli.train.train import train_parser
 from bev_mapper_core.errors import ConfigError, GridError
 from bev_mapper_core.geometry.grid import BevGrid, grid_preset
 from bev_mapper_core.geometry.rig import preset_rig
@@ -446,7 +447,7 @@ def test_unlabeled_drive_settings():
     with pytest.raises(ConfigError, match="does not train on unlabeled frames"):
         SynthSource().load(cfg, RIG, GRID, DataNeeds(), print)
     # bev-train: the flags land on the configs
-    a = vars(cli.train_parser("s2g2").parse_args(
+    a = vars(train_parser("s2g2").parse_args(
         ["--method", "s2g2", "--rig", "front1", "--unlabeled-drives", "4", "--unlabeled-style", "dusk",
          "--view-transform", "fc", "--no-inter-view-attention", "--optimizer", "adam", "--ema-decay", "0.99",
          "--inference-branch", "passive", "--consistency-ramp-steps", "50"]))
@@ -494,7 +495,7 @@ def test_unlabeled_frames_from_a_bag(tmp_path):
     cfg_file = tmp_path / "run.yaml"
     cfg_file.write_text(yaml.safe_dump({**run, "epochs": 1, "cache": str(tmp_path / "cache")}))
     out = tmp_path / "run"
-    assert cli.main(["--config", str(cfg_file), "--unlabeled", str(bag), "--out", str(out)]) == 0
+    assert bev_train(["--config", str(cfg_file), "--unlabeled", str(bag), "--out", str(out)]) == 0
     assert (out / "last.safetensors").is_file()
     assert json.loads((out / "last.json").read_text())["config"]["unlabeled_bag"] == [str(bag)]
 
@@ -522,7 +523,7 @@ def test_encoder_starts_from_the_shipped_segmenters_trunk(tmp_path):
         encoder(encoder_init=str(tmp_path / "nope.safetensors"))
     with pytest.raises(WeightsError, match="does not fit this encoder"):
         encoder(width_mult=0.5)
-    assert cli.train_parser("s2g2").parse_args(["--encoder-init", "none"]).encoder_init == "none"
+    assert train_parser("s2g2").parse_args(["--encoder-init", "none"]).encoder_init == "none"
 
 
 def test_named_grids_and_the_paper_class_set():
@@ -530,12 +531,12 @@ def test_named_grids_and_the_paper_class_set():
     assert ahead.shape == (128, 128) and ahead.x_min == 0.0 and grid_preset("surround") == BevGrid()
     with pytest.raises(GridError, match="named grids"):
         grid_preset("behind")
-    a = cli.train_parser("s2g2").parse_args(["--grid", "ahead", "--classes", "s2g2"])
+    a = train_parser("s2g2").parse_args(["--grid", "ahead", "--classes", "s2g2"])
     cfg = TrainConfig.from_dict({"method": "s2g2", "rig": "front1", **vars(a)})
     assert cfg.grid == ahead and cfg.class_names == ("road", "sidewalk", "terrain", "obstacle")
     assert TrainConfig.from_dict(cfg.to_dict()).grid == ahead  # saved with the checkpoint
     with pytest.raises(SystemExit):
-        cli.train_parser("s2g2").parse_args(["--grid", "behind"])
+        train_parser("s2g2").parse_args(["--grid", "behind"])
     # the paper's obstacle layer is everything standing on the ground, terrain the verges
     lut = label_lut(S2G2_CLASSES)
     assert lut[Label.BUILDING, 3] and lut[Label.VEHICLE, 3] and not lut[Label.ROAD, 3] and lut[Label.TERRAIN, 2]
@@ -574,7 +575,7 @@ def test_replay_maps_a_front1_bag_with_the_shipped_s2g2_weights(tmp_path):
     the output grids are the core mapper's on the bag's RGB images, scored against the bag's GT."""
     from bags.cli.main import main
     from bags.io.reader import BagReader
-    from bags.replay.core import BAG_DIR, METRICS_FILE
+    from bags.replay import BAG_DIR, METRICS_FILE
 
     bag, out = tmp_path / "bag", tmp_path / "out"
     assert main(["synth", str(bag), "--rig", "front1", "--grid", "ahead", "--frames", "3", "--seed", "950000013",
@@ -607,7 +608,7 @@ def test_eval_scores_rgb_mappers_on_the_named_grid(tmp_path, capsys):
                         tmp_path / "w.safetensors")
     args = ["eval", "--rig", "front1", "--grid", "ahead", "--input", "rgb", "--style", "dusk", "--val-seeds",
             "950000013", "--frames-per-drive", "2", "--cache", str(tmp_path / "cache"), "--threads", "1"]
-    assert cli.main([*args, "--method", "s2g2", "--weights", str(weights), "--classes", "drivable,sidewalk",
+    assert bev_train([*args, "--method", "s2g2", "--weights", str(weights), "--classes", "drivable,sidewalk",
                      "--json", str(tmp_path / "s2g2.json")]) == 0
     res = json.loads((tmp_path / "s2g2.json").read_text())
     assert res["input_kind"] == "rgb" and res["style"] == "dusk" and res["grid"] == grid_preset("ahead").to_dict()
@@ -615,9 +616,9 @@ def test_eval_scores_rgb_mappers_on_the_named_grid(tmp_path, capsys):
     cache = list((tmp_path / "cache").iterdir())
     assert len(cache) == 1 and "rgb400_dusk" in cache[0].name  # full-size camera images, the asked style
     # the same drives through segipm (the segmenter on the RGB images) and IPM (the true labels)
-    assert cli.main([*args, "--method", "segipm", "--classes", "drivable,sidewalk",
+    assert bev_train([*args, "--method", "segipm", "--classes", "drivable,sidewalk",
                      "--json", str(tmp_path / "segipm.json")]) == 0
-    assert cli.main([*args[:5], *args[9:], "--input", "labels", "--method", "ipm", "--classes", "drivable,sidewalk",
+    assert bev_train([*args[:5], *args[9:], "--input", "labels", "--method", "ipm", "--classes", "drivable,sidewalk",
                      "--json", str(tmp_path / "ipm.json")]) == 0
     seg, ipm = (json.loads((tmp_path / f"{n}.json").read_text()) for n in ("segipm", "ipm"))
     assert ipm["input_kind"] == "labels" and seg["input_kind"] == "rgb"

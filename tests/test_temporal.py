@@ -104,7 +104,7 @@ def test_replay_fuses_over_the_bags_odometry_exactly_as_the_core(tmp_path):
     from bag_helpers import replay_ipm, synth_small
 
     from bags.io.reader import BagReader
-    from bags.replay.core import BAG_DIR, METRICS_FILE
+    from bags.replay import BAG_DIR, METRICS_FILE
     from bev_mapper_core.mapper import MapperConfig, create_mapper
 
     bag = synth_small(tmp_path / "bag", frames=4)

@@ -9,7 +9,9 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from bags.cli import train as cli  # noqa: E402
+from bags.cli.train.eval import eval_parser  # noqa: E402
+from bags.cli.train.main import main as bev_train  # noqa: E402
+from bags.cli.train.train import train_parser  # noqa: E402
 from bev_mapper_core.errors import ConfigError  # noqa: E402
 from bev_mapper_core.geometry.grid import BevGrid  # noqa: E402
 from bev_mapper_core.geometry.rig import preset_rig  # noqa: E402
@@ -153,7 +155,7 @@ def test_resume_continues_from_the_saved_epoch(tmp_path, tiny_data):
     ["--classes", "drivable,nonsense"],
 ])
 def test_cli_rejects_bad_flags(argv, capsys, tmp_path):
-    rc = cli.main(argv + ["--out", str(tmp_path / "r"), "--no-progress"])
+    rc = bev_train(argv + ["--out", str(tmp_path / "r"), "--no-progress"])
     err = capsys.readouterr().err
     assert rc != 0
     assert "error:" in err
@@ -161,7 +163,7 @@ def test_cli_rejects_bad_flags(argv, capsys, tmp_path):
 
 
 def test_cli_resume_without_checkpoint_is_an_error(capsys, tmp_path):
-    rc = cli.main(["--out", str(tmp_path / "none"), "--resume", "--no-progress"])
+    rc = bev_train(["--out", str(tmp_path / "none"), "--resume", "--no-progress"])
     assert rc == 1 and "error:" in capsys.readouterr().err
 
 
@@ -194,7 +196,7 @@ def test_training_on_a_bag_with_gt(tmp_path, capsys):
     fs = bag_frameset([bag], ("drivable", "vehicle"), rig, grid)
     assert len(fs) == 3 and fs.target.shape == (3, 2, 16, 32) and fs.labels.shape[1] == 4 and fs.mask.any()
     out = tmp_path / "run"
-    rc = cli.main(["--bag", str(bag), "--val-bag", str(bag), "--rig", RIG, "--classes", "drivable,vehicle", "--epochs", "1",
+    rc = bev_train(["--bag", str(bag), "--val-bag", str(bag), "--rig", RIG, "--classes", "drivable,vehicle", "--epochs", "1",
                    "--batch", "2", "--input-width", "48", "--gv-hidden", "16", "--threads", "1", "--out", str(out),
                    "--no-progress"])
     assert rc == 0 and (out / "best.safetensors").is_file()
@@ -337,16 +339,16 @@ def test_a_second_method_trains_through_the_same_loop(tmp_path, tiny_data, toy_m
 def test_a_second_method_through_bev_train(tmp_path, tiny_data, toy_method, capsys):
     """bev-train offers the method's own flags (and not Bi-Mapper's), taking the method from the YAML."""
     _, _, cache = tiny_data
-    assert "--toy-channels" in cli.train_parser("toy").format_help()
-    assert "--streams" not in cli.train_parser("toy").format_help()
+    assert "--toy-channels" in train_parser("toy").format_help()
+    assert "--streams" not in train_parser("toy").format_help()
     import yaml
 
     cfg_file = tmp_path / "toy.yaml"
     cfg_file.write_text(yaml.safe_dump(toy_dict(tmp_path, cache, epochs=1)))
-    assert cli.main(["--config", str(cfg_file), "--toy-channels", "2", "--out", str(tmp_path / "c")]) == 0
+    assert bev_train(["--config", str(cfg_file), "--toy-channels", "2", "--out", str(tmp_path / "c")]) == 0
     saved = json.loads((tmp_path / "c" / "last.json").read_text())["config"]
     assert saved["method"] == "toy" and saved["model"]["channels"] == 2
-    assert cli.main(["--config", str(cfg_file), "--streams", "gv", "--out", str(tmp_path / "d")]) == 2
+    assert bev_train(["--config", str(cfg_file), "--streams", "gv", "--out", str(tmp_path / "d")]) == 2
     assert "unrecognized arguments: --streams" in capsys.readouterr().err
 
 
@@ -373,15 +375,15 @@ def _choices(parser) -> dict:
 
 
 def test_cli_choices_and_defaults_come_from_the_owning_constants():
-    p = cli.train_parser()
+    p = train_parser()
     assert _choices(p) == {"--method": list(train_methods()), "--rig": sorted(PRESETS), "--input": list(INPUT_KINDS),
                            "--streams": list(STREAMS), "--fusion": list(FUSIONS), "--mutual": list(MUTUAL_MODES),
                            "--pos-weight": list(POS_WEIGHTS), "--style": STYLE_CHOICES,
                            "--unlabeled-style": STYLE_CHOICES}
     assert TrainConfig().style == SynthConfig.style
     assert vars(p.parse_args([])) == {}  # no flag has a default of its own: the dataclasses have them
-    assert _choices(cli.eval_parser())["--rig"] == sorted(PRESETS)
-    e, d = cli.eval_parser().parse_args([]), TrainConfig()
+    assert _choices(eval_parser())["--rig"] == sorted(PRESETS)
+    e, d = eval_parser().parse_args([]), TrainConfig()
     assert (e.rig, e.val_drives, e.frames_per_drive, e.stride, e.cache, e.device, e.threads) == \
         (d.rig, d.val_drives, d.frames_per_drive, d.stride, d.cache, d.device, d.threads)
     for name in train_methods():  # every method flag lands on a field of the method's configs
@@ -391,7 +393,7 @@ def test_cli_choices_and_defaults_come_from_the_owning_constants():
 
 
 def test_bimapper_flags_land_on_its_config_objects():
-    a = vars(cli.train_parser().parse_args(
+    a = vars(train_parser().parse_args(
         ["--rig", "front1", "--input", "rgb", "--streams", "gv", "--fusion", "concat", "--no-asl", "--lv-full-res",
          "--ipm-skip", "--mutual", "sync", "--mutual-start-epoch", "2", "--pos-weight", "none", "--input-width", "64",
          "--gv-hidden", "32"]))

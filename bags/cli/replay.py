@@ -1,5 +1,5 @@
 """``bev-bag replay BAG --out DIR``: map every frame of a bag offline and score it (see
-:mod:`bags.replay.core`).
+:mod:`bags.replay`).
 """
 
 from __future__ import annotations
@@ -11,11 +11,11 @@ from pathlib import Path
 
 from bev_mapper_core.labels.label_maps import PRESET_NAMES
 from bev_mapper_core.mapper import BACKENDS, INPUT_KINDS, MapperConfig, available_methods
-from bev_mapper_core.metrics import format_table, format_whole_grid_table
+from bev_mapper_core.metrics import SCOPES, format_table, format_whole_grid_table
 from bev_mapper_core.temporal import TemporalConfig
 
 from ..io.writer import STORAGES
-from ..replay.core import SCOPES, ReplayOptions, replay
+from ..replay import ReplayOptions, replay
 from .grid_args import add_grid_args, grid_from_args
 
 HELP = ("map every frame of a bag offline (no DDS), write a BEV bag, pictures, report.html and "

@@ -37,6 +37,7 @@ from bev_mapper_core.training.config import AUTO_CLASSES, TrainConfig, class_set
 from bev_mapper_core.training.data import DriveSpec, drive_path, drive_spec, load_or_render, write_spec
 
 from ..errors import BagError
+from ..files import partial_name
 from ..fleet.ray_tasks import RayOptions, TaskFailure, add_ray_args, ray_runtime, run_tasks
 from ..io.writer import STORAGES, check_output
 from .grid_args import add_grid_args, grid_from_args
@@ -133,7 +134,7 @@ def render_seed(seed: int, options: SynthManyOptions) -> dict[str, bytes]:
 def _place(options: SynthManyOptions, seed: int, files: dict[str, bytes]) -> None:
     """Write a task's files to ``options.target(seed)`` atomically (a partial copy never shows)."""
     target = options.target(seed)
-    tmp = target.parent / f".{target.name}.partial-{os.getpid()}"
+    tmp = partial_name(target)
     try:
         if isinstance(options.drive, DriveSpec):
             write_spec(target.parent, options.drive)

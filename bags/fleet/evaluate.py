@@ -18,14 +18,13 @@ records are read back); a bag recorded with other options is an error, not a sil
 from __future__ import annotations
 
 import json
-import shutil
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from ..errors import BagError, BagExistsError
-from ..replay.core import METRICS_FILE, ReplayOptions
-from ..report.pictures import write_atomic
+from ..files import remove_partials, write_atomic
+from ..replay import METRICS_FILE, ReplayOptions
 from .ray_tasks import RayOptions, cluster_cpus, ray_runtime
 from .replay_tasks import OK, aggregate, bag_names, evaluate_bags, find_bags, options_record
 
@@ -108,7 +107,7 @@ def evaluate(options: EvaluateOptions) -> EvaluateResult:
         if done is not None:
             records[name] = {**done, "resumed": True}
         else:
-            _remove_partials(bag_out)
+            remove_partials(bag_out)  # a killed worker's; the bag is replayed again now
             jobs.append((name, replace(options.replay, bag=bag, out=bag_out, force=True, progress=False)))
 
     def on_record(record: dict) -> None:
@@ -161,17 +160,6 @@ def _check_out(out: Path, options: EvaluateOptions) -> None:
     if earlier and not (options.resume or options.force):
         raise BagExistsError(f"{out} holds an earlier evaluation: pass --resume to continue it "
                              "or --force to start over")
-
-
-def _remove_partials(bag_out: Path) -> None:
-    """Remove what an interrupted earlier run left under temporary names (a killed worker
-    cannot clean up; the bag is replayed again now and nothing else writes there).
-    """
-    for p in bag_out.glob(".*.partial-*"):
-        if p.is_dir():
-            shutil.rmtree(p, ignore_errors=True)
-        else:
-            p.unlink(missing_ok=True)
 
 
 def _finished(bag: Path, bag_out: Path, wanted: dict) -> dict | None:

@@ -1,8 +1,8 @@
 """Replaying many bags as Ray tasks and adding their scores up exactly (``bev-bag evaluate``).
 
-One bag is one task running :func:`bags.replay.core.replay` (the same code as ``bev-bag replay``)
+One bag is one task running :func:`bags.replay.replay` (the same code as ``bev-bag replay``)
 into its own output directory; the task returns a small JSON-able *record*: the bag's status,
-its ``metrics.json``, the mergeable scoring state (:meth:`bags.replay.core.ReplayScorer.state`) and
+its ``metrics.json``, the mergeable scoring state (:meth:`bags.replay.ReplayScorer.state`) and
 the mapping latency of every frame. :func:`aggregate` merges the states of the complete bags,
 so its IoU is the dataset-level IoU of all their frames (summed intersections and unions),
 Chamfer distances are weighted by frames and latency percentiles are over all frames: the
@@ -28,7 +28,7 @@ from bev_mapper_core.metrics import MetricAccumulator, WholeGridAccumulator
 
 from ..errors import BagError
 from ..io.sources import BAG_SUFFIXES
-from ..replay.core import ReplayOptions, ReplayScorer, _percentiles, replay
+from ..replay import ReplayOptions, ReplayScorer, percentiles, replay
 from . import ray_tasks
 
 OK, DAMAGED, FAILED = "ok", "damaged", "failed"
@@ -199,7 +199,7 @@ def aggregate(records: list[dict]) -> dict:
         scores = {"frames": 0, "classes": {}, "miou": None, "map": None, "iou_by_range": {},
                   "occlusion": None, "calibration": None}
     return {"bags": len(used), "frames": frames, "frames_scored": scores.pop("frames"),
-            "frames_skipped": skipped, **scores, "latency_ms": _percentiles(latencies),
+            "frames_skipped": skipped, **scores, "latency_ms": percentiles(latencies),
             "excluded": excluded}
 
 

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import logging
 import os
-import shutil
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,6 +34,7 @@ from msg_adapters import (
 )
 
 from ..errors import BagError, BagExistsError
+from ..files import partial_name, remove_path
 from . import topics as T
 from .mcap_storage import CHUNK_SIZE, rosbag2_writer
 
@@ -84,13 +84,6 @@ def check_output(path: Path, force: bool) -> None:
         )
 
 
-def _remove(path: Path) -> None:
-    if path.is_dir() and not path.is_symlink():
-        shutil.rmtree(path)
-    elif path.exists() or path.is_symlink():
-        path.unlink()
-
-
 class BagWriter:
     """Context manager writing one rosbag2 directory atomically.
 
@@ -115,7 +108,7 @@ class BagWriter:
         self.factory = RosbagsFactory(self.typestore)
         self.chunk_size = int(chunk_size)
         # <parent>/.<name>.partial-<pid>/<name>: the storage file is named after the bag
-        self._tmp_root = self.path.parent / f".{self.path.name}.partial-{os.getpid()}"
+        self._tmp_root = partial_name(self.path)
         self._tmp = self._tmp_root / self.path.name
         self._writer: Any = None
         self._conns: dict[str, Any] = {}
@@ -125,13 +118,13 @@ class BagWriter:
         from rosbags.rosbag2 import WriterError
 
         check_output(self.path, self.force)
-        _remove(self._tmp_root)  # leftover of a crashed run with this same process id
+        remove_path(self._tmp_root)  # leftover of a crashed run with this same process id
         try:
             self._tmp_root.mkdir(parents=True)
             self._writer = rosbag2_writer(self._tmp, self.storage, self.chunk_size)
             self._writer.open()
         except BaseException as exc:  # Ctrl-C / SIGTERM here too: __exit__ will not run
-            _remove(self._tmp_root)
+            remove_path(self._tmp_root)
             if isinstance(exc, (WriterError, OSError)):
                 raise BagError(f"cannot create bag {self.path}: {exc}") from None
             raise
@@ -165,16 +158,16 @@ class BagWriter:
                 if writer is not None:
                     writer.abort()
             finally:
-                _remove(self._tmp_root)
+                remove_path(self._tmp_root)
             return
         try:
             writer.close()
             if self.path.exists() or self.path.is_symlink():
                 check_output(self.path, self.force)  # re-check: it may have appeared meanwhile
-                _remove(self.path)
+                remove_path(self.path)
             os.replace(self._tmp, self.path)
         finally:
-            _remove(self._tmp_root)
+            remove_path(self._tmp_root)
 
 
 @dataclass(frozen=True)

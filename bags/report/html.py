@@ -1,6 +1,6 @@
 """``report.html`` of ``bev-bag replay``: one self-contained page to read a replay.
 
-:func:`render_report` turns a :class:`~bags.replay.core.ReplayResult` into HTML with inline CSS, inline
+:func:`render_report` turns a :class:`~bags.replay.ReplayResult` into HTML with inline CSS, inline
 SVG charts (:mod:`bags.report.svg_plots`) and a few lines of inline JavaScript; it references nothing on
 the network. Sections: the run (method, bag, frames, scope, grid, notes), the metrics table (per
 class IoU, precision and Chamfer distances, mIoU / mAP and the classes mIoU is taken over), bar
@@ -24,7 +24,7 @@ from .reliability import reliability_svg
 from .svg_plots import bar_chart, histogram, line_chart
 
 if TYPE_CHECKING:
-    from ..replay.core import ReplayResult
+    from ..replay.options import ReplayResult
 
 _CSS = """
 body{font-family:sans-serif;margin:24px auto;max-width:1000px;color:#222;background:#fff}

@@ -2,9 +2,8 @@
 
 Layers are drawn by :class:`bev_mapper_core.display.BevPainter` (forward up, left on the
 left; colours of :data:`~bev_mapper_core.labels.classes.CLASS_COLORS`, unknown cells hatched, the ego
-footprint at the origin) beside a legend with the axes and a metres scale bar. Files are
-written atomically: :func:`write_atomic` writes a hidden temporary file next to the target and
-renames it, so a reader never sees a half-written picture.
+footprint at the origin) beside a legend with the axes and a metres scale bar. The replay writes
+the encoded pictures with :func:`bags.files.write_atomic`, so a reader never sees a half-written one.
 
 GIFs use Pillow when it is installed, else OpenCV's GIF encoder (``cv2.imencodeanimation``,
 OpenCV >= 4.12); without either, :func:`encode_gif` reports why and nothing is written.
@@ -14,9 +13,7 @@ from __future__ import annotations
 
 import io
 import math
-import os
 from collections.abc import Mapping, Sequence
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -33,27 +30,6 @@ _FRAME = (120, 120, 120)  # outline of the maps
 #: Name of the hatch in the legend of replay pictures: unknown to the mapper, or not visible in
 #: the ground truth (both panels hatch the cells the ground truth cannot see).
 UNKNOWN_LABEL = "unknown / unseen"
-
-
-def partial_name(path: Path) -> Path:
-    """The hidden temporary name ``<dir>/.<name>.partial-<pid>`` used while writing ``path``."""
-    return path.parent / f".{path.name}.partial-{os.getpid()}"
-
-
-def write_atomic(path: str | Path, data: bytes) -> Path:
-    """Write ``data`` to ``path`` via a temporary file and a rename (no half-written file)."""
-    path = Path(path)
-    tmp = partial_name(path)
-    try:
-        with open(tmp, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return path
 
 
 def _text(img: np.ndarray, text: str, x: int, y: int, scale: float = 0.45) -> None:

@@ -1,0 +1,95 @@
+"""Mapping a replay's frames: read them (ahead, in a thread), map each (with temporal fusion when
+asked), time the mapper and hand the prediction on, in frame order, to the stage that scores and
+writes it (in a thread of its own, see :mod:`bags.replay.pipeline`).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from bev_mapper_core.errors import BevMapperError
+from bev_mapper_core.labels.label_maps import label_map
+from bev_mapper_core.mapper import BevPrediction
+from bev_mapper_core.temporal import TemporalFusion
+
+from ..errors import BagCorruptError
+from .options import ReplayRun
+from .pipeline import InOrder, Prefetch
+
+
+@dataclass
+class MappingTally:
+    """What :func:`map_frames` counted: the mapping latency (ms) of every mapped frame, the frames
+    mapped and skipped (no images of the input kind), the damage that ended the reading (or the
+    frame the mapper failed on) and the temporal fusion's counts (``metrics.json``'s ``temporal``).
+    """
+
+    temporal: dict
+    latencies: list[float] = field(default_factory=list)
+    mapped: int = 0
+    skipped: int = 0
+    damage: str | None = None
+
+
+def map_frames(run: ReplayRun, finish: Callable, bar) -> MappingTally:
+    """Map every frame of ``run``'s bag (up to ``max_frames``) and call ``finish(frame, prediction,
+    index)`` for each, in order (with a pipeline, in its own thread while the next frame maps);
+    ``bar.update(1)`` per mapped frame. Damage met while reading ends the loop and is returned in
+    the tally; the frames mapped before it are finished first.
+    """
+    options, kind = run.options, run.input_kind
+    window = options.temporal.window
+    tally = MappingTally({"window": window, "fused_frames": 0, "resets": 0, "frames_without_pose": 0})
+    # with a pipeline, the next frames are read and decoded by a thread while this one maps
+    frames = run.reader.frames(rgb=kind == "rgb", labels=kind == "labels",
+                               label_map=label_map(options.mapper.label_map))
+    if options.pipeline:
+        frames = Prefetch(frames, options.pipeline)
+    fusion = TemporalFusion(run.grid, options.temporal) if window > 1 else None
+    stage = InOrder(options.pipeline) if options.pipeline else None
+    finished = False
+    try:
+        for frame in frames:
+            images = frame.labels if kind == "labels" else frame.rgb
+            if not images:
+                tally.skipped += 1
+                continue
+            t0 = time.perf_counter()
+            try:
+                pred = _map_frame(run.mapper, fusion, frame, images, tally.temporal)
+            except BevMapperError as exc:  # this frame's input: keep the outputs so far
+                tally.damage = f"frame {frame.index} could not be mapped: {exc}"
+                break
+            tally.latencies.append((time.perf_counter() - t0) * 1000.0)
+            if stage is None:
+                finish(frame, pred, tally.mapped)
+            else:  # scored and written by the in-order thread while the next frame maps
+                stage.submit(finish, frame, pred, tally.mapped)
+            tally.mapped += 1
+            bar.update(1)
+            if options.max_frames is not None and tally.mapped >= options.max_frames:
+                break  # before reading further (and maybe meeting damage we don't need)
+        finished = True
+    except BagCorruptError as exc:
+        tally.damage = str(exc)
+        finished = True
+    finally:
+        frames.close()
+        if stage is not None:
+            stage.close(abandon=not finished)  # the frames mapped so far are scored and written
+    return tally
+
+
+def _map_frame(mapper, fusion: TemporalFusion | None, frame, images, temporal: dict) -> BevPrediction:
+    """One frame through the mapper and the temporal fusion (counted in ``temporal``)."""
+    pose = frame.odom.world_from_ego if frame.odom is not None else None
+    pred = mapper.map(images, ego_pose=pose, stamp_ns=frame.stamp_ns)
+    if fusion is None:
+        return pred
+    fused = fusion.update(pred, frame.stamp_ns, pose)
+    temporal["fused_frames"] += fused.frames
+    if fused.note:
+        temporal["frames_without_pose" if pose is None else "resets"] += 1
+    return fused.prediction

@@ -1,0 +1,151 @@
+"""What a replay is asked for (:class:`ReplayOptions`), what it did (:class:`ReplayResult`), the
+names of its outputs, and :class:`ReplayRun`: one replay under way, as the stages see it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.mapper import MapperConfig
+from bev_mapper_core.metrics import SCOPES
+from bev_mapper_core.temporal import TemporalConfig
+
+from ..errors import BagError, BagExistsError
+from ..io.writer import STORAGES
+from .frame_scores import FrameScores
+
+if TYPE_CHECKING:
+    from bev_mapper_core.geometry.rig import Rig
+
+    from ..io.reader import BagReader
+
+OUT_PREFIX = "/bev/"
+IMAGE_TOPIC = "/bev/image"
+BAG_DIR, FRAMES_DIR, METRICS_FILE, GIF_FILE = "bev_bag", "frames", "metrics.json", "replay.gif"
+REPORT_FILE, RELIABILITY_FILE = "report.html", "reliability.png"
+#: Every output a replay writes into its directory (``--force`` replaces them).
+OUTPUT_NAMES = (BAG_DIR, FRAMES_DIR, METRICS_FILE, GIF_FILE, REPORT_FILE, RELIABILITY_FILE)
+
+
+@dataclass(frozen=True)
+class ReplayOptions:
+    """Everything :func:`~bags.replay.core.replay` needs.
+
+    Args:
+        bag: input bag (rosbag2 directory, ``.mcap`` or ``.db3``).
+        out: output directory (created if needed).
+        mapper: method settings.
+        grid: grid used only when the bag has no GT layers (``None`` = ``BevGrid()``).
+        scope: ``'visible'`` scores cells whose GT is not -1; ``'ground'`` additionally requires,
+            for flat classes, ``/bev/visibility/ground`` (the cell's ground point is seen by a
+            camera); object classes keep the visible scope (see
+            :class:`~bags.replay.scoring.ReplayScorer`).
+        max_frames: stop after this many mapped frames (``None`` = all).
+        pictures: write PNG pictures; ``frames_every``: of every k-th mapped frame (frame 0
+            included; 1 = every frame). The default 10 keeps long drives cheap: a picture
+            (drawing + PNG) costs about as much as mapping the frame with IPM (~6 ms) and
+            ~100 kB on disk.
+        gif: also write an animated GIF of the pictures.
+        report: write ``report.html``.
+        storage: storage of the output bag.
+        force: replace existing outputs in ``out``.
+        progress: show a tqdm progress bar on stderr.
+        temporal: method-independent temporal fusion of the mapper's output over the last
+            frames, aligned by the bag's odometry (:mod:`bev_mapper_core.temporal`; window 1 =
+            off). Frames without odometry are mapped alone and counted.
+        pipeline: frames in flight between the stages of the replay's pipeline
+            (:mod:`bags.replay.pipeline`: one thread reads and decodes the next frames, this one maps,
+            one scores and writes the frames mapped before); 0 = one thread, every stage in turn.
+            The outputs are the same either way, but the mapping latencies in ``metrics.json``
+            are measured while the other stages run (0: the mapper's time alone).
+    """
+
+    bag: Path
+    out: Path
+    mapper: MapperConfig = field(default_factory=MapperConfig)
+    grid: BevGrid | None = None
+    scope: str = "visible"
+    max_frames: int | None = None
+    pictures: bool = True
+    frames_every: int = 10
+    gif: bool = False
+    report: bool = True
+    storage: str = "mcap"
+    force: bool = False
+    progress: bool = False
+    temporal: TemporalConfig = field(default_factory=TemporalConfig)
+    pipeline: int = 4
+
+    def __post_init__(self) -> None:
+        if self.scope not in SCOPES:
+            raise BagError(f"scope must be one of {list(SCOPES)}, got {self.scope!r}")
+        if self.max_frames is not None and self.max_frames < 1:
+            raise BagError(f"--max-frames must be >= 1, got {self.max_frames}")
+        if self.pipeline < 0:
+            raise BagError(f"--pipeline must be >= 0, got {self.pipeline}")
+        if self.frames_every < 1:
+            raise BagError(f"--frames-every must be >= 1, got {self.frames_every}")
+        if self.storage not in STORAGES:
+            raise BagError(f"storage must be one of {list(STORAGES)}, got {self.storage!r}")
+
+
+@dataclass
+class ReplayResult:
+    """What :func:`~bags.replay.core.replay` did: the metrics dict, output paths, damage note,
+    GIF note, and per mapped frame its mapping latency (ms) and, per scored frame, its IoU per class.
+    """
+
+    metrics: dict
+    out: Path
+    bag_path: Path
+    pictures: list[Path]
+    gif: Path | None = None
+    gif_note: str = ""
+    damage: str | None = None
+    notes: list[str] = field(default_factory=list)
+    latencies_ms: list[float] = field(default_factory=list)
+    frame_scores: FrameScores = field(default_factory=FrameScores)
+    report: Path | None = None
+    reliability: Path | None = None
+    #: the mergeable scoring state (:meth:`~bags.replay.scoring.ReplayScorer.state`; ``None``:
+    #: nothing scored), so that several replays add up exactly (``bev-bag evaluate``)
+    scoring: dict | None = None
+
+
+@dataclass(frozen=True)
+class ReplayRun:
+    """One replay under way, as its stages see it: the options, the open bag, the rig and grid
+    it maps onto, the mapper, the output directory and the temporary one of the pictures, and
+    the notes for the result (appended to as the stages go).
+    """
+
+    options: ReplayOptions
+    reader: BagReader
+    rig: Rig
+    grid: BevGrid
+    mapper: Any
+    out: Path
+    tmp_frames: Path
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def input_kind(self) -> str:
+        """What the mapper reads: ``'labels'`` or ``'rgb'``."""
+        return self.options.mapper.input_kind
+
+
+def check_outputs(out: Path, force: bool) -> None:
+    """Refuse to replace the outputs of an earlier replay in ``out`` unless ``force``.
+
+    Raises:
+        BagExistsError: ``out`` is not a directory, or holds outputs and ``force`` is false.
+    """
+    if out.exists() and not out.is_dir():
+        raise BagExistsError(f"{out} exists and is not a directory")
+    existing = [n for n in OUTPUT_NAMES if (out / n).exists()]
+    if existing and not force:
+        raise BagExistsError(f"{out} already holds replay outputs {existing}; pass --force to "
+                             "replace them")

@@ -1,0 +1,243 @@
+"""A replay's outputs: :class:`FrameSink` writes each mapped frame (its grids and picture into
+the output bag, the input calibration copied up to it, its score, its PNG picture), and
+:func:`write_outputs` completes the rest once the output bag is in place (the pictures' folder,
+the GIF, the reliability diagram, ``report.html`` and, last, ``metrics.json``).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.labels.classes import bev_picture
+from bev_mapper_core.mapper import BevPrediction
+from msg_adapters import make_image, make_occupancy_grid
+
+from ..errors import BagCorruptError
+from ..files import write_atomic
+from ..io import topics as T
+from ..io.reader import BagReader
+from ..io.writer import BagWriter
+from ..report.html import render_report
+from ..report.pictures import comparison_picture, encode_gif, encode_png
+from ..report.reliability import reliability_picture
+from .frame_scores import FrameScores
+from .mapping import MappingTally
+from .options import (
+    BAG_DIR,
+    FRAMES_DIR,
+    GIF_FILE,
+    IMAGE_TOPIC,
+    METRICS_FILE,
+    OUT_PREFIX,
+    RELIABILITY_FILE,
+    REPORT_FILE,
+    ReplayResult,
+    ReplayRun,
+)
+from .scoring import ReplayScorer, percentiles
+
+
+class InfoCopier:
+    """Copies CameraInfo and ``/tf_static`` of the input bag into the output bag, in time order.
+
+    A second reader on the same bag streams those topics lazily; :meth:`upto` writes what was
+    logged up to a time. Damage on this stream just ends the copy (the frame stream reports it).
+    """
+
+    def __init__(self, bag: Path, reader: BagReader, writer: BagWriter) -> None:
+        self.topics = [T.camera_info_topic(c) for c in reader.camera_names]
+        if T.TF_STATIC in reader.topics:
+            self.topics.insert(0, T.TF_STATIC)
+        for t in self.topics:
+            writer.add_topic(t, reader.topics[t].msgtype, latched=t == T.TF_STATIC)
+        self._writer = writer
+        quiet = logging.getLogger("bags.io.sources")  # the frame reader already warned about damage
+        level = quiet.level
+        quiet.setLevel(logging.ERROR)
+        try:
+            self._reader = BagReader(bag)
+        finally:
+            quiet.setLevel(level)
+        self._it: Iterator | None = self._reader.messages(self.topics)
+        self._next = None
+
+    def upto(self, log_ns: int) -> None:
+        """Write every copied message logged at or before ``log_ns``."""
+        while self._it is not None:
+            if self._next is None:
+                try:
+                    self._next = next(self._it)
+                except (StopIteration, BagCorruptError):
+                    self._it = None
+                    return
+            if self._next.log_ns > log_ns and self._next.topic != T.TF_STATIC:
+                return
+            m, self._next = self._next, None
+            self._writer.write(m.topic, m.msg, m.log_ns)
+
+    def close(self) -> None:
+        """Release the second reader."""
+        self._it = None
+        self._reader.close()
+
+
+class FrameSink:
+    """The outputs of each mapped frame, written in frame order by :meth:`finish`.
+
+    Opening it declares the output bag's topics (``/bev/<class>``, ``/bev/image``, the copied
+    calibration) and its ``custom_data`` (the input's, plus ``bev_mapper.replay``: method, input,
+    label map, classes). It keeps the scores, picture paths and GIF frames for the result.
+    """
+
+    def __init__(self, run: ReplayRun, bw: BagWriter, scorer: ReplayScorer) -> None:
+        self.run, self.bw, self.scorer = run, bw, scorer
+        options, mapper = run.options, run.mapper
+        for c in mapper.class_names:
+            bw.add_topic(OUT_PREFIX + c, T.GRID_TYPE)
+        bw.add_topic(IMAGE_TOPIC, T.IMAGE_TYPE)
+        self.copier = InfoCopier(Path(options.bag), run.reader, bw)
+        custom = dict(run.reader.custom_data)
+        custom["bev_mapper.replay"] = json.dumps(
+            {"method": options.mapper.method, "input": run.input_kind, "label_map": options.mapper.label_map,
+             "classes": list(mapper.class_names)})
+        for k, v in custom.items():
+            bw.set_custom_data(k, v)
+        self.ego = run.reader.ego_frame
+        self.scores = FrameScores()
+        self.pictures: list[Path] = []
+        self.gif_frames: list[np.ndarray] = []
+        self.bag_counts: dict[str, int] = {}
+
+    def finish(self, frame, pred: BevPrediction, index: int) -> None:
+        """Copy the calibration up to the frame, write its grids, score it, draw it."""
+        run, mapper, scorer = self.run, self.run.mapper, self.scorer
+        self.copier.upto(_frame_time(frame))
+        write_frame_messages(self.bw, run.grid, mapper, pred, frame.stamp_ns, self.ego)
+        gt, mask = scorer.update(frame, pred)
+        score = None if gt is None else self.scores.add(
+            frame.index, frame.stamp_ns, pred.probs, pred.known, mapper.class_names, gt,
+            [c.name for c in scorer.classes], mask, frame.ground_visibility,
+            scorer.scope_used, scorer.acc.threshold)
+        options = run.options
+        if options.pictures and index % options.frames_every == 0:
+            pic = comparison_picture(
+                run.grid, pred.probs, pred.known, mapper.classes, gt, mask, scorer.classes,
+                method=options.mapper.method, caption=_caption(frame, score),
+                ious=None if score is None else score.ious)
+            name = f"frame_{frame.index:04d}.png"
+            write_atomic(run.tmp_frames / name, encode_png(pic))
+            self.pictures.append(run.out / FRAMES_DIR / name)
+            if options.gif:
+                self.gif_frames.append(pic)
+
+    def close(self) -> None:
+        """Release the calibration copier; keep the output bag's message counts."""
+        self.copier.close()
+        self.bag_counts = dict(self.bw.counts)
+
+
+def _frame_time(frame) -> int:
+    stamps = [s for s in frame.camera_stamps.values() if s is not None]
+    return max(stamps + [frame.stamp_ns])
+
+
+def _caption(frame, score) -> str:
+    """Picture footer: frame index, stamp and the frame's mIoU over the classes defined in it."""
+    text = f"frame {frame.index}  stamp {frame.stamp_ns / 1e9:.3f} s"
+    if score is None:
+        return text + "  (no GT: not scored)"
+    defined = [v for v in score.ious.values() if v is not None]
+    miou = "-" if score.miou is None else f"{100 * score.miou:.1f}%"
+    return text + f"  mIoU {miou} over {len(defined)} class(es)"
+
+
+def write_frame_messages(bw: BagWriter, grid: BevGrid, mapper, pred: BevPrediction, stamp: int, ego: str) -> None:
+    """``/bev/<class>`` grids and the ``/bev/image`` picture of one frame."""
+    for ci, c in enumerate(mapper.class_names):
+        bw.write(OUT_PREFIX + c, make_occupancy_grid(bw.factory, grid, pred.probs[ci], pred.known,
+                                                     stamp, ego), stamp)
+    picture = bev_picture(grid, pred.probs, mapper.classes, pred.known)
+    bw.write(IMAGE_TOPIC, make_image(bw.factory, picture, "rgb8", stamp, ego), stamp)
+
+
+def write_outputs(run: ReplayRun, sink: FrameSink, tally: MappingTally) -> ReplayResult:
+    """With the output bag in place: the pictures' folder, the GIF, the metrics, the reliability
+    diagram, the report and last ``metrics.json``; stale ones of an earlier replay (``--force``)
+    that this one does not write are removed.
+    """
+    options, out = run.options, run.out
+    frames_dir = out / FRAMES_DIR
+    if frames_dir.exists():  # stale pictures of an earlier replay (only with --force)
+        shutil.rmtree(frames_dir)
+    if options.pictures:
+        run.tmp_frames.rename(frames_dir)
+    gif_path, gif_note = None, ""
+    if options.gif:
+        data, gif_note = encode_gif(sink.gif_frames)
+        if data is not None:
+            gif_path = write_atomic(out / GIF_FILE, data)
+        run.notes.append(gif_note)
+    if gif_path is None:
+        _remove_stale(out / GIF_FILE)
+    metrics = metrics_document(run, sink.scorer, tally, sink.bag_counts)
+    result = ReplayResult(metrics, out, out / BAG_DIR, sink.pictures, gif_path, gif_note, tally.damage, run.notes,
+                          tally.latencies, sink.scores, scoring=sink.scorer.state())
+    if metrics["frames_scored"]:
+        result.reliability = write_atomic(out / RELIABILITY_FILE, encode_png(
+            reliability_picture(metrics["calibration"], title=options.mapper.method)))
+    else:
+        _remove_stale(out / RELIABILITY_FILE)
+    if options.report:
+        result.report = write_atomic(out / REPORT_FILE, render_report(result).encode())
+    else:
+        _remove_stale(out / REPORT_FILE)
+    write_atomic(out / METRICS_FILE, (json.dumps(metrics, indent=2, allow_nan=False) + "\n").encode())
+    return result
+
+
+def _remove_stale(path: Path) -> None:
+    """Remove an output of an earlier replay that this one does not write (only with --force)."""
+    if path.exists():
+        path.unlink()
+
+
+def metrics_document(run: ReplayRun, scorer: ReplayScorer, tally: MappingTally, bag_counts: dict) -> dict:
+    """The ``metrics.json`` document: the scores, what was mapped, the reader's input problems and
+    the temporal fusion's counts.
+    """
+    options, res = run.options, scorer.result()
+    doc = {
+        "method": options.mapper.method,
+        "input": options.mapper.input_kind,
+        "label_map": options.mapper.label_map,
+        "bag": str(options.bag),
+        "frames": tally.mapped,
+        "frames_scored": res["frames"],
+        "frames_skipped": tally.skipped,
+        "scope": options.scope,
+        "scope_used": scorer.scope_used,
+        "classes": res["classes"],
+        "miou": res["miou"],
+        "map": res["map"],
+        "iou_by_range": res["iou_by_range"],
+        "unscored_classes": scorer.unscored,
+        "miou_classes": list(scorer.class_map),
+        "class_map": scorer.mapped,
+        "latency_ms": percentiles(tally.latencies),
+        "grid": run.grid.to_dict(),
+        "output_bag": {"path": BAG_DIR, "storage": options.storage, "messages": bag_counts},
+        "complete": tally.damage is None,
+        "damage": tally.damage,
+        "occlusion": res["occlusion"],
+        "calibration": res["calibration"],
+    }
+    doc.update(run.reader.issues.to_metrics())
+    doc["temporal"] = tally.temporal
+    return doc
