@@ -193,11 +193,7 @@ def aggregate(records: list[dict]) -> dict:
         latencies.extend(r["latencies_ms"])
         frames += r["metrics"]["frames"]
         skipped += r["metrics"]["frames_skipped"]
-    if acc is not None:
-        scores = ReplayScorer.result_of({"metrics": acc.state(), "whole": whole.state()})
-    else:
-        scores = {"frames": 0, "classes": {}, "miou": None, "map": None, "iou_by_range": {},
-                  "occlusion": None, "calibration": None}
+    scores = ReplayScorer.result_of(None if acc is None else {"metrics": acc.state(), "whole": whole.state()})
     return {"bags": len(used), "frames": frames, "frames_scored": scores.pop("frames"),
             "frames_skipped": skipped, **scores, "latency_ms": percentiles(latencies),
             "excluded": excluded}
