@@ -225,9 +225,13 @@ def test_bimapper_loss_curve_on_two_processes(tmp_path):
     data = (frames(4, size, 5), frames(2, size, 6))
     one = train(cfg, log=lambda m: None, data=data)
     two = train(TrainConfig.from_dict({**base, "out": str(tmp_path / "two"), "nproc": 2}), log=lambda m: None, data=data)
+    # The first epoch agrees to float rounding (a wrong shard or reduction shows there at once).
+    # Later epochs drift by up to ~2e-4: the all-reduced gradients sum in another order than one
+    # process's, and the mutual and ASL terms threshold logits (``> 0``), so a cell whose logit is
+    # within rounding of 0 flips its target (seen on this project's CI machine type, 2026-11).
     for a, b in zip(one["history"], two["history"]):
         for k in ("loss_bce", "loss_asl", "loss_mutual", "loss_total"):
-            assert b[k] == pytest.approx(a[k], rel=1e-5), (a["epoch"], k)
+            assert b[k] == pytest.approx(a[k], rel=1e-6 if a["epoch"] == 0 else 1e-3), (a["epoch"], k)
     model = BiMapper(cfg.model, preset_rig(RIG), cfg.grid)
     load_state(model, tmp_path / "two" / "last.safetensors")  # rank 0's checkpoint loads back
 
