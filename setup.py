@@ -34,7 +34,7 @@ setup(
     extras_require={
         # For machines without a ROS 2 distribution: the Jazzy wheels from the package index.
         "ros": ["ros-jazzy-rclpy", "ros-jazzy-common-interfaces", "ros-jazzy-rmw-fastrtps-cpp"],
-        # colcon: the README's colcon section is tested (tests/test_ros2_cli.py); ruff runs the
+        # colcon: the README's colcon section is tested (tests/bev_mapper_ros/test_ros2_cli.py); ruff runs the
         # lint test and is pinned, since its rules change between versions
         "test": ["pytest>=7", "pytest-timeout>=2", "colcon-common-extensions>=0.3", "ruff==0.17.6"],
         # faster inference backends for learned methods (MapperConfig.backend), optional

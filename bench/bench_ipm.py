@@ -9,7 +9,7 @@ all measured in this run on the same frames:
 * ``cv2.remap`` of the six images alone: the warps the classical IPM did before its gather
   tables, without its accumulation (ratios are against this row);
 * the classical IPM as it was before the gather tables (whole-image warps, masked accumulation;
-  the same output, ``tests/test_ipm.py``);
+  the same output, ``tests/bev_mapper_core/methods/ipm/test_ipm.py``);
 * the naive baseline, which recomputes the geometry every frame: it unprojects every pixel of
   every camera, intersects the ray with the ground and splats the label into its cell.
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# A headless browser for tests/test_pictures.py (it renders report.html to a PNG): installs
+# A headless browser for tests/bags/report/test_pictures.py (it renders report.html to a PNG): installs
 # Debian's chromium-headless-shell with apt-get when no chromium is on PATH, apt-get exists and
 # we are root. Quiet; never fails the caller: without a browser that test skips, saying why.
 set -uo pipefail

@@ -10,7 +10,7 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-$(( (RANDOM % 100) + 101 ))}
 export RMW_IMPLEMENTATION=${RMW_IMPLEMENTATION:-rmw_fastrtps_cpp}
 # Test files or folders among the arguments replace the default `tests` (bash scripts/test.sh
-# tests/test_ipm.py runs that file only); other arguments (-m "not slow", -k ...) go to pytest.
+# tests/bev_mapper_core/methods/ipm/test_ipm.py runs that file only); other arguments (-m "not slow", -k ...) go to pytest.
 paths=()
 for a in "$@"; do
   case "$a" in -*) ;; *) [ -e "${a%%::*}" ] && paths+=("$a") ;; esac

@@ -1,4 +1,4 @@
-"""Seeded generator of damaged bev_mapper bags, for ``tests/test_bag_fuzz.py``.
+"""Seeded generator of damaged bev_mapper bags, for ``tests/bags/io/test_bag_fuzz.py``.
 
 :func:`make_base` writes one small intact synthetic drive (front1 rig at quarter scale, a
 coarse grid) as MCAP and as sqlite3 and keeps its deserialized messages in memory;

@@ -9,6 +9,12 @@ Layers (markers registered in pytest.ini, ``--strict-markers``):
   frames, fresh interpreters that import torch). Tests using a fixture in ``SLOW_FIXTURES`` are
   marked automatically.
 
+A folder's own ``conftest.py`` marks what all its tests need (``bev_mapper_ros/``: ``ros``;
+``bags/fleet/``: ``slow``, a Ray runtime each); a module marks itself with ``pytestmark``, a test
+with its decorator. The folders mirror the source tree (``tests/bags/replay/`` tests
+``bags/replay/``); helpers shared across folders sit here (``*_helpers.py``, ``bag_damage.py``,
+``import_check.py``), on ``sys.path``.
+
 ``bash scripts/test.sh -m "not ros and not slow"`` is the fast unit layer; without ``-m`` every
 test runs.
 """
@@ -31,42 +37,15 @@ sys.path.insert(0, str(TESTS))
 ROS_FIXTURES = {"ros_domain"}
 #: Fixtures whose set-up alone takes more than ~1 s without ROS (training data).
 SLOW_FIXTURES = {"tiny_data"}
-#: Marks of tests whose modules have other owners (marked here rather than in the module): test
-#: file -> marker -> test function names. A name its module no longer has is a usage error.
-MARKS_BY_NAME = {
-    "test_training.py": {
-        # training runs and freshly rendered drives
-        "slow": ("test_dataset_is_deterministic_per_seed", "test_training_on_a_bag_with_gt"),
-    },
-    "test_framework_free.py": {
-        "slow": ("test_importing_core_loads_no_ros_module",),  # a fresh interpreter imports torch
-        "ros": ("test_the_import_check_sees_ros_modules",),  # imports sensor_msgs
-    },
-}
 
 
 def pytest_collection_modifyitems(config, items):
-    checked = set()
     for item in items:
         names = set(getattr(item, "fixturenames", ()))
         if names & ROS_FIXTURES:
             item.add_marker(pytest.mark.ros)
         if names & SLOW_FIXTURES:
             item.add_marker(pytest.mark.slow)
-        fname = item.path.name
-        table = MARKS_BY_NAME.get(fname)
-        if table is None:
-            continue
-        if fname not in checked:
-            checked.add(fname)
-            module = getattr(item, "module", None)
-            stale = [n for tests in table.values() for n in tests if module is not None and not hasattr(module, n)]
-            if stale:
-                raise pytest.UsageError(f"tests/conftest.py MARKS_BY_NAME names tests {fname} lacks: {stale}")
-        func = getattr(item, "originalname", item.name)
-        for marker, tests in table.items():
-            if func in tests:
-                item.add_marker(getattr(pytest.mark, marker))
 
 
 @pytest.fixture()

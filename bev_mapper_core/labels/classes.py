@@ -74,7 +74,7 @@ def _rgb(hex_code: str) -> tuple[int, int, int]:
 #: Each class name gets its own colour, so the standard set and Cam2BEV's set (``road``,
 #: ``vehicle``, ``static``; vehicle shares the standard vehicle's colour) never repeat a colour,
 #: whichever mix ``--classes`` asks for. The assignment keeps touching classes far apart, also
-#: under simulated protanopia, deuteranopia and tritanopia (``tests/test_pictures.py`` checks
+#: under simulated protanopia, deuteranopia and tritanopia (``tests/bags/report/test_pictures.py`` checks
 #: CIELAB distances): light cyan road surface, dark wine lane dividers and sand crossings on it,
 #: rose curbs, olive sidewalks, green vehicles and indigo pedestrians (pedestrians and curbs
 #: were both red before). Neutral greys never mean a class: :data:`EMPTY_COLOR` is a known cell

@@ -189,7 +189,7 @@ def test_docs_table_every_style():
     """docs/BAGS.md (the bag tool's guide, linked from the README) has a row for every style."""
     from pathlib import Path
 
-    readme = (Path(__file__).resolve().parents[1] / "docs" / "BAGS.md").read_text()
+    readme = (Path(__file__).resolve().parents[3] / "docs" / "BAGS.md").read_text()
     rows = {line.split("`")[1]: line for line in readme.splitlines()
             if line.startswith("| `") and line.split("`")[1] in STYLES}
     assert set(rows) == set(STYLES)

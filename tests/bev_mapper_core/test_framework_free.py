@@ -8,7 +8,7 @@ import re
 import pytest
 from import_check import ros_modules_loaded_by
 
-CORE = pathlib.Path(__file__).resolve().parents[1] / "bev_mapper_core"
+CORE = pathlib.Path(__file__).resolve().parents[2] / "bev_mapper_core"
 FORBIDDEN = ("rclpy", "rosbags", "mcap", "tf2_ros", "launch", "launch_ros", "rosidl_runtime_py")
 #: The project's packages that build on the core; the core imports none of them.
 UPPER = ("bags", "msg_adapters", "bev_mapper_ros")
@@ -50,6 +50,7 @@ def test_core_imports_nothing_from_the_packages_above_it():
     assert not offenders, "\n".join(offenders)
 
 
+@pytest.mark.slow  # a fresh interpreter imports every core module (torch among them)
 def test_importing_core_loads_no_ros_module():
     """Importing every core module in a fresh interpreter loads no ROS module and nothing from the
     layers above (one interpreter for both checks: each start imports torch)."""
@@ -63,6 +64,7 @@ def test_importing_core_loads_no_ros_module():
     assert ros_modules_loaded_by(statements) == []
 
 
+@pytest.mark.ros  # imports sensor_msgs
 def test_the_import_check_sees_ros_modules():
     """The check above is not vacuous: importing a message package is caught."""
     pytest.importorskip("sensor_msgs")

@@ -286,7 +286,7 @@ def test_bimapper_on_labels_withholds_the_cells_no_ray_reaches(box_scene, tmp_pa
     from dataclasses import replace
 
     import torch
-    from test_bimapper_model import TINY
+    from model_helpers import TINY
 
     from bev_mapper_core.methods.bimapper.mapper import BiMapperMapper
     from bev_mapper_core.methods.bimapper.model import BiMapper

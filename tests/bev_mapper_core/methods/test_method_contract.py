@@ -22,7 +22,7 @@ from bev_mapper_core.methods import METHODS, WEIGHTS_DIR, method_presets
 from bev_mapper_core.synth import SynthConfig, generate_drive
 from bev_mapper_core.training.method import method_class, train_methods
 
-REPO = pathlib.Path(__file__).resolve().parents[1]
+REPO = pathlib.Path(__file__).resolve().parents[3]
 CORE = REPO / "bev_mapper_core"
 GRID = BevGrid(0.0, 16.0, -8.0, 8.0, 0.5)  # 32 x 32 cells ahead of the car
 #: the rig each trainable method is built for here (monocular methods: one camera)

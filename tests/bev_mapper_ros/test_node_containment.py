@@ -12,8 +12,6 @@ from ros_helpers import free_domain_id  # noqa: E402
 
 from bev_mapper_ros.mapper_node import MapperNode  # noqa: E402
 
-pytestmark = pytest.mark.ros
-
 
 class _Exploding:
     """A message whose every field access fails in a way no adapter anticipates."""

@@ -42,8 +42,6 @@ from bev_mapper_ros.config import node_config_from_params
 from msg_adapters import RclpyFactory, camera_info_to_model, make_camera_info, make_compressed_image
 from msg_adapters.image_header import PNG_SIGNATURE
 
-pytestmark = [pytest.mark.ros]
-
 GRID = BevGrid(x_min=-20, x_max=20, y_min=-10, y_max=10, resolution=0.25)
 CLASSES = ("drivable", "ped_crossing", "vehicle")
 PARAMS_FILE = REPO / "config" / "surround6.yaml"

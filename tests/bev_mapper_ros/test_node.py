@@ -25,8 +25,6 @@ from bev_mapper_ros import mapper_node
 from bev_mapper_ros.config import node_config_from_params
 from msg_adapters import RclpyFactory, camera_info_to_model, make_camera_info, make_image
 
-pytestmark = pytest.mark.ros  # rclpy messages in every test; DDS and a node process in most
-
 GRID = BevGrid(x_min=-20, x_max=20, y_min=-10, y_max=10, resolution=0.25)
 CLASSES = ("drivable", "ped_crossing", "vehicle")
 PARAMS_FILE = REPO / "config" / "surround6.yaml"

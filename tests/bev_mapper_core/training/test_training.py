@@ -73,6 +73,7 @@ def test_seed_splits_are_disjoint():
         train_seeds(VAL_SEED_BASE // 100_000, 1)
 
 
+@pytest.mark.slow  # renders drives
 def test_dataset_is_deterministic_per_seed(tmp_path):
     rig, grid = preset_rig(RIG), BevGrid(*TINY_GRID)
     classes = ("road", "vehicle", "static")
@@ -181,6 +182,7 @@ def test_config_from_yaml(tmp_path):
     assert TrainConfig(epochs=9).lr_step == 3
 
 
+@pytest.mark.slow  # training runs and a freshly rendered drive
 def test_training_on_a_bag_with_gt(tmp_path, capsys):
     pytest.importorskip("rosbags")
     from bags.cli.main import main as bag_main
@@ -365,7 +367,7 @@ def test_data_sources_refuse_needs_they_cannot_honour(tiny_data):
         src.check(DataNeeds(sequence_length=2, poses=True))
     with pytest.raises(ConfigError, match="unlabeled"):  # no unlabeled frames given
         InMemorySource(tr, va).check(DataNeeds(unlabeled=True))
-    SynthSource().check(DataNeeds(unlabeled=True))  # from unlabeled_drives (tests/test_s2g2.py)
+    SynthSource().check(DataNeeds(unlabeled=True))  # from unlabeled_drives (tests/bev_mapper_core/methods/s2g2/test_s2g2.py)
     with pytest.raises(ConfigError, match="bag data source"):
         SynthSource().rig_grid(TrainConfig(bag=("some.bag",)))
 

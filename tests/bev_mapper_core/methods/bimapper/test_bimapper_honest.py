@@ -9,8 +9,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+from model_helpers import GRID, RIG, TINY, batch, random_labels
 from safetensors.torch import load_file, save_file
-from test_bimapper_model import GRID, RIG, TINY, batch, random_labels
 
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.mapper import MapperConfig

@@ -1,7 +1,7 @@
 """torch is imported only where a learned method runs: a replay with ``method: ipm``, temporal
 fusion on or off, imports no torch (a fresh interpreter's ``sys.modules``), and listing the
 methods imports none of them. The node's side (a running ``mapper_node`` with IPM maps no torch
-library) is checked in tests/test_node.py and tests/test_node_temporal.py."""
+library) is checked in tests/bev_mapper_ros/test_node.py and tests/bev_mapper_ros/test_node_temporal.py."""
 
 from __future__ import annotations
 

@@ -21,7 +21,7 @@ from ros_helpers import REPO, free_domain_id
 
 BIN = pathlib.Path(sys.executable).parent
 ROS2 = BIN / "ros2"
-pytestmark = [pytest.mark.ros, pytest.mark.skipif(
+pytestmark = [pytest.mark.skipif(
     not ROS2.exists(),
     reason=f"the ros2 CLI is not installed in {BIN.parent} (bash ../shared/ros2cli/install.sh .venv installs it)",
 )]

@@ -31,8 +31,6 @@ from bev_mapper_ros.params import PARAMETERS
 from bev_mapper_ros.stats import CLOCK_MISMATCH, ERROR, OK, WARN, NodeStats, diagnostic_values
 from msg_adapters import RclpyFactory, make_camera_info, make_image
 
-pytestmark = [pytest.mark.ros]
-
 NODE = "bev_mapper_ros.mapper_node"
 ROS2 = pathlib.Path(sys.executable).parent / "ros2"
 READY = r"mapping \[.*\] with"

@@ -162,7 +162,7 @@ def test_sigterm_cancels_the_tasks_and_stops_ray(tmp_path):
     out = tmp_path / "o"
     cmd = [sys.executable, "-m", "bags.cli.main", "synth-many", str(out), "--seeds", "0..200", "--workers", "2",
            *CACHE_ARGS]
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[3])}
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 40
@@ -199,5 +199,5 @@ def test_run_tasks_reports_failures_per_item():
         assert got[2] == TaskFailure("ValueError: two is broken")
         # the workers import this checkout
         assert ray.get(ray.remote(lambda: os.environ["PYTHONPATH"]).remote()).split(os.pathsep)[0] == \
-            str(Path(__file__).resolve().parents[1])
+            str(Path(__file__).resolve().parents[3])
     assert not ray.is_initialized()

@@ -18,8 +18,6 @@ from bev_mapper_core.synth import SynthConfig, generate_drive
 from bev_mapper_ros.input_qos import camera_qos, offered_reliability
 from msg_adapters import make_image
 
-pytestmark = pytest.mark.ros
-
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 
 

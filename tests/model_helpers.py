@@ -1,0 +1,75 @@
+"""A tiny two-camera rig, a flat labelled world rendered through it and a tiny Bi-Mapper config,
+shared by the model tests of several methods."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from bev_mapper_core.geometry.camera import CameraModel
+from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.geometry.rig import Rig, RigCamera
+from bev_mapper_core.geometry.transforms import ego_from_optical
+from bev_mapper_core.labels.classes import NUM_LABELS, Label, labels_to_layers, resolve_classes
+from bev_mapper_core.methods.bimapper.config import BiMapperConfig
+
+CLASSES = ("drivable", "lane_divider", "sidewalk")
+
+
+GRID = BevGrid(x_min=-12, x_max=12, y_min=-6, y_max=6, resolution=0.5)  # 24 x 48 cells
+
+
+CAM_MODEL = CameraModel(K=((40.0, 0, 31.5), (0, 40.0, 19.5), (0, 0, 1)), width=64, height=40)
+
+
+RIG = Rig("tiny2", (
+    RigCamera("front", CAM_MODEL, ego_from_optical((1.0, 0.0, 1.5))),
+    RigCamera("back", CAM_MODEL, ego_from_optical((-1.0, 0.2, 1.5), yaw=math.pi)),
+))
+
+
+TINY = BiMapperConfig(
+    classes=CLASSES, input_width=48, width_mult=0.25, depth_mult=0.25, encoder_stages=3,
+    neck_channels=16, bev_channels=8, bev_downsample=4, unet_channels=8, decoder_channels=16,
+    plane_shape=(26, 10),
+)
+
+
+def flat_label(x, y):
+    """Road for |y| < 3 with a divider at y in [0, 0.5); sidewalk beyond."""
+    lab = np.where(np.abs(y) < 3.0, Label.ROAD, Label.SIDEWALK).astype(np.uint8)
+    lab[(y >= 0.0) & (y < 0.5)] = Label.LANE_DIVIDER
+    return lab
+
+
+def render(cam: RigCamera) -> np.ndarray:
+    """Label image of the flat world (ray cast onto z = 0)."""
+    rays = cam.model.pixel_rays().reshape(-1, 3)  # (H*W, 3)
+    R, o = cam.ego_from_cam_array[:3, :3], cam.ego_from_cam_array[:3, 3]
+    d = rays @ R.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = -o[2] / d[:, 2]
+    hit = (d[:, 2] < -1e-9) & (t > 0)
+    x, y = np.where(hit, o[0] + t * d[:, 0], 0), np.where(hit, o[1] + t * d[:, 1], 0)
+    w, h = cam.model.image_size
+    return np.where(hit, flat_label(x, y), Label.UNLABELED).reshape(h, w).astype(np.uint8)
+
+
+def batch(n=2, kind="labels"):
+    imgs = np.stack([render(c) for c in RIG.cameras])  # (N, H, W)
+    if kind == "rgb":
+        imgs = np.stack([np.stack([imgs * 20, imgs * 7, 255 - imgs * 11], -1)]).astype(np.uint8)[0]  # (N, H, W, 3)
+    xs, ys = GRID.centers
+    tgt = labels_to_layers(flat_label(xs, ys), resolve_classes(CLASSES)).astype(np.float32)  # (C, H, W)
+    images = torch.from_numpy(imgs)[None].repeat(n, *([1] * imgs.ndim))
+    return {"images": images, "target": torch.from_numpy(tgt)[None].repeat(n, 1, 1, 1),
+            "mask": torch.ones(n, *GRID.shape, dtype=torch.bool)}
+
+
+def random_labels(seed: int) -> torch.Tensor:
+    """(1, N, H, W) uint8 label images of random ids, some beyond the label set (-> unlabeled)."""
+    rng = np.random.default_rng(seed)
+    w, h = CAM_MODEL.image_size
+    return torch.from_numpy(rng.integers(0, NUM_LABELS + 3, size=(1, len(RIG.cameras), h, w), dtype=np.uint8))
