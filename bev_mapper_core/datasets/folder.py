@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError
-from ..labels.label_maps import PRESET_NAMES, LabelMap, _parse_yaml, _yaml_text, label_map, label_map_from_dict, pack_rgb  # noqa: PLC2701 - the one YAML reader of label maps
+from ..labels.label_maps import PRESET_NAMES, LabelMap, label_map, label_map_from_dict, pack_rgb, read_yaml_document
 from ..nn.label_space import IGNORE, space_from_labels
 from .base import DatasetError, LabeledImages, list_images, pair_by_stem, read_label_png
 
@@ -117,7 +117,7 @@ def _folder_map(root: Path, spec: str | None) -> tuple[LabelMap, np.ndarray, np.
         raise ConfigError(f"{path}: no label map (a YAML file of upstream id -> label name, or one of the presets "
                           f"{list(PRESET_NAMES)})")
     where = f"label map {path}"
-    doc, known, ignored = _known_from_doc(_parse_yaml(_yaml_text(path), where), where)
+    doc, known, ignored = _known_from_doc(read_yaml_document(path, where), where)
     return label_map_from_dict(doc, str(path), where), known, ignored
 
 

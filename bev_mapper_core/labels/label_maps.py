@@ -273,6 +273,16 @@ def label_map(spec: str) -> LabelMap:
     return load_label_map(path, name=spec)
 
 
+def read_yaml_document(path: Path, where: str):
+    """The YAML document of a label-map file (at most ``MAX_FILE_BYTES``, UTF-8, safe loader, no
+    aliases, no duplicate keys); the one reader of label-map YAML, also for dataset folders.
+
+    Raises:
+        ConfigError: unreadable, too large, not UTF-8, not valid YAML.
+    """
+    return _parse_yaml(_yaml_text(path), where)
+
+
 def _yaml_text(path: Path) -> str:
     try:
         size = path.stat().st_size
@@ -319,7 +329,7 @@ def load_label_map(path: str | Path, name: str | None = None) -> LabelMap:
     """
     path = Path(path)
     where = f"label map {path}"
-    return label_map_from_dict(_parse_yaml(_yaml_text(path), where), name or str(path), where)
+    return label_map_from_dict(read_yaml_document(path, where), name or str(path), where)
 
 
 _COLOR = re.compile(r"^\s*(\d{1,3})\s*[, ]\s*(\d{1,3})\s*[, ]\s*(\d{1,3})\s*$")
@@ -400,4 +410,5 @@ __all__ = [
     "label_map_from_dict",
     "load_label_map",
     "pack_rgb",
+    "read_yaml_document",
 ]
