@@ -28,6 +28,7 @@ SUBCOMMANDS: dict[str, str] = {
     "replay": "bags.cli.replay",
     "play": "bags.cli.play",
     "evaluate": "bags.cli.evaluate",
+    "segment": "bags.cli.segment",
 }
 
 

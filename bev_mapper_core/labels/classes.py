@@ -207,6 +207,20 @@ def colorize_labels(labels: np.ndarray) -> np.ndarray:
     return LABEL_COLORS[clipped]
 
 
+#: Weight of the label colour in :func:`overlay_labels` (the image keeps the rest).
+OVERLAY_ALPHA = 0.5
+
+
+def overlay_labels(image: np.ndarray, labels: np.ndarray, alpha: float = OVERLAY_ALPHA) -> np.ndarray:
+    """An RGB image ``(H, W, 3)`` uint8 with its label image ``(H, W)`` blended over it: each pixel
+    is ``(1 - alpha) * image + alpha * LABEL_COLORS[label]`` (unlabelled pixels darken, their
+    colour being black).
+    """
+    colors = colorize_labels(labels).astype(np.float32)
+    out = (1.0 - alpha) * image.astype(np.float32) + alpha * colors
+    return np.clip(np.rint(out), 0, 255).astype(np.uint8)
+
+
 def colorize_layers(layers: np.ndarray, classes=BEV_CLASSES, known=None, threshold=0.5) -> np.ndarray:
     """RGB picture ``(H, W, 3)`` uint8 of class layers ``(C, H, W)``, in grid orientation.
 
