@@ -3,6 +3,11 @@ r"""Score a segmenter weights file on CamVid (pooled pixel IoU) and time it on t
     PYTHONPATH=. python experiments/eval_camvid.py bev_mapper_core/weights/segmenter.safetensors \\
         --camvid /work/data/camvid [--split test] [--synth-drives 2] [--threads 1]
 
+The CamVid figures are those of ``bev-train eval --method segmenter --real camvid:DIR --split
+test --segmenter FILE`` (the same functions: :mod:`bev_mapper_core.methods.segmenter.real`);
+this script adds the held-out synthetic drives' fine pixel IoU (``--synth-drives``) and runs
+where only ``bev_mapper_core`` is copied (the device folder of ``pack_for_device.py``).
+
 Prints the IoU of every CamVid class (fine argmax, each fine label mapped to its home CamVid
 class: :meth:`~bev_mapper_core.nn.label_space.LabelSpace.coarse_of_fine`; Unlabelled pixels are
 left out), the five common classes (road with markings, sidewalk, vehicle, pedestrian, building)
@@ -16,14 +21,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 
 import numpy as np
 import torch
 
 from bev_mapper_core.datasets import CamVid
+from bev_mapper_core.methods.segmenter.real import format_report, ms_per_frame, score_reader
 from bev_mapper_core.methods.segmenter.weights import load_segmenter
-from bev_mapper_core.nn.label_space import CAMVID, COMMON_CAMVID, FINE, coarse_predict, confusion, iou_from_confusion
+from bev_mapper_core.nn.label_space import FINE, confusion, iou_from_confusion
 
 
 def main(argv=None) -> int:
@@ -41,35 +46,13 @@ def main(argv=None) -> int:
     torch.set_num_threads(a.threads)
     model = load_segmenter(a.weights)
     ds = CamVid(a.camvid, a.split)
-    n = min(a.limit, len(ds)) if a.limit else len(ds)
-    conf = torch.zeros(CAMVID.num_classes, CAMVID.num_classes + 1, dtype=torch.long)
-    times = []
-    with torch.inference_mode():
-        for i in range(n):
-            s = ds.read(i)
-            img = torch.from_numpy(s.image)[None]  # (1, H, W, 3)
-            t = time.perf_counter()
-            logits = model(model.preprocess(img), size=s.image.shape[:2])
-            pred = coarse_predict(logits, CAMVID)
-            times.append(time.perf_counter() - t)
-            conf += confusion(pred, torch.from_numpy(s.labels)[None], CAMVID.num_classes)
-        # timing of the shipped call path (segment: argmax to Label ids), after warm-up
-        img = torch.from_numpy(ds.read(0).image)[None]
-        model.segment(img)
-        t = time.perf_counter()
-        for _ in range(a.timing_frames):
-            model.segment(img)
-        ms = (time.perf_counter() - t) / a.timing_frames * 1000
-    iou = iou_from_confusion(conf) * 100
-    per = {c: round(float(v), 2) for c, v in zip(CAMVID.classes, iou)}
-    common = {k: per[c] for k, c in COMMON_CAMVID.items()}
-    res = {"weights": a.weights, "config": model.config.to_dict(), "split": a.split, "frames": n, "per_class": per,
-           "common": common, "common_mean": round(float(np.mean(list(common.values()))), 2),
+    rep = score_reader(model, ds, a.limit)  # the scoring of `bev-train eval --method segmenter --real`
+    ms = ms_per_frame(model, ds.read(0).image, a.timing_frames)
+    res = {"weights": a.weights, "config": model.config.to_dict(), "split": a.split, **rep,
            "cpu_ms_per_frame": round(ms, 1), "threads": a.threads,
            "params": sum(p.numel() for p in model.parameters())}
-    print(f"{a.weights}: CamVid {a.split}, {n} frames, pooled pixel IoU %")
-    print("  " + "  ".join(f"{c} {v:.1f}" for c, v in per.items()))
-    print("  common: " + "  ".join(f"{k} {v:.1f}" for k, v in common.items()) + f"  mean {res['common_mean']:.1f}")
+    for line in format_report(f"{a.weights}: CamVid {a.split}", rep):
+        print(line)
     print(f"  CPU {ms:.1f} ms/frame (480x360, {a.threads} thread(s)), {res['params'] / 1e6:.2f} M params, "
           f"input {model.config.input_size((480, 360))}")
     if a.synth_drives:

@@ -14,6 +14,9 @@ Read top to bottom. One run:
      (:mod:`bev_mapper_core.nn.augment`), softened median-frequency class weights;
    * AdamW, linear warm-up then cosine decay over the time budget, bf16 autocast on CUDA, an
      exponential moving average (EMA) of the weights, which is what is evaluated and saved;
+   * the loading, class weights, batch sampling, mixed-batch loss and scoring are the package's
+     (:mod:`bev_mapper_core.methods.segmenter.real`, which ``bev-train --method segmenter --real``
+     trains with too);
    * evaluation every ``--eval-every-s`` on CamVid val (pooled pixel IoU per CamVid class, fine
      argmax mapped to CamVid's classes) and on held-out synthetic frames (fine pixel IoU); the
      best by CamVid val (mean of road, sidewalk, car, pedestrian, building) is kept;
@@ -44,24 +47,24 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torch.nn import functional as F
 
 from bev_mapper_core.datasets import CamVid
 from bev_mapper_core.labels.classes import BEV_CLASS_NAMES, NUM_LABELS
-from bev_mapper_core.methods.segmenter.model import Segmenter, SegmenterConfig, class_weights
+from bev_mapper_core.methods.segmenter.model import Segmenter, SegmenterConfig
+from bev_mapper_core.methods.segmenter.real import (
+    RealSet,
+    base_copy,
+    base_size,
+    iou_report,
+    joint_class_weights,
+    mixed_loss,
+    pooled_iou,
+    read_split,
+    sample_batch,
+)
 from bev_mapper_core.methods.segmenter.weights import load_segmenter, save_segmenter
 from bev_mapper_core.nn.augment import Augment, AugmentConfig
-from bev_mapper_core.nn.label_space import (
-    CAMVID,
-    COMMON_CAMVID,
-    FINE,
-    IGNORE,
-    coarse_predict,
-    confusion,
-    iou_from_confusion,
-    joint_cover,
-    marginal_nll,
-)
+from bev_mapper_core.nn.label_space import CAMVID, FINE, joint_cover
 
 # ----------------------------------------------------------------------------------------------
 # the configs this script knows (SegmenterConfig fields); "tiny" is for smoke runs only
@@ -170,51 +173,17 @@ def render_synth(args, folder: Path) -> None:
 
 def load_camvid(root: str, split: str, limit: int, device) -> tuple[torch.Tensor, torch.Tensor]:
     """A CamVid split as ``(images (N, H, W, 3) uint8, labels (N, H, W) uint8)`` on ``device``."""
-    ds = CamVid(root, split)
-    n = len(ds) if not limit else min(limit, len(ds))
-    samples = [ds.read(i) for i in range(n)]
-    imgs = torch.from_numpy(np.stack([s.image for s in samples]))
-    labs = torch.from_numpy(np.stack([s.labels for s in samples]))
-    return imgs.to(device), labs.to(device)
+    return read_split(CamVid(root, split), limit, device)
 
 
-def base_copy(images: torch.Tensor, labels: torch.Tensor, out_hw: tuple[int, int],
-              factor: float = 1.5) -> tuple[torch.Tensor, torch.Tensor]:
-    """Pre-shrink ``(N, H, W, 3)`` uint8 images (antialiased) and labels (nearest) to at most
-    ``factor`` x the model input, so the augmentation's bilinear resampling does not alias.
-    Returns ``(N, 3, h, w)`` uint8 and ``(N, h, w)`` uint8.
-    """
-    H, W = images.shape[1:3]
-    h, w = min(H, round(out_hw[0] * factor)), min(W, round(out_hw[1] * factor))
-    imgs, labs = [], []
-    for i in range(0, len(images), 64):
-        x = images[i:i + 64].permute(0, 3, 1, 2).float()  # (b, H, W, 3) -> (b, 3, H, W)
-        if (h, w) != (H, W):
-            x = F.interpolate(x, size=(h, w), mode="bilinear", align_corners=False, antialias=True)
-        imgs.append(x.round().clamp(0, 255).to(torch.uint8))
-        y = labels[i:i + 64].unsqueeze(1).float()
-        labs.append(F.interpolate(y, size=(h, w), mode="nearest-exact").squeeze(1).to(torch.uint8))
-    return torch.cat(imgs), torch.cat(labs)
-
-
-@torch.no_grad()
 def evaluate(model: Segmenter, images: torch.Tensor, labels: torch.Tensor, space, amp: bool) -> np.ndarray:
     """Pooled pixel IoU per class of ``space`` at the images' own size (fine argmax -> home class)."""
-    model.eval()
-    conf = torch.zeros(space.num_classes, space.num_classes + 1, dtype=torch.long)
-    for i in range(0, len(images), 16):
-        x = model.preprocess(images[i:i + 16])
-        with torch.autocast(x.device.type, dtype=torch.bfloat16, enabled=amp):
-            logits = model(x, size=tuple(images.shape[1:3]))
-        conf += confusion(coarse_predict(logits.float(), space), labels[i:i + 16], space.num_classes)
-    return iou_from_confusion(conf)
+    return pooled_iou(model, images, labels, space, amp)
 
 
 def camvid_report(iou: np.ndarray) -> dict:
     """IoU (%) per CamVid class, the five common classes and their mean."""
-    per = {c: round(100 * float(v), 2) for c, v in zip(CAMVID.classes, iou)}
-    common = {k: per[c] for k, c in COMMON_CAMVID.items()}
-    return {"per_class": per, "common": common, "common_mean": round(float(np.mean(list(common.values()))), 2)}
+    return iou_report(iou, CAMVID)
 
 
 def run_worker(args, name: str, cfg: SegmenterConfig) -> None:
@@ -233,7 +202,7 @@ def run_worker(args, name: str, cfg: SegmenterConfig) -> None:
     real_x, real_y = load_camvid(args.camvid, "train", args.limit_real, dev)
     val_x, val_y = load_camvid(args.camvid, "val", args.limit_real, dev)
     real_hw = cfg.input_size((real_x.shape[2], real_x.shape[1]))  # (h, w) of the model input
-    real_x, real_y = base_copy(real_x, real_y, real_hw)
+    real_x, real_y = base_copy(real_x, real_y, base_size(tuple(real_x.shape[1:3]), real_hw))
     use_synth = bool(args.synth_dir) and args.synth_drives > 0
     if use_synth:
         sd = Path(args.synth_dir)
@@ -243,17 +212,15 @@ def run_worker(args, name: str, cfg: SegmenterConfig) -> None:
         sval_y = torch.from_numpy(np.load(sd / "val_labels.npy")).to(dev)
         syn_y = torch.where(syn_y < NUM_LABELS, syn_y, torch.zeros_like(syn_y))  # as the segmenter method
         syn_hw = cfg.input_size((SYNTH_SIZE[1], SYNTH_SIZE[0]))
-        syn_x, syn_y = base_copy(syn_x, syn_y, syn_hw)
+        syn_x, syn_y = base_copy(syn_x, syn_y, base_size(SYNTH_SIZE, syn_hw))
 
     # one code space for both: codes 0..10 = fine labels, 11.. = CamVid classes
     cover, (fine_off, cam_off) = joint_cover([FINE, CAMVID])
     cover = cover.to(dev)
-    real_counts = torch.bincount(real_y[real_y != IGNORE].long().flatten(), minlength=CAMVID.num_classes).cpu()
-    weights = [torch.ones(NUM_LABELS), class_weights(real_counts)]
-    if use_synth:
-        weights[0] = class_weights(torch.bincount(syn_y.long().flatten(), minlength=NUM_LABELS)[:NUM_LABELS].cpu())
-    weight = torch.cat(weights).to(dev)
-    say("class weights CamVid " + " ".join(f"{c}={w:.2f}" for c, w in zip(CAMVID.classes, weights[1].tolist())))
+    real_counts = RealSet("camvid", CAMVID, real_x, real_y, real_hw).counts()
+    syn_counts = torch.bincount(syn_y.long().flatten(), minlength=NUM_LABELS)[:NUM_LABELS].cpu() if use_synth else None
+    weight = joint_class_weights([syn_counts, real_counts], [NUM_LABELS, CAMVID.num_classes]).to(dev)
+    say("class weights CamVid " + " ".join(f"{c}={w:.2f}" for c, w in zip(CAMVID.classes, weight[NUM_LABELS:].tolist())))
 
     # model, optimiser, EMA
     model = Segmenter(cfg).to(dev)
@@ -283,10 +250,7 @@ def run_worker(args, name: str, cfg: SegmenterConfig) -> None:
         return args.lr * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * q)))
 
     def batch(x_all, y_all, n, hw, offset):
-        idx = torch.randint(len(x_all), (n,), generator=gen, device=dev)
-        x, y = aug(x_all[idx].float() / 255.0, y_all[idx].long(), hw)
-        y = torch.where(y == IGNORE, y, y + offset)
-        x = (x - mean) / std
+        x, y = sample_batch(x_all, y_all, n, hw, offset, gen, aug, mean, std)
         if dev.type == "cuda":
             x = x.contiguous(memory_format=torch.channels_last)
         return x, y
@@ -334,12 +298,10 @@ def run_worker(args, name: str, cfg: SegmenterConfig) -> None:
         xr, yr = batch(real_x, real_y, args.batch_real, real_hw, cam_off)  # augmentation in float32
         if use_synth:
             xs, ys = batch(syn_x, syn_y, args.batch_synth, syn_hw, fine_off)
-        with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=amp):
-            loss_r = marginal_nll(model(xr), yr, cover, weight)  # the loss itself runs in float32
-            loss = loss_r
-            if use_synth:
-                loss_s = marginal_nll(model(xs), ys, cover, weight)
-                loss = loss + args.synth_weight * loss_s
+        with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=amp):  # the loss itself runs in float32
+            parts = [(xr, yr, 1.0)] + ([(xs, ys, args.synth_weight)] if use_synth else [])
+            loss, losses = mixed_loss(model, parts, cover, weight)
+            loss_r, loss_s = losses[0], (losses[1] if use_synth else None)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)

@@ -21,6 +21,7 @@ Per run the trainer does, in this order::
             opt.zero_grad(); loss.backward(); opt.step()
             m.after_step(step)                       # e.g. an EMA update
         validate(m, data.val, ...)                   # m.predict(batch) -> probs, known: the one scorer
+        m.epoch_metrics(log)                         # extra held-out figures (metrics.jsonl only)
         m.save(path)                                 # weights (safetensors: the method's weights.py)
 
 ``cfg.model`` is the method's architecture config (:attr:`TrainMethod.model_config_type`, a
@@ -59,6 +60,10 @@ if TYPE_CHECKING:
     from .config import TrainConfig
 
 
+#: :attr:`CliFlag.action` values (None: a flag with a value).
+CLI_ACTIONS: tuple[str | None, ...] = (None, "store_true", "store_false", "boolean", "append")
+
+
 @dataclass(frozen=True)
 class CliFlag:
     """One ``bev-train`` flag of a method; ``dest`` is a field of its model or loss config.
@@ -68,9 +73,11 @@ class CliFlag:
         dest: the field it sets (a flat config key, also accepted in ``--config`` YAML).
         help: help text.
         choices: allowed values (take them from the constant that owns them).
-        action: ``store_true`` / ``store_false`` for switches.
+        action: ``store_true`` / ``store_false`` for switches; ``boolean`` for a pair
+            ``--flag`` / ``--no-flag``; ``append`` for a repeatable flag (a tuple field).
         min_value: integer flag with this lower bound.
         number: a float flag (finite, >= 0).
+        metavar: the value's name in the help.
     """
 
     flag: str
@@ -80,10 +87,11 @@ class CliFlag:
     action: str | None = None
     min_value: int | None = None
     number: bool = False
+    metavar: str | None = None
 
     def __post_init__(self) -> None:
-        if self.action not in (None, "store_true", "store_false"):
-            raise ConfigError(f"{self.flag}: action must be store_true or store_false, got {self.action!r}")
+        if self.action not in CLI_ACTIONS:
+            raise ConfigError(f"{self.flag}: action must be one of {CLI_ACTIONS[1:]}, got {self.action!r}")
 
 
 class TrainMethod(ABC):
@@ -162,6 +170,14 @@ class TrainMethod(ABC):
         """After the optimizer step that made ``step`` steps in all (e.g. an EMA update)."""
 
     # -------------------------------------------------------------- validation
+    def epoch_metrics(self, log: Callable[[str], None]) -> dict[str, Any]:
+        """Extra held-out figures of the epoch beside the one scorer's (e.g. the segmenter's pixel
+        IoU on real frames): JSON-able, added to the epoch's ``metrics.jsonl`` record; never used
+        to choose the best checkpoint. Called on the main process after validation, in eval mode
+        without gradients; ``log`` prints.
+        """
+        return {}
+
     @abstractmethod
     def predict(self, batch: dict) -> tuple[np.ndarray, np.ndarray]:
         """``(probs (B, K, H, W) float, known (B, H, W) bool)`` numpy for a batch of held-out
@@ -220,4 +236,4 @@ def method_class(name: str) -> type[TrainMethod]:
     return target
 
 
-__all__ = ["CliFlag", "TrainMethod", "method_class", "register_train_method", "train_methods"]
+__all__ = ["CLI_ACTIONS", "CliFlag", "TrainMethod", "method_class", "register_train_method", "train_methods"]

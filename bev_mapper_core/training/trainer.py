@@ -192,10 +192,10 @@ def _train(cfg: TrainConfig, log: Callable[[str], None], data: DataSource | tupl
         log(f"resumed {out} after epoch {state.epoch + 1} (step {state.step})")
     elif last_json.exists():
         raise TrainingError(f"{out} already holds a run; use --resume or another --out")
-    if main:
-        out.mkdir(parents=True, exist_ok=True)
     frames = ranks.in_turn(lambda: source.load(cfg, rig, grid, method.data_needs(), log))
     method.prepare(frames, log)
+    if main:  # after the data is read: a run that cannot start leaves no directory behind
+        out.mkdir(parents=True, exist_ok=True)
     n_params = sum(p.numel() for p in method.model.parameters())
     schedule = method.schedule()
     log(f"model: {n_params / 1e6:.2f} M parameters, {method.describe()}; lr {cfg.lr} x{cfg.lr_gamma} from epoch "
@@ -260,6 +260,18 @@ def _train(cfg: TrainConfig, log: Callable[[str], None], data: DataSource | tupl
     return doc
 
 
+def _epoch_metrics(method: TrainMethod, log: Callable[[str], None]) -> dict:
+    """The method's extra held-out figures (:meth:`~.method.TrainMethod.epoch_metrics`), in eval mode."""
+    model = method.model
+    was = model.training
+    model.eval()
+    try:
+        with torch.no_grad():
+            return method.epoch_metrics(log)
+    finally:
+        model.train(was)
+
+
 def _end_epoch(cfg: TrainConfig, log: Callable[[str], None], method: TrainMethod, opt: torch.optim.Optimizer,
                frames: TrainData, grid: BevGrid, state: TrainState, epoch: int, n: int, total: int,
                sums: dict[str, float], train_s: float, stopped: bool) -> None:
@@ -276,12 +288,13 @@ def _end_epoch(cfg: TrainConfig, log: Callable[[str], None], method: TrainMethod
     rec = {"epoch": epoch, "step": state.step, "lr": cfg.lr_at(epoch), "batches": n, "train_s": round(train_s, 1),
            "val_s": round(val_s, 1), **{f"loss_{k}": v / max(n, 1) for k, v in sums.items()},
            "val_miou": miou, "val_iou": {k: v["iou"] for k, v in res["classes"].items()}, "partial": stopped and n < total}
-    state.history.append(rec)
-    with open(out / "metrics.jsonl", "a") as f:
-        f.write(json.dumps(rec) + "\n")
     terms = " ".join(f"{k} {v / max(n, 1):.4f}" for k, v in sums.items() if k != "total")
     log(f"epoch {epoch + 1}/{cfg.epochs}: loss {rec.get('loss_total', float('nan')):.4f} ({terms}) "
         f"val mIoU {100 * (miou or 0):.1f} [{train_s:.0f} s train, {val_s:.0f} s val]")
+    rec.update(_epoch_metrics(method, log))
+    state.history.append(rec)
+    with open(out / "metrics.jsonl", "a") as f:
+        f.write(json.dumps(rec) + "\n")
     if miou is not None and (state.best_miou is None or miou > state.best_miou):
         state.best_miou, state.best_epoch = miou, epoch
         method.save(out / "best.safetensors")

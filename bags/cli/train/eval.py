@@ -3,12 +3,21 @@
 
     bev-train eval --rig surround6 --method ipm|bimapper [--weights FILE] [--classes ...]
         [--val-drives N | --val-seeds ...] [--json OUT]
+
+or, with ``--real``, a segmenter on real labelled frames (pooled pixel IoU in each dataset's own
+classes, the common five and their mean, CPU ms/frame; :mod:`bev_mapper_core.methods.segmenter.real`)::
+
+    bev-train eval --method segmenter --real camvid:DIR [--real folder:DIR[:PRESET] ...]
+        [--split test] [--segmenter FILE] [--limit N] [--skip-bad] [--threads T] [--json OUT]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 
+from bev_mapper_core.datasets.camvid import SPLITS
+from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.geometry.rig import PRESETS
 from bev_mapper_core.mapper import INPUT_KINDS, MapperConfig
 from bev_mapper_core.synth.styles import STYLE_CHOICES
@@ -45,6 +54,16 @@ def configure(p: argparse.ArgumentParser, argv: list[str]) -> None:
                         "poses (bev_mapper_core.temporal; default %(default)s = off)")
     p.add_argument("--json", default=None, help="write the metrics here")
     p.add_argument("--name", default=None, help="row name for the markdown summary")
+    g = p.add_argument_group("real labelled frames (--method segmenter)")
+    g.add_argument("--real", action="append", default=None, metavar="KIND:DIR",
+                   help="score the segmenter on a real dataset's split instead of synthetic drives: camvid:DIR or "
+                        "folder:DIR[:PRESET] (repeatable; a folder dataset has no splits: all its frames)")
+    g.add_argument("--split", default="test", choices=list(SPLITS), help="the datasets' split (default: %(default)s)")
+    g.add_argument("--segmenter", default=None, metavar="FILE",
+                   help="segmenter weights (default: the shipped segmenter)")
+    g.add_argument("--limit", type=pos_int, default=None, help="score only the first N frames of each dataset")
+    g.add_argument("--skip-bad", action="store_true", help="leave bad frames out (counted) instead of stopping")
+    g.add_argument("--timing-frames", type=pos_int, default=10, help="segment() calls timed (default: %(default)s)")
 
 
 def eval_parser() -> argparse.ArgumentParser:
@@ -55,7 +74,14 @@ def eval_parser() -> argparse.ArgumentParser:
 
 
 def run(a: argparse.Namespace) -> int:
-    """Score the mapper on the held-out drives, print tables (and write ``--json``)."""
+    """Score the mapper on the held-out drives, print tables (and write ``--json``); with
+    ``--real``, the segmenter on real frames (:func:`run_real`).
+    """
+    if a.real:
+        return run_real(a)
+    if a.segmenter is not None:
+        raise ConfigError("--segmenter names the segmenter scored on real frames (--real); segipm's segmenter is "
+                          "the shipped one")
     import os
 
     import torch
@@ -81,4 +107,51 @@ def run(a: argparse.Namespace) -> int:
     print(summary_row(a.name or a.method, res, classes))
     if a.json:
         save_result(res, a.json)
+    return 0
+
+
+def run_real(a: argparse.Namespace) -> int:
+    """Score a segmenter on the ``--split`` of every ``--real`` dataset (pooled pixel IoU per
+    dataset class, the common five and their mean), time it on the CPU, print (and write ``--json``).
+    """
+    import torch
+
+    from bev_mapper_core.methods.segmenter.real import format_report, ms_per_frame, open_split, score_reader
+    from bev_mapper_core.methods.segmenter.stage import GENERAL_SEGMENTER, shipped_segmenter
+    from bev_mapper_core.methods.segmenter.weights import load_segmenter
+
+    if a.method != "segmenter":
+        raise ConfigError(f"--real scores a segmenter on real frames: use --method segmenter (not {a.method!r})")
+    if a.weights is not None:
+        raise ConfigError("--real: name the segmenter file with --segmenter, not --weights")
+    torch.set_num_threads(a.threads)
+    readers = []
+    for spec in a.real:
+        reader = open_split(spec, a.split, a.skip_bad)
+        if reader is None:
+            raise ConfigError(f"{spec}: no {a.split!r} split")
+        readers.append((spec, reader))
+    path = a.segmenter or shipped_segmenter(a.rig)
+    if path is None:
+        raise ConfigError(f"no segmenter shipped ({GENERAL_SEGMENTER}); name one with --segmenter FILE")
+    model = load_segmenter(path)  # CPU, eval mode
+    results, first = [], None
+    for spec, reader in readers:
+        rep = score_reader(model, reader, a.limit or 0)
+        results.append({"dataset": spec, "split": a.split, **rep})
+        for line in format_report(f"{spec} {a.split}", rep):
+            print(line)
+        if first is None:
+            first = next(iter(reader)).image  # the timing frame: the first dataset's first good frame
+    ms = ms_per_frame(model, first, a.timing_frames)
+    params = sum(p.numel() for p in model.parameters())
+    h, w = first.shape[:2]
+    print(f"CPU {ms:.1f} ms/frame ({w}x{h}, {torch.get_num_threads()} thread(s)), {params / 1e6:.2f} M params, "
+          f"input {model.config.input_size((w, h))} of {path}")
+    if a.json:
+        from ...files import write_atomic
+
+        doc = {"segmenter": str(path), "config": model.config.to_dict(), "params": params, "threads": torch.get_num_threads(),
+               "cpu_ms_per_frame": round(ms, 1), "timing_size": [w, h], "results": results}
+        write_atomic(a.json, (json.dumps(doc, indent=1, allow_nan=False) + "\n").encode())
     return 0

@@ -87,7 +87,9 @@ def add_method_flag(p, f: CliFlag) -> None:
     """Add a method's :class:`CliFlag` (default suppressed: the config dataclass has it)."""
     kw = {"dest": f.dest, "help": f.help, "default": argparse.SUPPRESS}
     if f.action:
-        kw["action"] = f.action
+        kw["action"] = argparse.BooleanOptionalAction if f.action == "boolean" else f.action
+    if f.metavar:
+        kw["metavar"] = f.metavar
     if f.choices is not None:
         kw["choices"] = list(f.choices)
     if f.min_value is not None:
