@@ -1,5 +1,6 @@
 """Weights files of every learned model: safetensors only (never ``torch.load`` / pickle), with a
-JSON document in the header's ``__metadata__`` under :data:`META_KEY`.
+JSON document in the header's ``__metadata__`` under :data:`META_KEY`. Every document may carry a
+model card (``card``, :mod:`bev_mapper_core.nn.card`); the shipped files do.
 
 The generic steps each method's ``weights.py`` builds on: :func:`read_document` (header only:
 format and version checked), :func:`check_model_document` (the fields every model document
@@ -26,6 +27,7 @@ from bev_mapper_core.geometry.grid import MAX_GRID_CELLS, BevGrid
 from bev_mapper_core.geometry.rig import Rig, RigCamera
 from bev_mapper_core.labels.classes import resolve_classes
 
+from .card import CARD_KEY, CardError, check_card, check_card_fits
 from .config import MAX_WIDTH_PX
 
 META_KEY = "bev_mapper"
@@ -97,7 +99,8 @@ def read_document(path: str | os.PathLike, fmt: str, version: int, what: str) ->
 
     Raises:
         WeightsError: missing file, not safetensors (e.g. a pickle), truncated or corrupt
-            header, no metadata, not JSON, another format or version.
+            header, no metadata, not JSON, another format or version, a malformed model card
+            (:mod:`~bev_mapper_core.nn.card`: the optional ``card`` object).
     """
     path = Path(path)
     if not path.is_file():
@@ -118,6 +121,11 @@ def read_document(path: str | os.PathLike, fmt: str, version: int, what: str) ->
         raise WeightsError(f"{path}: not {what} weights (format {got!r}, expected {fmt!r})")
     if meta.get("version") != version:
         raise WeightsError(f"{path}: metadata version {meta.get('version')!r}, this code reads {version}")
+    if CARD_KEY in meta:  # optional; a malformed one is refused (keys the format does not know are ignored)
+        try:
+            check_card_fits(check_card(meta[CARD_KEY]), meta)
+        except CardError as e:
+            raise WeightsError(f"{path}: bad model card ({e})") from None
     return meta
 
 

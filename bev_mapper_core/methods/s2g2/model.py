@@ -5,7 +5,7 @@ weights file keeps both branches):
 
 * **Feature extractor**: the project's :class:`~.efficientnet.EfficientNet` trunk, shared by
   labeled and unlabeled frames (the paper: a pretrained B4, 448 channels at 1/32; here by default
-  the trunk of the project's segmenter, width 0.75, depth 0.5, 5 stages, 84 channels at 1/16,
+  the trunk of the project's segmenter, width 1.0, depth 0.5, 5 stages, 112 channels at 1/16,
   from which training starts: see :mod:`~bev_mapper_core.methods.s2g2.train`), its last
   endpoint ``F_front`` ``(B, C, hf, wf)``.
 * **Dual-attention view transformation** (:mod:`.s2g2_blocks`): ``F_BEV = H_B^F(F_front)``, the
@@ -83,7 +83,7 @@ class S2G2Config(DictConfig):
     classes: tuple[str, ...] = BEV_CLASS_NAMES
     input_width: int = 192
     encoder_variant: str = "b0"
-    width_mult: float | None = 0.75
+    width_mult: float | None = 1.0
     depth_mult: float | None = 0.5
     encoder_stages: int = 5
     drop_connect_rate: float = 0.2

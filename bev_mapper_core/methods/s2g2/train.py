@@ -50,8 +50,9 @@ two were not compared over a full run.
 **Pretrained feature extractor.** The paper starts from an ImageNet-pretrained EfficientNet-B4.
 Nothing can be downloaded here, so the project's equivalent is its own pretrained image encoder:
 the EfficientNet trunk of the shipped 2-D segmenter (``weights/segmenter.safetensors``, trained
-on labeled drives in the training styles, never on the held-out ``dusk`` style or the test
-seeds). ``encoder_init`` ``auto`` (default) copies it into S2G2's encoder on RGB input (the
+on labeled drives in the training styles and on CamVid's train split, never on the held-out
+``dusk`` style or the test seeds; CamVid is CC BY-NC 4.0, see docs/MODELS.md).
+``encoder_init`` ``auto`` (default) copies it into S2G2's encoder on RGB input (the
 default :class:`~bev_mapper_core.methods.s2g2.model.S2G2Config` has the segmenter's trunk sizes);
 ``none`` trains from scratch; a path names another segmenter file. Supervised-only and
 semi-supervised runs start from the same encoder, so comparisons between them stay fair.
