@@ -26,9 +26,10 @@ import numpy as np
 import torch
 
 from bev_mapper_core.datasets import CamVid
+from bev_mapper_core.labels.spaces import FINE
 from bev_mapper_core.methods.segmenter.real import format_report, ms_per_frame, score_reader
 from bev_mapper_core.methods.segmenter.weights import load_segmenter
-from bev_mapper_core.nn.label_space import FINE, confusion, iou_from_confusion
+from bev_mapper_core.nn.label_space import confusion, iou_from_confusion
 
 
 def main(argv=None) -> int:

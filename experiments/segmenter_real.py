@@ -50,6 +50,7 @@ import torch
 
 from bev_mapper_core.datasets import CamVid
 from bev_mapper_core.labels.classes import BEV_CLASS_NAMES, NUM_LABELS
+from bev_mapper_core.labels.spaces import CAMVID, FINE
 from bev_mapper_core.methods.segmenter.model import Segmenter, SegmenterConfig
 from bev_mapper_core.methods.segmenter.real import (
     RealSet,
@@ -64,7 +65,7 @@ from bev_mapper_core.methods.segmenter.real import (
 )
 from bev_mapper_core.methods.segmenter.weights import load_segmenter, save_segmenter
 from bev_mapper_core.nn.augment import Augment, AugmentConfig
-from bev_mapper_core.nn.label_space import CAMVID, FINE, joint_cover
+from bev_mapper_core.nn.label_space import joint_cover
 
 # ----------------------------------------------------------------------------------------------
 # the configs this script knows (SegmenterConfig fields); "tiny" is for smoke runs only

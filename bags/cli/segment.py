@@ -28,9 +28,7 @@ from bev_mapper_core.datasets.base import IMAGE_SUFFIXES
 from bev_mapper_core.errors import ConfigError, InputError
 from bev_mapper_core.labels.classes import Label, overlay_labels
 from bev_mapper_core.mapper import MapperConfig
-from bev_mapper_core.methods import WEIGHTS_DIR
-from bev_mapper_core.methods.segmenter.stage import GENERAL_SEGMENTER, SegmenterStage
-from bev_mapper_core.nn.runtime import inference_device
+from bev_mapper_core.methods import METHODS, WEIGHTS_DIR
 from msg_adapters import DEFAULT_LIMITS, EncodingError, check_image_size, compressed_image_header
 
 from ..files import write_atomic
@@ -97,6 +95,10 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help=f"segmenter weights file; auto (default): the shipped {GENERAL_SEGMENTER}")
     p.add_argument("--skip-bad", action="store_true",
                    help="skip (and count) images that cannot be read instead of stopping at the first")
+
+
+#: the shipped general segmenter (the methods' table names it)
+GENERAL_SEGMENTER = METHODS["segmenter"].weights[0]
 
 
 def segmenter_file(spec: str) -> Path:
@@ -238,6 +240,10 @@ def run(args: argparse.Namespace) -> int:
             if not args.skip_bad:
                 raise
             skipped.append(str(e))
+    # torch only now: bev-bag's parser (every subcommand's configure) must not import it
+    from bev_mapper_core.methods.segmenter.stage import SegmenterStage  # noqa: PLC0415
+    from bev_mapper_core.nn.runtime import inference_device  # noqa: PLC0415
+
     stage = SegmenterStage(segmenter_file(args.segmenter), inference_device(MapperConfig(device="cpu")))
     done = 0
     for job in good:

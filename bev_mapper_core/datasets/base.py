@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..nn.label_space import IGNORE, LabelSpace
+from ..labels.spaces import IGNORE, LabelSpace
 
 #: Image file suffixes the readers list (lower case).
 IMAGE_SUFFIXES: tuple[str, ...] = (".png", ".jpg", ".jpeg")

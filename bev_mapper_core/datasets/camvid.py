@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..nn.label_space import CAMVID, IGNORE
+from ..labels.spaces import CAMVID, IGNORE
 from .base import DatasetError, LabeledImages, list_images, pair_by_stem, read_label_png
 
 SPLITS: tuple[str, ...] = ("train", "val", "test")

@@ -28,7 +28,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..labels.label_maps import PRESET_NAMES, LabelMap, label_map, label_map_from_dict, pack_rgb, read_yaml_document
-from ..nn.label_space import IGNORE, space_from_labels
+from ..labels.spaces import IGNORE, space_from_labels
 from .base import DatasetError, LabeledImages, list_images, pair_by_stem, read_label_png
 
 #: Default label-map file name inside a folder dataset.

@@ -20,7 +20,7 @@ import torch
 from torch.nn import functional as F
 
 from ..errors import ConfigError
-from .label_space import IGNORE
+from ..labels.spaces import IGNORE
 
 
 @dataclass(frozen=True)

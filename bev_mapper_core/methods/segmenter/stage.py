@@ -15,12 +15,12 @@ import torch
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.mapper import MapperConfig
 
-from .. import WEIGHTS_DIR
+from .. import METHODS, WEIGHTS_DIR
 from .model import Segmenter
 from .weights import load_segmenter
 
 #: The shipped segmenter used for rigs without their own (a segmenter works per camera image).
-GENERAL_SEGMENTER = "segmenter.safetensors"
+GENERAL_SEGMENTER = METHODS["segmenter"].weights[0]
 
 
 def shipped_segmenter(rig_name: str) -> Path | None:

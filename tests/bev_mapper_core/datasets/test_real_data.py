@@ -11,8 +11,9 @@ from torch.nn import functional as F
 from bev_mapper_core.datasets import CamVid, DatasetError, FolderDataset, open_dataset
 from bev_mapper_core.errors import BevMapperError, ConfigError
 from bev_mapper_core.labels.classes import NUM_LABELS, Label
+from bev_mapper_core.labels.spaces import CAMVID, FINE, IGNORE
 from bev_mapper_core.nn.augment import Augment, AugmentConfig
-from bev_mapper_core.nn.label_space import CAMVID, FINE, IGNORE, coarse_predict, confusion, iou_from_confusion, joint_cover, marginal_nll
+from bev_mapper_core.nn.label_space import coarse_predict, confusion, iou_from_confusion, joint_cover, marginal_nll
 
 H, W = 12, 16
 
