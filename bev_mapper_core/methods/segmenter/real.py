@@ -30,17 +30,9 @@ import torch
 from torch.nn import functional as F
 
 from bev_mapper_core.errors import ConfigError
+from bev_mapper_core.labels.spaces import CAMVID, COMMON_CAMVID, IGNORE, LabelSpace
 from bev_mapper_core.nn.augment import Augment
-from bev_mapper_core.nn.label_space import (
-    CAMVID,
-    COMMON_CAMVID,
-    IGNORE,
-    LabelSpace,
-    coarse_predict,
-    confusion,
-    iou_from_confusion,
-    marginal_nll,
-)
+from bev_mapper_core.nn.label_space import coarse_predict, confusion, iou_from_confusion, marginal_nll
 
 from .model import Segmenter, SegmenterConfig, class_weights
 

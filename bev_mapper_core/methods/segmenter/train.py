@@ -37,9 +37,10 @@ from typing_extensions import override
 
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.labels.classes import BEV_CLASS_NAMES, NUM_LABELS, resolve_classes
+from bev_mapper_core.labels.spaces import FINE, IGNORE
 from bev_mapper_core.mapper import MapperConfig
 from bev_mapper_core.nn.augment import Augment, AugmentConfig
-from bev_mapper_core.nn.label_space import FINE, IGNORE, joint_cover
+from bev_mapper_core.nn.label_space import joint_cover
 from bev_mapper_core.training.method import CliFlag, TrainMethod
 from bev_mapper_core.training.sources import DataNeeds, TrainData
 

@@ -16,8 +16,8 @@ from real_data_helpers import constant_segmenter, write_camvid, write_folder
 from bags.cli.train.main import main
 from bev_mapper_core.datasets import CamVid, FolderDataset
 from bev_mapper_core.labels.classes import Label
+from bev_mapper_core.labels.spaces import IGNORE
 from bev_mapper_core.methods.segmenter.weights import save_segmenter
-from bev_mapper_core.nn.label_space import IGNORE
 
 torch.set_num_threads(1)
 REPO = Path(__file__).resolve().parents[3]

@@ -17,6 +17,7 @@ from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.geometry.grid import BevGrid
 from bev_mapper_core.geometry.rig import preset_rig
 from bev_mapper_core.labels.classes import NUM_LABELS, Label
+from bev_mapper_core.labels.spaces import CAMVID, FINE, IGNORE
 from bev_mapper_core.methods.segmenter.real import (
     base_size,
     iou_report,
@@ -31,7 +32,7 @@ from bev_mapper_core.methods.segmenter.real import (
 )
 from bev_mapper_core.methods.segmenter.train import SegmenterTraining
 from bev_mapper_core.nn.augment import Augment, AugmentConfig
-from bev_mapper_core.nn.label_space import CAMVID, FINE, IGNORE, joint_cover
+from bev_mapper_core.nn.label_space import joint_cover
 from bev_mapper_core.training.config import TrainConfig
 from bev_mapper_core.training.data import FrameSet
 from bev_mapper_core.training.trainer import train
