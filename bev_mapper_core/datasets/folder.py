@@ -121,23 +121,4 @@ def _folder_map(root: Path, spec: str | None) -> tuple[LabelMap, np.ndarray, np.
     return label_map_from_dict(doc, str(path), where), known, ignored
 
 
-def open_dataset(spec: str, split: str = "train", skip_bad: bool = False) -> LabeledImages:
-    """A reader for ``camvid:DIR`` (that split) or ``folder:DIR`` (its label map by default;
-    ``folder:DIR:PRESET`` names a preset).
-
-    Raises:
-        ConfigError: an unknown kind.
-        DatasetError: see the readers.
-    """
-    from .camvid import CamVid  # noqa: PLC0415 - avoids a cycle with the package __init__
-
-    kind, _, rest = spec.partition(":")
-    if kind == "camvid" and rest:
-        return CamVid(rest, split, skip_bad)
-    if kind == "folder" and rest:
-        path, preset = rest.rsplit(":", 1) if rest.rsplit(":", 1)[-1] in PRESET_NAMES else (rest, None)
-        return FolderDataset(path, preset, skip_bad)
-    raise ConfigError(f"real data must be 'camvid:DIR' or 'folder:DIR[:PRESET]', got {spec!r}")
-
-
-__all__ = ["LABEL_MAP_FILE", "FolderDataset", "open_dataset"]
+__all__ = ["LABEL_MAP_FILE", "FolderDataset"]

@@ -40,16 +40,16 @@ class SegmenterConfig:
     Args:
         input_width: model input width (px); the height follows each camera's aspect ratio.
         width_mult, depth_mult: EfficientNet multipliers (B0 = 1.0, 1.0).
-        encoder_stages: EfficientNet stages kept (5: output stride 16, the last at 0.75 x 112 channels).
+        encoder_stages: EfficientNet stages kept (5: output stride 16, the last at width_mult x 112 channels).
         decoder_channels: width of the feature pyramid.
         labels: the label names the classifier predicts, in id order.
     """
 
-    input_width: int = 200
-    width_mult: float = 0.75
+    input_width: int = 320
+    width_mult: float = 1.0
     depth_mult: float = 0.5
     encoder_stages: int = 5
-    decoder_channels: int = 48
+    decoder_channels: int = 64
     labels: tuple[str, ...] = LABEL_NAMES
 
     def __post_init__(self) -> None:
