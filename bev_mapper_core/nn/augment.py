@@ -9,6 +9,13 @@ noise) touches the image only.
 
 Horizontal flips keep every label's meaning (no left/right classes in :class:`Label`); they are
 off for data whose geometry is not mirror-symmetric (``AugmentConfig.flip``).
+
+The photometric part runs alone on a batch's raw camera images (:meth:`Augment.camera_images`):
+the BEV methods trained on RGB (S2G2, FocusBEV, Bi-Mapper) use it so, without the geometric
+part, since scaling, cropping or flipping a camera image changes its calibration and the BEV
+target would no longer match (docs/TRAINING.md, "Augmentation"). A training step's generator is
+:func:`step_generator`'s, a function of the run seed, the step and the data-parallel rank, so a
+resumed run draws what an uninterrupted one would.
 """
 
 from __future__ import annotations
@@ -16,6 +23,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch.nn import functional as F
 
@@ -107,33 +115,63 @@ class Augment:
         lab = torch.where(lab < 0, torch.full_like(lab, ignore_index), lab)
         return out, lab
 
-    def photometric(self, images: torch.Tensor) -> torch.Tensor:
-        """``(B, 3, H, W)`` float in [0, 1] -> augmented, clamped to [0, 1]."""
+    def photometric(self, images: torch.Tensor, share: int = 1) -> torch.Tensor:
+        """``(B, 3, H, W)`` float in [0, 1] -> augmented, clamped to [0, 1].
+
+        ``share``: runs of this many consecutive images take the same colour, exposure, gamma and
+        blur (e.g. the frames of one camera's window of frames); the sensor noise is drawn per
+        image. ``B`` must be a multiple of it; 1 (default): every image its own.
+        """
         c, B, dev = self.cfg, images.shape[0], images.device
+        if share < 1 or B % share:
+            raise ValueError(f"{B} images do not split into runs of {share}")
+        n = B // share  # independent draws
         x = images.float()
 
-        def per(v: torch.Tensor) -> torch.Tensor:  # (B,) -> (B, 1, 1, 1)
-            return v.view(B, 1, 1, 1)
+        def per(v: torch.Tensor) -> torch.Tensor:  # (n,) -> (B, 1, 1, 1)
+            return v.repeat_interleave(share).view(B, 1, 1, 1)
 
-        x = x * per(self._u(B, c.brightness, dev))
-        x = x * self._u(3 * B, c.white_balance, dev).view(B, 3, 1, 1)
+        x = x * per(self._u(n, c.brightness, dev))
+        x = x * self._u(3 * n, c.white_balance, dev).view(n, 3).repeat_interleave(share, 0).view(B, 3, 1, 1)
         mean = x.mean(dim=(1, 2, 3), keepdim=True)
-        x = (x - mean) * per(self._u(B, c.contrast, dev)) + mean
+        x = (x - mean) * per(self._u(n, c.contrast, dev)) + mean
         grey = (0.299 * x[:, 0:1] + 0.587 * x[:, 1:2] + 0.114 * x[:, 2:3])
-        x = (x - grey) * per(self._u(B, c.saturation, dev)) + grey
-        x = x.clamp(0, 1) ** per(self._u(B, c.gamma, dev))
+        x = (x - grey) * per(self._u(n, c.saturation, dev)) + grey
+        x = x.clamp(0, 1) ** per(self._u(n, c.gamma, dev))
         if c.p_blur > 0:
-            x = self._blur(x, torch.rand(B, generator=self.g, device=dev) < c.p_blur)
+            x = self._blur(x, torch.rand(n, generator=self.g, device=dev) < c.p_blur, share)
         if c.p_noise > 0:
-            on = (torch.rand(B, generator=self.g, device=dev) < c.p_noise).float()
-            std = per(self._u(B, c.noise_std, dev) * on)
+            on = (torch.rand(n, generator=self.g, device=dev) < c.p_noise).float()
+            std = per(self._u(n, c.noise_std, dev) * on)
             x = x + std * torch.randn(x.shape, generator=self.g, device=dev)
         return x.clamp(0, 1)
 
-    def _blur(self, x: torch.Tensor, which: torch.Tensor) -> torch.Tensor:
-        """Separable Gaussian blur of the samples ``which`` (a per-sample sigma; others unchanged)."""
+    def camera_images(self, images: torch.Tensor, share: int = 1) -> torch.Tensor:
+        """Photometric augmentation alone of raw camera images in a batch's layout.
+
+        Args:
+            images: ``(..., H, W, 3)`` uint8 or float in [0, 255] (a training batch's ``rgb``:
+                ``(B, N, H, W, 3)``, or ``(B, T, N, H, W, 3)`` for windows of frames).
+            share: runs of this many consecutive images (in the flattened leading dimensions)
+                share their draws (see :meth:`photometric`).
+
+        Returns ``images``' shape, float32 in [0, 255] on ``images``' device, which the models'
+        ``preprocess`` takes as it takes uint8.
+        """
+        shape = images.shape
+        if images.dim() < 4 or shape[-1] != 3:
+            raise ValueError(f"camera images must be (..., H, W, 3), got {tuple(shape)}")
+        x = images.reshape(-1, *shape[-3:]).permute(0, 3, 1, 2).float() / 255.0  # (M, H, W, 3) -> (M, 3, H, W)
+        y = self.photometric(x, share) * 255.0
+        return y.permute(0, 2, 3, 1).reshape(shape)  # (M, 3, H, W) -> (..., H, W, 3)
+
+    def _blur(self, x: torch.Tensor, which: torch.Tensor, share: int = 1) -> torch.Tensor:
+        """Separable Gaussian blur of the samples ``which`` (``(B // share,)``: a sigma per run of
+        ``share`` samples; the others unchanged).
+        """
         B, C, H, W = x.shape
-        sigma = self._u(B, self.cfg.blur_sigma, x.device)
+        sigma = self._u(B // share, self.cfg.blur_sigma, x.device).repeat_interleave(share)
+        which = which.repeat_interleave(share)
         r = max(1, math.ceil(3 * self.cfg.blur_sigma[1]))
         t = torch.arange(-r, r + 1, device=x.device, dtype=x.dtype)
         k = torch.exp(-0.5 * (t.view(1, -1) / sigma.view(-1, 1)) ** 2)  # (B, 2r + 1)
@@ -156,4 +194,27 @@ class Augment:
         return self.photometric(x), y
 
 
-__all__ = ["Augment", "AugmentConfig"]
+def step_generator(seed: int, step: int, device: torch.device | str = "cpu", rank: int = 0) -> torch.Generator:
+    """The random source of training step ``step`` of run seed ``seed`` (augmentation, and the
+    segmenter's real batches; ``rank``: the data-parallel process): a function of these alone, so
+    a resumed run draws what an uninterrupted one would.
+    """
+    s = int(np.random.SeedSequence([seed, step, rank, 24]).generate_state(1, np.uint64)[0] >> 1)
+    return torch.Generator(device=torch.device(device)).manual_seed(s)
+
+
+def rank_world() -> tuple[int, int]:
+    """``(rank, world size)`` of a data-parallel run, ``(0, 1)`` otherwise."""
+    import torch.distributed as dist  # noqa: PLC0415
+
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
+
+
+def step_augment(seed: int, step: int, device: torch.device | str, config: AugmentConfig | None = None) -> Augment:
+    """The :class:`Augment` of training step ``step`` (:func:`step_generator` of this process's rank)."""
+    return Augment(config or AugmentConfig(), step_generator(seed, step, device, rank_world()[0]))
+
+
+__all__ = ["Augment", "AugmentConfig", "rank_world", "step_augment", "step_generator"]

@@ -31,7 +31,7 @@ from torch.nn import functional as F
 
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.labels.spaces import CAMVID, COMMON_CAMVID, IGNORE, LabelSpace
-from bev_mapper_core.nn.augment import Augment
+from bev_mapper_core.nn.augment import Augment, step_generator
 from bev_mapper_core.nn.label_space import coarse_predict, confusion, iou_from_confusion, marginal_nll
 
 from .model import Segmenter, SegmenterConfig, class_weights
@@ -186,15 +186,6 @@ def joint_class_weights(counts: Sequence[torch.Tensor | None], sizes: Sequence[i
     """
     parts = [class_weights(c) if (enabled and c is not None) else torch.ones(n) for c, n in zip(counts, sizes)]
     return torch.cat(parts)
-
-
-def step_generator(seed: int, step: int, device: torch.device | str = "cpu", rank: int = 0) -> torch.Generator:
-    """The random source of training step ``step`` of run seed ``seed`` (real batches and
-    augmentation; ``rank``: the data-parallel process): a function of these alone, so a resumed
-    run draws what an uninterrupted one would.
-    """
-    s = int(np.random.SeedSequence([seed, step, rank, 24]).generate_state(1, np.uint64)[0] >> 1)
-    return torch.Generator(device=torch.device(device)).manual_seed(s)
 
 
 def sample_batch(images: torch.Tensor, labels: torch.Tensor, n: int, out_hw: tuple[int, int], offset: int,

@@ -39,7 +39,7 @@ from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.labels.classes import BEV_CLASS_NAMES, NUM_LABELS, resolve_classes
 from bev_mapper_core.labels.spaces import FINE, IGNORE
 from bev_mapper_core.mapper import MapperConfig
-from bev_mapper_core.nn.augment import Augment, AugmentConfig
+from bev_mapper_core.nn.augment import Augment, AugmentConfig, rank_world, step_generator
 from bev_mapper_core.nn.label_space import joint_cover
 from bev_mapper_core.training.method import CliFlag, TrainMethod
 from bev_mapper_core.training.sources import DataNeeds, TrainData
@@ -57,7 +57,6 @@ from .real import (
     open_split,
     pooled_iou,
     sample_batch,
-    step_generator,
 )
 from .weights import load_segmenter, save_segmenter
 
@@ -237,7 +236,7 @@ class SegmenterMethod(TrainMethod):
         dev = self.device
         target = batch["images"].reshape(B * N, h, w).to(dev).long()  # (B, N, h, w) -> (B*N, h, w)
         target = torch.where(target < NUM_LABELS, target, torch.zeros_like(target))
-        rank, world = _rank_world()
+        rank, world = rank_world()
         gen = step_generator(self.cfg.seed, step, dev, rank)
         aug = Augment(AugmentConfig(), gen) if loss_cfg.augment else None
         if aug is not None:
@@ -299,15 +298,6 @@ class SegmenterMethod(TrainMethod):
         if stored.config != self.model.config:
             raise ConfigError(f"{path}: segmenter config {stored.config} differs from the run's {self.model.config}")
         self.model.load_state_dict(stored.state_dict())
-
-
-def _rank_world() -> tuple[int, int]:
-    """``(rank, world size)`` of a data-parallel run, ``(0, 1)`` otherwise."""
-    import torch.distributed as dist  # noqa: PLC0415
-
-    if dist.is_available() and dist.is_initialized():
-        return dist.get_rank(), dist.get_world_size()
-    return 0, 1
 
 
 __all__ = ["CLASS_WEIGHTINGS", "SegmenterMethod", "SegmenterModel", "SegmenterTraining"]
