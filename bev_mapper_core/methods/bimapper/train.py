@@ -4,7 +4,18 @@ the asynchronous mutual-learning schedule (see :mod:`bev_mapper_core.methods.bim
 ``cfg.model`` is a :class:`~bev_mapper_core.methods.bimapper.config.BiMapperConfig`, ``cfg.loss`` a
 :class:`BiMapperTraining`; the ``bev-train`` flags ``--streams --fusion --lv-full-res --ipm-skip
 --input-width --gv-hidden`` set the former, ``--no-asl --mutual --mutual-start-epoch
---pos-weight`` the latter.
+--pos-weight --augment/--no-augment`` the latter.
+
+**Augmentation** (``augment``, default on; RGB input only: a label-input model, also one trained
+``--on-segmenter``, is unaffected). Every training frame's camera images are augmented
+photometrically (:meth:`~bev_mapper_core.nn.augment.Augment.camera_images`: exposure, contrast,
+saturation, white balance, gamma, blur, noise), an independent draw per camera image (the
+cameras of a rig expose and white-balance each on its own), before anything reads them (both
+streams, and the ``ipm_skip`` prior), from a generator seeded by the run seed, the step and the
+data-parallel rank, so ``--resume`` is exact. No geometric augmentation: scaling, cropping or
+flipping a camera image changes its calibration, from which the LV stream's IPM and the
+cameras' places in the BEV come, and the BEV target would no longer match. Validation frames
+are not augmented.
 """
 
 from __future__ import annotations
@@ -17,6 +28,7 @@ import torch
 from typing_extensions import override
 
 from bev_mapper_core.errors import ConfigError
+from bev_mapper_core.nn.augment import Augment, step_augment
 from bev_mapper_core.training.class_weights import POS_WEIGHTS, class_pos_weight
 from bev_mapper_core.training.config import PAPER_EPOCHS
 from bev_mapper_core.training.method import CliFlag, TrainMethod
@@ -61,6 +73,8 @@ class BiMapperTraining:
             validated) on the label images this segmenter predicts from the frames' RGB images
             instead of the true ones, i.e. for chained RGB input, where it must live with the
             segmenter's errors. Not in the paper.
+        augment: photometric augmentation of every training camera image (RGB input; see the
+            module docstring).
     """
 
     asl: bool = True
@@ -72,8 +86,11 @@ class BiMapperTraining:
     init_weights: str | None = None
     visibility_only: bool = False
     segmenter: str | None = None
+    augment: bool = True
 
     def __post_init__(self) -> None:
+        if not isinstance(self.augment, bool):
+            raise ConfigError(f"augment must be true or false, got {self.augment!r}")
         if not isinstance(self.asl, bool):
             raise ConfigError(f"asl must be true or false, got {self.asl!r}")
         if self.mutual not in MUTUAL_MODES:
@@ -176,6 +193,9 @@ class BiMapperMethod(TrainMethod):
                 help="train only the visibility head; the class outputs stay the initial file's"),
         CliFlag("--on-segmenter", "segmenter",
                 help="label model trained on this segmenter's labels of the RGB images (chained RGB input)"),
+        CliFlag("--augment", "augment", action="boolean",
+                help="photometric augmentation (colour, exposure, blur, noise) of every training camera image "
+                     "(RGB input)"),
     )
 
     @classmethod
@@ -193,7 +213,8 @@ class BiMapperMethod(TrainMethod):
 
     @override
     def schedule(self) -> str:
-        return f"mutual both ways from epoch {self.cfg.loss.mutual_start(self.cfg.epochs) + 1}"
+        aug = ", images augmented" if self._augments() else ""
+        return f"mutual both ways from epoch {self.cfg.loss.mutual_start(self.cfg.epochs) + 1}{aug}"
 
     @override
     def data_needs(self) -> DataNeeds:
@@ -203,9 +224,18 @@ class BiMapperMethod(TrainMethod):
         rgb = self.cfg.model.input_kind == "rgb" or self.cfg.loss.segmenter is not None
         return DataNeeds(image_size=None if full else self.model.input_size, rgb=rgb)
 
-    def _inputs(self, batch: dict) -> torch.Tensor:
-        """The model's input of a batch: the RGB images on RGB input, else the label images."""
-        return (batch["rgb"] if self.cfg.model.input_kind == "rgb" else batch["images"]).to(self.device)
+    def _augments(self) -> bool:
+        """Training images are augmented: ``augment`` on RGB input."""
+        return self.cfg.loss.augment and self.cfg.model.input_kind == "rgb"
+
+    def _inputs(self, batch: dict, aug: Augment | None = None) -> torch.Tensor:
+        """The model's input of a batch: the RGB images on RGB input (photometrically augmented
+        by ``aug`` when given, each image its own draw), else the label images.
+        """
+        if self.cfg.model.input_kind != "rgb":
+            return batch["images"].to(self.device)
+        raw = batch["rgb"].to(self.device)  # (B, N, h, w, 3)
+        return raw if aug is None else aug.camera_images(raw)  # float in [0, 255]
 
     @override
     def prepare(self, data: TrainData, log: Callable[[str], None]) -> None:
@@ -242,7 +272,8 @@ class BiMapperMethod(TrainMethod):
     @override
     def loss(self, batch: dict, epoch: int, step: int) -> tuple[torch.Tensor, dict[str, float]]:
         dev = self.device
-        outputs = self.model(self._inputs(batch))
+        aug = step_augment(self.cfg.seed, step, dev) if self._augments() else None
+        outputs = self.model(self._inputs(batch, aug))
         return bimapper_loss(outputs, {"target": batch["target"].to(dev), "mask": batch["mask"].to(dev)}, epoch,
                              self.loss_cfg)
 

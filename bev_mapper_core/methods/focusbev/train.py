@@ -13,6 +13,20 @@ The history is as far back as the training frames are apart: ``stride`` syntheti
 (``memory_interval_s``), and the mapper's memory bank picks history frames that far apart
 whatever the camera rate (:mod:`~bev_mapper_core.methods.focusbev.mapper`).
 
+**Augmentation** (``augment``, default on; RGB input only, label input ignores it). The camera
+images of every training window are augmented photometrically
+(:meth:`~bev_mapper_core.nn.augment.Augment.camera_images`: exposure, contrast, saturation, white
+balance, gamma, blur, noise) from a generator seeded by the run seed, the step and the
+data-parallel rank, so ``--resume`` is exact. One draw per window: its frames (``stride /
+rate_hz`` = 0.3 s apart by default) share the exposure, colour, gamma and blur, as one camera's
+auto-exposure and white balance barely change in that time, and the temporal fusion should not
+learn to discount its history for an appearance jump a real camera does not make; the sensor
+noise is drawn per frame, as it is. No geometric augmentation: scaling, cropping or flipping the
+image changes the camera's calibration, which the polar transform is built from, and the BEV
+target would no longer match (a flip with the target mirrored is not exact either: ``front1``'s
+camera is neither centred, cx 816.3 of 1600 px, nor straight, 0.3 deg yaw). Validation windows
+are not augmented.
+
 Optimizer: AdamW (the paper's); the trainer's step schedule replaces the paper's warm-up and
 linear decay. Positive weights of the BCE: the project's ``auto`` weights, as Bi-Mapper's
 (PON's weighted BCE weighs classes too; its exact weights are dataset statistics).
@@ -20,6 +34,7 @@ linear decay. Positive weights of the BCE: the project's ``auto`` weights, as Bi
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -28,6 +43,7 @@ import torch
 from typing_extensions import override
 
 from bev_mapper_core.errors import ConfigError
+from bev_mapper_core.nn.augment import Augment, step_augment
 from bev_mapper_core.synth.config import SynthConfig
 from bev_mapper_core.training.class_weights import POS_WEIGHTS, class_pos_weight
 from bev_mapper_core.training.method import CliFlag, TrainMethod
@@ -46,14 +62,19 @@ class FocusBEVTraining:
         uncertainty_weight, iou_weight: the loss weights (:class:`FocusBEVLossConfig`).
         pos_weight: ``auto`` (per-class BCE weights from the training set) or ``none``.
         weight_decay: AdamW's (PyTorch's default 0.01; the paper does not give it).
+        augment: photometric augmentation of the training windows' camera images, one draw per
+            window (RGB input; see the module docstring).
     """
 
     uncertainty_weight: float = FocusBEVLossConfig.uncertainty_weight
     iou_weight: float = FocusBEVLossConfig.iou_weight
     pos_weight: str = "auto"
     weight_decay: float = 0.01
+    augment: bool = True
 
     def __post_init__(self) -> None:
+        if not isinstance(self.augment, bool):
+            raise ConfigError(f"augment must be true or false, got {self.augment!r}")
         if self.pos_weight not in POS_WEIGHTS:
             raise ConfigError(f"pos_weight must be one of {POS_WEIGHTS}, got {self.pos_weight!r}")
         v = self.weight_decay
@@ -103,6 +124,9 @@ class FocusBEVMethod(TrainMethod):
         CliFlag("--uncertainty-weight", "uncertainty_weight", number=True, help="lambda_u (paper 0.001)"),
         CliFlag("--iou-weight", "iou_weight", number=True, help="lambda_iou of the OA-IoU loss (paper 0.01)"),
         CliFlag("--pos-weight", "pos_weight", choices=POS_WEIGHTS, help="BCE class weights (none = plain)"),
+        CliFlag("--augment", "augment", action="boolean",
+                help="photometric augmentation (colour, exposure, blur, noise) of the training windows' images, "
+                     "one draw per window (RGB input)"),
     )
 
     @override
@@ -124,7 +148,8 @@ class FocusBEVMethod(TrainMethod):
     @override
     def schedule(self) -> str:
         t = self.cfg.loss
-        return f"AdamW (wd {t.weight_decay}), loss BCE + {t.uncertainty_weight} uncertainty + {t.iou_weight} OA-IoU"
+        aug = ", images augmented per window" if self._augments() else ""
+        return f"AdamW (wd {t.weight_decay}){aug}, loss BCE + {t.uncertainty_weight} uncertainty + {t.iou_weight} OA-IoU"
 
     @override
     def data_needs(self) -> DataNeeds:
@@ -140,9 +165,18 @@ class FocusBEVMethod(TrainMethod):
         if pw is not None:
             log(f"BCE positive weights {dict(zip(self.cfg.class_names, pw))}")
 
-    def _forward(self, batch: dict) -> dict[str, torch.Tensor]:
-        """The model on a batch: single frames, or windows whose last frame is mapped."""
+    def _augments(self) -> bool:
+        """Training images are augmented: ``augment`` on RGB input."""
+        return self.cfg.loss.augment and self.cfg.model.input_kind == "rgb"
+
+    def _forward(self, batch: dict, aug: Augment | None = None) -> dict[str, torch.Tensor]:
+        """The model on a batch: single frames, or windows whose last frame is mapped; ``aug``:
+        the RGB images photometrically augmented, one draw per window.
+        """
         raw = batch["rgb"] if self.cfg.model.input_kind == "rgb" else batch["images"]
+        if aug is not None and self.cfg.model.input_kind == "rgb":
+            # (B, 1, h, w, 3), or windows (B, T, 1, h, w, 3): each sample's T images (one camera) share the draw
+            raw = aug.camera_images(raw.to(self.device), share=math.prod(raw.shape[1:-3]))  # float in [0, 255]
         if self.cfg.model.window == 1:
             return self.model(self.model.preprocess(raw.to(self.device)))  # (B, 1, h, w[, 3])
         B, T = raw.shape[:2]
@@ -153,7 +187,7 @@ class FocusBEVMethod(TrainMethod):
 
     @override
     def loss(self, batch: dict, epoch: int, step: int) -> tuple[torch.Tensor, dict[str, float]]:
-        out = self._forward(batch)
+        out = self._forward(batch, step_augment(self.cfg.seed, step, self.device) if self._augments() else None)
         return focusbev_loss(out["logits"], batch["target"].to(self.device), batch["mask"].to(self.device),
                              self.loss_cfg, self.pos_weight)
 

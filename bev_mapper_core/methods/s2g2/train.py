@@ -22,9 +22,11 @@ consistency loss on unlabeled ``dusk`` frames alone still collapses the dusk map
 against 31.6 supervised-only): the shared encoder can tell dusk frames apart and give them
 features on which both branches trivially agree, and the passive branch, an average of the
 active one, follows. S2G2 has no augmentation to break such agreement (its two views are F_C
-and F_I of one image). By default the unlabeled frames' losses therefore train everything after
-the encoder (view transforms, attentions, active branch) and not the encoder, which the labeled
-frames train; ``--unlabeled-into-encoder`` lets them reach it (the paper's setting).
+and F_I of one image; the photometric augmentation below changes that one image for both views,
+so it does not either; these runs predate it). By default the unlabeled frames' losses therefore
+train everything after the encoder (view transforms, attentions, active branch) and not the
+encoder, which the labeled frames train; ``--unlabeled-into-encoder`` lets them reach it (the
+paper's setting).
 
 **BatchNorm and unlabeled frames** (``unlabeled_bn``). ``batch`` runs labeled and unlabeled
 frames as one batch, so BatchNorm normalizes both with the statistics of the mix (the paper's
@@ -37,6 +39,19 @@ looks like. ``running`` (default) runs the unlabeled frames in a second pass who
 layers use the running statistics and leave them alone (dropout and stochastic depth stay on), so
 the unlabeled losses train on exactly the features the model computes for such a frame at test
 time, and the statistics stay those of the labeled frames.
+
+**Augmentation** (``augment``, default on; RGB input only, label input ignores it). Every
+training frame's camera image, labeled and unlabeled alike, is augmented photometrically
+(:meth:`~bev_mapper_core.nn.augment.Augment.camera_images`: exposure, contrast, saturation, white
+balance, gamma, blur, noise; an independent draw per frame) from a generator seeded by the run
+seed, the step and the data-parallel rank, so ``--resume`` is exact. No geometric augmentation:
+scaling, cropping or flipping the image changes the camera's calibration, which the view
+transform has learnt, and the BEV target would no longer match; a flip with the target mirrored
+is not exact either, ``front1``'s camera being neither centred (cx 816.3 of 1600 px) nor
+straight (0.3 deg yaw). The passive (EMA teacher) and active branches see the same augmented
+image, as they see the same image without augmentation (S2G2's consistency is between the two
+branches on one input; Mean Teacher's different student and teacher augmentations are not
+used). Validation frames are not augmented.
 
 ``cfg.model`` is an :class:`~bev_mapper_core.methods.s2g2.model.S2G2Config` (its ``input_kind``: ``rgb``
 by default, as the paper), ``cfg.loss`` an :class:`S2G2Training`.
@@ -75,6 +90,7 @@ import torch
 from typing_extensions import override
 
 from bev_mapper_core.errors import ConfigError
+from bev_mapper_core.nn.augment import Augment, step_augment
 from bev_mapper_core.training.class_weights import POS_WEIGHTS, class_pos_weight
 from bev_mapper_core.training.method import CliFlag, TrainMethod
 from bev_mapper_core.training.sources import DataNeeds, TrainData
@@ -124,6 +140,8 @@ class S2G2Training:
         unlabeled_bn: ``running`` (unlabeled frames normalized with the running statistics,
             which they leave alone) or ``batch`` (one batch with the labeled frames: the paper);
             see the module docstring.
+        augment: photometric augmentation of every training frame's camera image (RGB input;
+            see the module docstring).
     """
 
     cycle_weight: float = S2G2LossConfig.cycle_weight
@@ -141,6 +159,7 @@ class S2G2Training:
     unlabeled_bn: str = "running"
     cycle_into_encoder: bool = False
     unlabeled_into_encoder: bool = False
+    augment: bool = True
 
     def __post_init__(self) -> None:
         if not isinstance(self.encoder_init, str) or not self.encoder_init:
@@ -148,7 +167,8 @@ class S2G2Training:
         v = self.ema_decay
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not 0 <= v <= 1:
             raise ConfigError(f"ema_decay must be a number in [0, 1], got {v!r}")
-        for name in ("ema_warmup", "supervised_only", "cycle_into_encoder", "unlabeled_into_encoder"):
+        for name in ("ema_warmup", "supervised_only", "cycle_into_encoder", "unlabeled_into_encoder",
+                     "augment"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"{name} must be true or false, got {getattr(self, name)!r}")
         for name, choices in (("pos_weight", POS_WEIGHTS), ("optimizer", OPTIMIZERS),
@@ -243,6 +263,8 @@ class S2G2Method(TrainMethod):
         CliFlag("--encoder-init", "encoder_init",
                 help="auto | none | segmenter | PATH: pretrained feature extractor, a segmenter's EfficientNet "
                      "trunk (auto: the shipped segmenter's on RGB input)"),
+        CliFlag("--augment", "augment", action="boolean",
+                help="photometric augmentation (colour, exposure, blur, noise) of every training image (RGB input)"),
     )
 
     @override
@@ -276,7 +298,8 @@ class S2G2Method(TrainMethod):
     def schedule(self) -> str:
         t = self.cfg.loss
         bn = "" if t.supervised_only else f", unlabeled frames through BatchNorm: {t.unlabeled_bn} statistics"
-        return (f"{t.optimizer}, consistency to {t.consistency_weight} over {t.consistency_ramp_steps} steps, "
+        aug = ", images augmented" if self._augments() else ""
+        return (f"{t.optimizer}{aug}, consistency to {t.consistency_weight} over {t.consistency_ramp_steps} steps, "
                 f"EMA {t.ema_decay}{' (warm-up)' if t.ema_warmup else ''}{bn}, maps with the {t.inference_branch} branch")
 
     @override
@@ -293,25 +316,35 @@ class S2G2Method(TrainMethod):
         if pw is not None:
             log(f"BCE positive weights {dict(zip(self.cfg.class_names, pw))}")
 
-    def _inputs(self, batch: dict) -> torch.Tensor:
-        """Model input ``(B, C_in, h, w)`` of a batch (its RGB images on RGB input, else its labels)."""
+    def _augments(self) -> bool:
+        """Training images are augmented: ``augment`` on RGB input."""
+        return self.cfg.loss.augment and self.cfg.model.input_kind == "rgb"
+
+    def _inputs(self, batch: dict, aug: Augment | None = None) -> torch.Tensor:
+        """Model input ``(B, C_in, h, w)`` of a batch (its RGB images on RGB input, else its
+        labels), the RGB images photometrically augmented by ``aug`` when given.
+        """
         raw = batch["rgb"] if self.cfg.model.input_kind == "rgb" else batch["images"]  # (B, 1, h, w[, 3])
-        return self.model.preprocess(raw.to(self.device))
+        raw = raw.to(self.device)
+        if aug is not None and self.cfg.model.input_kind == "rgb":
+            raw = aug.camera_images(raw)  # (B, 1, h, w, 3) float in [0, 255]
+        return self.model.preprocess(raw)
 
     @override
     def loss(self, batch: dict, epoch: int, step: int) -> tuple[torch.Tensor, dict[str, float]]:
         labeled, unlabeled = (batch["labeled"], batch["unlabeled"]) if "labeled" in batch else (batch, None)
-        x = self._inputs(labeled)  # (B_l, C_in, h, w)
+        aug = step_augment(self.cfg.seed, step, self.device) if self._augments() else None
+        x = self._inputs(labeled, aug)  # (B_l, C_in, h, w)
         n = x.shape[0]
         if unlabeled is None:
             out = self._forward(x)
         elif self.cfg.loss.unlabeled_bn == "batch" and self.cfg.loss.unlabeled_into_encoder:
-            out = self._forward(torch.cat([x, self._inputs(unlabeled)]))  # (B_l + B_u, ...): one pass, shared BN
+            out = self._forward(torch.cat([x, self._inputs(unlabeled, aug)]))  # (B_l + B_u, ...): one pass, shared BN
         else:
             frozen = not self.cfg.loss.unlabeled_into_encoder
             out = self._forward(x)
             with running_batchnorm(self.model):
-                out_u = self._forward(self._inputs(unlabeled), frozen)
+                out_u = self._forward(self._inputs(unlabeled, aug), frozen)
             out = {k: torch.cat([out[k], out_u[k]]) for k in out}  # (B_l + B_u, ...) each
         return s2g2_loss(out, n, labeled["target"], labeled["mask"], step, self.loss_cfg)
 
