@@ -29,6 +29,9 @@ from __future__ import annotations
 
 import math
 
+from bev_mapper_core.errors import ConfigError
+from bev_mapper_core.labels.classes import Label, bev_class
+
 CARD_KEY = "card"
 CARD_VERSION = 1
 #: longest text field, in characters (a card is read before any tensor; keep it bounded)
@@ -120,6 +123,17 @@ def document_classes(meta: dict) -> list | None:
     return None
 
 
+def _known_class(name: str) -> bool:
+    """A BEV class (any class set) or a pixel label name."""
+    if name.upper() in Label.__members__:
+        return True
+    try:
+        bev_class(name)
+    except ConfigError:
+        return False
+    return True
+
+
 def check_card_fits(card: dict, meta: dict) -> None:
     """A card against the document it is stored in: the same classes, in the same order.
 
@@ -127,7 +141,9 @@ def check_card_fits(card: dict, meta: dict) -> None:
         CardError: the classes differ.
     """
     stored = document_classes(meta)
-    if stored is not None and list(card["classes"]) != list(stored):
+    if stored is None or not all(isinstance(c, str) and _known_class(c) for c in stored):
+        return  # the document's own check refuses unknown classes, with its own message
+    if list(card["classes"]) != list(stored):
         raise CardError(f"card.classes {card['classes']} differ from the weights' classes {stored}")
 
 
