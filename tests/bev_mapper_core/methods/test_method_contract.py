@@ -66,7 +66,7 @@ def test_each_trainable_method_builds_round_trips_its_weights_and_maps(name, tmp
 
     monkeypatch.setenv(backends.CACHE_ENV, str(tmp_path / "cache"))
     rig = preset_rig(RIGS[name])
-    cfg = TrainConfig.from_dict(dict(method=name, rig=rig.name, out=str(tmp_path / "run"), threads=1, progress=False,
+    cfg = TrainConfig.from_dict(dict(method=name, rig=rig.name, out=str(tmp_path / "run"), threads=1, progress=False, input_width=64,
                                      cache=None, grid=(GRID.x_min, GRID.x_max, GRID.y_min, GRID.y_max, GRID.resolution)))
     torch.manual_seed(0)
     trained = method_class(name)(cfg, rig, cfg.grid)
