@@ -29,6 +29,7 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
+from bev_mapper_core.datasets import KINDS, open_dataset
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.labels.spaces import CAMVID, COMMON_CAMVID, IGNORE, LabelSpace
 from bev_mapper_core.nn.augment import Augment, step_generator
@@ -38,8 +39,8 @@ from .model import Segmenter, SegmenterConfig, class_weights
 
 #: Real frames are kept at most this factor x the model input (before augmentation).
 BASE_FACTOR = 1.5
-#: Dataset kinds of a ``--real`` spec (``kind:DIR``).
-REAL_KINDS: tuple[str, ...] = ("camvid", "folder")
+#: Dataset kinds of a ``--real`` spec (``kind:DIR``): the readers' own table.
+REAL_KINDS: tuple[str, ...] = tuple(KINDS)
 
 
 def check_spec(spec: str) -> str:
@@ -50,7 +51,7 @@ def check_spec(spec: str) -> str:
     """
     kind, _, rest = str(spec).partition(":")
     if kind not in REAL_KINDS or not rest:
-        raise ConfigError(f"real data must be 'camvid:DIR' or 'folder:DIR[:PRESET]', got {spec!r}")
+        raise ConfigError(f"real data must be one of {list(KINDS.values())}, got {spec!r}")
     return spec
 
 
@@ -62,8 +63,6 @@ def open_split(spec: str, split: str, skip_bad: bool = False):
     Raises:
         DatasetError: see the readers.
     """
-    from bev_mapper_core.datasets import open_dataset  # noqa: PLC0415 - the readers need OpenCV
-
     kind, _, rest = check_spec(spec).partition(":")
     if kind == "camvid" and split != "train" and Path(rest).is_dir() and not (Path(rest) / split).is_dir():
         return None
