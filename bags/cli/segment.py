@@ -25,10 +25,10 @@ from pathlib import Path
 import numpy as np
 
 from bev_mapper_core.datasets.base import IMAGE_SUFFIXES
-from bev_mapper_core.errors import ConfigError, InputError
+from bev_mapper_core.errors import InputError
 from bev_mapper_core.labels.classes import Label, overlay_labels
 from bev_mapper_core.mapper import MapperConfig
-from bev_mapper_core.methods import METHODS, WEIGHTS_DIR
+from bev_mapper_core.methods import METHODS
 from msg_adapters import DEFAULT_LIMITS, EncodingError, check_image_size, compressed_image_header
 
 from ..files import write_atomic
@@ -92,27 +92,9 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="PNG or JPEG images, or folders of them")
     p.add_argument("--out", type=Path, required=True, help="output directory (created if missing)")
     p.add_argument("--segmenter", default="auto", metavar="auto|FILE",
-                   help=f"segmenter weights file; auto (default): the shipped {GENERAL_SEGMENTER}")
+                   help=f"segmenter weights file; auto (default): the shipped {METHODS['segmenter'].weights[0]}")
     p.add_argument("--skip-bad", action="store_true",
                    help="skip (and count) images that cannot be read instead of stopping at the first")
-
-
-#: the shipped general segmenter (the methods' table names it)
-GENERAL_SEGMENTER = METHODS["segmenter"].weights[0]
-
-
-def segmenter_file(spec: str) -> Path:
-    """The segmenter file ``--segmenter`` names (``auto``: the shipped general segmenter).
-
-    Raises:
-        ConfigError: ``auto`` with no shipped segmenter.
-    """
-    if spec != "auto":
-        return Path(spec)
-    path = WEIGHTS_DIR / GENERAL_SEGMENTER
-    if not path.is_file():
-        raise ConfigError(f"no segmenter shipped ({path}); pass --segmenter FILE")
-    return path
 
 
 def list_inputs(inputs: list[Path]) -> list[Path]:
@@ -241,10 +223,11 @@ def run(args: argparse.Namespace) -> int:
                 raise
             skipped.append(str(e))
     # torch only now: bev-bag's parser (every subcommand's configure) must not import it
-    from bev_mapper_core.methods.segmenter.stage import SegmenterStage  # noqa: PLC0415
+    from bev_mapper_core.methods.segmenter.stage import SegmenterStage, segmenter_path  # noqa: PLC0415
     from bev_mapper_core.nn.runtime import inference_device  # noqa: PLC0415
 
-    stage = SegmenterStage(segmenter_file(args.segmenter), inference_device(MapperConfig(device="cpu")))
+    config = MapperConfig(device="cpu", segmenter=args.segmenter)
+    stage = SegmenterStage(segmenter_path(config, ""), inference_device(config))
     done = 0
     for job in good:
         try:
@@ -274,4 +257,4 @@ def run(args: argparse.Namespace) -> int:
 
 
 __all__ = ["HELP", "LEGEND", "OVERLAY_DIR", "check_header", "configure", "legend", "list_inputs", "plan",
-           "read_image", "run", "segmenter_file"]
+           "read_image", "run"]
