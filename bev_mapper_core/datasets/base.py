@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..labels.label_maps import file_kind
 from ..labels.spaces import IGNORE, LabelSpace
 
 #: Image file suffixes the readers list (lower case).
@@ -35,6 +36,17 @@ class Sample:
     name: str
 
 
+def _need(path: Path, kind: str, missing: str) -> None:
+    """Raise :class:`DatasetError` unless ``path`` is a ``kind`` (``file`` or ``directory``): a
+    missing path says ``missing``, anything else what it is (a FIFO or device is never opened).
+    """
+    found = file_kind(path)
+    if found is None:
+        raise DatasetError(f"{path}: {missing}")
+    if found != kind:
+        raise DatasetError(f"{path} is a {found}, not a {'folder' if kind == 'directory' else 'file'}")
+
+
 def read_rgb(path: Path) -> np.ndarray:
     """``(H, W, 3)`` uint8 RGB of an image file (PNG or JPEG; grey images are expanded).
 
@@ -43,8 +55,7 @@ def read_rgb(path: Path) -> np.ndarray:
     """
     import cv2  # noqa: PLC0415 - only the readers need OpenCV
 
-    if not path.is_file():
-        raise DatasetError(f"{path}: no such image")
+    _need(path, "file", "no such image")
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)  # BGR, 8 bit
     if img is None:
         raise DatasetError(f"{path}: not a readable PNG or JPEG image")
@@ -59,8 +70,7 @@ def read_label_png(path: Path, color: bool = False) -> np.ndarray:
     """
     import cv2  # noqa: PLC0415
 
-    if not path.is_file():
-        raise DatasetError(f"{path}: missing annotation")
+    _need(path, "file", "missing annotation")
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise DatasetError(f"{path}: not a readable label image")
@@ -138,8 +148,7 @@ def list_images(folder: Path) -> list[Path]:
     Raises:
         DatasetError: the folder does not exist.
     """
-    if not folder.is_dir():
-        raise DatasetError(f"{folder}: no such folder")
+    _need(folder, "directory", "no such folder")
     return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
 
 
@@ -151,15 +160,16 @@ def pair_by_stem(images: list[Path], label_dir: Path, skip_bad: bool,
     Raises:
         DatasetError: the label folder is missing, or an image has no label PNG.
     """
-    if not label_dir.is_dir():
-        raise DatasetError(f"{label_dir}: no such label folder")
+    _need(label_dir, "directory", "no such label folder")
     pairs = []
     for img in images:
         lab = label_dir / f"{img.stem}.png"
-        if not lab.is_file():
+        kind = file_kind(lab)
+        if kind != "file":
+            reason = f"missing annotation of {img.name}" if kind is None else f"is a {kind}, not a file"
             if not skip_bad:
-                raise DatasetError(f"{lab}: missing annotation of {img}")
-            skipped.append((str(lab), f"missing annotation of {img.name}"))
+                raise DatasetError(f"{lab}: missing annotation of {img}" if kind is None else f"{lab} {reason}")
+            skipped.append((str(lab), reason))
             continue
         pairs.append((img, lab))
     return pairs

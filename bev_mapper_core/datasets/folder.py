@@ -27,7 +27,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError
-from ..labels.label_maps import PRESET_NAMES, LabelMap, label_map, label_map_from_dict, pack_rgb, read_yaml_document
+from ..labels.label_maps import (PRESET_NAMES, LabelMap, file_kind, label_map, label_map_from_dict, pack_rgb,
+                                 read_yaml_document)
 from ..labels.spaces import IGNORE, space_from_labels
 from .base import DatasetError, LabeledImages, list_images, pair_by_stem, read_label_png
 
@@ -113,7 +114,7 @@ def _folder_map(root: Path, spec: str | None) -> tuple[LabelMap, np.ndarray, np.
         known, ignored = _PRESET_IDS[spec]
         return lm, np.asarray(list(known), np.int64), np.asarray(ignored, np.int64)
     path = Path(spec).expanduser() if spec else root / LABEL_MAP_FILE
-    if not path.is_file():
+    if file_kind(path) is None:  # a directory, FIFO or device is named as such by the reader
         raise ConfigError(f"{path}: no label map (a YAML file of upstream id -> label name, or one of the presets "
                           f"{list(PRESET_NAMES)})")
     where = f"label map {path}"

@@ -43,14 +43,17 @@ Label names are the :class:`Label` members in lower case (:data:`LABEL_NAMES`: `
 ``pedestrian``, ``obstacle``, ``building``, ``terrain``, ``unlabeled``). Ids or colours the map
 does not name become UNLABELED; an rgb8 colour must match exactly (no nearest colour: label
 images must travel losslessly, raw or PNG, never JPEG). The file is read with limits
-(:data:`MAX_FILE_BYTES`, no YAML aliases, no duplicate keys); every defect is a
+(a regular file of at most :data:`MAX_FILE_BYTES`, :data:`MAX_YAML_DEPTH` levels and
+:data:`MAX_YAML_NODES` nodes, no YAML aliases, no duplicate keys; ids in ASCII decimal only); every defect is a
 :class:`~bev_mapper_core.errors.ConfigError`.
 """
 
 from __future__ import annotations
 
 import functools
+import os
 import re
+import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -70,6 +73,13 @@ LABEL_NAMES: tuple[str, ...] = tuple(m.name.lower() for m in Label)
 MAX_FILE_BYTES = 1 << 20
 #: Most colours of an rgb8 palette.
 MAX_PALETTE_COLORS = 4096
+#: Deepest nesting of mappings and lists a label-map YAML file may have (the format needs 2).
+MAX_YAML_DEPTH = 16
+#: Most YAML nodes (scalars, mappings, lists) a label-map file may hold (a full palette and
+#: ignore list need ~16,000).
+MAX_YAML_NODES = 50_000
+#: Longest text of a value quoted in an error message (characters).
+MAX_QUOTE = 60
 _BLOCK_PIXELS = 1 << 20
 
 _U = Label
@@ -255,6 +265,33 @@ def _preset(name: str) -> LabelMap:
     raise ConfigError(f"unknown label map preset {name!r}; presets: {list(PRESET_NAMES)}")
 
 
+def quote(value) -> str:
+    """``repr(value)``, cut to :data:`MAX_QUOTE` characters: an error message stays one short
+    line whatever a file holds.
+    """
+    text = repr(value)
+    return text if len(text) <= MAX_QUOTE else f"{text[:MAX_QUOTE - 12]}...({len(text)} chars)"
+
+
+def file_kind(path: Path) -> str | None:
+    """What ``path`` is (``"file"``, ``"directory"``, ``"FIFO"``, ``"device"``, ``"socket"``),
+    following links; None when nothing is there (or it cannot be looked at).
+    """
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError):
+        return None
+    if stat.S_ISREG(mode):
+        return "file"
+    if stat.S_ISDIR(mode):
+        return "directory"
+    if stat.S_ISFIFO(mode):
+        return "FIFO"
+    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+        return "device"
+    return "socket" if stat.S_ISSOCK(mode) else "special file"
+
+
 def label_map(spec: str) -> LabelMap:
     """The :class:`LabelMap` a ``label_map`` setting names: a preset (:data:`PRESET_NAMES`) or
     the path of a YAML file (see the module docstring).
@@ -263,43 +300,75 @@ def label_map(spec: str) -> LabelMap:
         ConfigError: neither a preset nor a readable, valid label-map file.
     """
     if not isinstance(spec, str) or not spec.strip():
-        raise ConfigError(f"label_map must be one of {list(PRESET_NAMES)} or the path of a YAML file, got {spec!r}")
+        raise ConfigError(f"label_map must be one of {list(PRESET_NAMES)} or the path of a YAML file, "
+                          f"got {quote(spec)}")
     if spec in PRESET_NAMES:
         return _preset(spec)
     path = Path(spec).expanduser()
-    if not path.is_file():
-        raise ConfigError(f"label_map {spec!r} is no preset ({', '.join(PRESET_NAMES)}) and no such file exists "
-                          "(a YAML file of upstream id -> label name)")
+    if file_kind(path) is None:
+        raise ConfigError(f"label_map {quote(spec)} is no preset ({', '.join(PRESET_NAMES)}) and no such file "
+                          "exists (a YAML file of upstream id -> label name)")
     return load_label_map(path, name=spec)
 
 
 def read_yaml_document(path: Path, where: str):
-    """The YAML document of a label-map file (at most ``MAX_FILE_BYTES``, UTF-8, safe loader, no
-    aliases, no duplicate keys); the one reader of label-map YAML, also for dataset folders.
+    """The YAML document of a label-map file (a regular file of at most ``MAX_FILE_BYTES``,
+    UTF-8, safe loader, no aliases, no duplicate keys, at most :data:`MAX_YAML_DEPTH` levels and
+    :data:`MAX_YAML_NODES` nodes; integers only in ASCII decimal, other number forms stay text);
+    the one reader of label-map YAML, also for dataset folders. Bounded: a hostile file is
+    refused within a fraction of a second.
 
     Raises:
-        ConfigError: unreadable, too large, not UTF-8, not valid YAML.
+        ConfigError: missing, no regular file (a directory, FIFO, device), unreadable, too
+            large, not UTF-8, not valid YAML, too deep or too many nodes.
     """
-    return _parse_yaml(_yaml_text(path), where)
+    return _parse_yaml(_yaml_text(path, where), where)
 
 
-def _yaml_text(path: Path) -> str:
+def _yaml_text(path: Path, where: str) -> str:
+    """The text of a regular file of at most ``MAX_FILE_BYTES``: opened without blocking (a
+    FIFO never waits for a writer), checked on the open descriptor, read with a cap.
+    """
     try:
-        size = path.stat().st_size
-        if size > MAX_FILE_BYTES:
-            raise ConfigError(f"label map {path}: {size} bytes, more than the {MAX_FILE_BYTES} a label map may have")
-        return path.read_bytes().decode("utf-8")
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    except (OSError, ValueError) as exc:
+        reason = getattr(exc, "strerror", None) or str(exc)
+        raise ConfigError(f"cannot read {where}: {reason}") from None
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            kind = file_kind(path) or "special file"
+            raise ConfigError(f"{where} is a {kind}, not a file")
+        with os.fdopen(fd, "rb", closefd=False) as f:
+            data = f.read(MAX_FILE_BYTES + 1)
     except OSError as exc:
-        raise ConfigError(f"cannot read label map {path}: {exc.strerror or exc}") from None
+        raise ConfigError(f"cannot read {where}: {exc.strerror or exc}") from None
+    finally:
+        os.close(fd)
+    if len(data) > MAX_FILE_BYTES:
+        raise ConfigError(f"{where}: more than the {MAX_FILE_BYTES} bytes a label map may have")
+    try:
+        return data.decode("utf-8")
     except UnicodeDecodeError:
-        raise ConfigError(f"label map {path} is not UTF-8 text") from None
+        raise ConfigError(f"{where} is not UTF-8 text") from None
 
 
-def _parse_yaml(text: str, where: str):
-    """The YAML document of ``text``: safe loader, no aliases, no duplicate keys."""
+_DECIMAL = re.compile(r"[-+]?[0-9]+", re.ASCII)
+
+
+def _loader_class(where: str):
+    """A safe YAML loader (libyaml's parser when present) whose integers are ASCII decimal only
+    (``0x1F``, ``0o17``, ``1_000``, ``1:20`` stay text) and whose mappings refuse duplicate keys.
+    """
     import yaml  # noqa: PLC0415 - only label-map files need it
 
-    class Loader(yaml.SafeLoader):
+    base = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+
+    class Loader(base):
+        def construct_yaml_int(self, node):
+            text = self.construct_scalar(node)
+            return int(text, 10) if _DECIMAL.fullmatch(text) else text  # other forms stay text
+
         def construct_mapping(self, node, deep=False):
             seen = set()
             for key_node, _ in node.value:
@@ -309,16 +378,51 @@ def _parse_yaml(text: str, where: str):
                 except TypeError:  # unhashable: the base class says so
                     break
                 if duplicate:
-                    raise ConfigError(f"{where}: key {key!r} appears twice")
+                    raise ConfigError(f"{where}: key {quote(key)} appears twice")
                 seen.add(key)
             return super().construct_mapping(node, deep=deep)
 
-    try:
-        if any(isinstance(ev, yaml.AliasEvent) for ev in yaml.parse(text, Loader=yaml.SafeLoader)):
+    Loader.add_constructor("tag:yaml.org,2002:int", Loader.construct_yaml_int)
+    return Loader
+
+
+def _check_events(text: str, where: str) -> None:
+    """Walk the YAML event stream once (no objects built): refuse aliases, nesting deeper than
+    :data:`MAX_YAML_DEPTH` and more than :data:`MAX_YAML_NODES` nodes, stopping at the first.
+    """
+    import yaml  # noqa: PLC0415
+
+    depth = nodes = 0
+    for ev in yaml.parse(text, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader)):
+        if isinstance(ev, yaml.AliasEvent):
             raise ConfigError(f"{where}: YAML aliases (*name) are not allowed in a label map")
-        return yaml.load(text, Loader=Loader)  # a SafeLoader subclass
+        if isinstance(ev, (yaml.MappingStartEvent, yaml.SequenceStartEvent)):
+            depth += 1
+            if depth > MAX_YAML_DEPTH:
+                raise ConfigError(f"{where}: nested more than {MAX_YAML_DEPTH} levels deep "
+                                  f"(line {ev.start_mark.line + 1})")
+        elif isinstance(ev, (yaml.MappingEndEvent, yaml.SequenceEndEvent)):
+            depth -= 1
+        if isinstance(ev, yaml.NodeEvent):
+            nodes += 1
+            if nodes > MAX_YAML_NODES:
+                raise ConfigError(f"{where}: more than {MAX_YAML_NODES} YAML nodes")
+
+
+def _parse_yaml(text: str, where: str):
+    """The YAML document of ``text``: bounded (:func:`_check_events`), then the strict loader."""
+    import yaml  # noqa: PLC0415
+
+    try:
+        _check_events(text, where)
+        return yaml.load(text, Loader=_loader_class(where))  # a SafeLoader subclass
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{where} is not valid YAML: {' '.join(str(exc).split())}") from None
+        detail = " ".join(str(exc).split())
+        if len(detail) > 200:
+            detail = detail[:200] + "..."
+        raise ConfigError(f"{where} is not valid YAML: {detail}") from None
+    except RecursionError:  # not reached with the depth bound; never a traceback
+        raise ConfigError(f"{where}: nested too deeply") from None
 
 
 def load_label_map(path: str | Path, name: str | None = None) -> LabelMap:
@@ -332,35 +436,40 @@ def load_label_map(path: str | Path, name: str | None = None) -> LabelMap:
     return label_map_from_dict(read_yaml_document(path, where), name or str(path), where)
 
 
-_COLOR = re.compile(r"^\s*(\d{1,3})\s*[, ]\s*(\d{1,3})\s*[, ]\s*(\d{1,3})\s*$")
-_HEX = re.compile(r"^\s*#([0-9a-fA-F]{6})\s*$")
+_COLOR = re.compile(r"([0-9]{1,3}) *[, ] *([0-9]{1,3}) *[, ] *([0-9]{1,3})", re.ASCII)
+_HEX = re.compile(r"#([0-9a-fA-F]{6})", re.ASCII)
+_ID = re.compile(r"[0-9]{1,3}", re.ASCII)
 
 
 def _color(key, where: str) -> tuple[int, int, int]:
-    m = _COLOR.match(key) if isinstance(key, str) else None
+    m = _COLOR.fullmatch(key.strip(" ")) if isinstance(key, str) else None
     if m:
-        rgb = tuple(int(v) for v in m.groups())
+        rgb = tuple(int(v, 10) for v in m.groups())
         if max(rgb) <= 255:
             return rgb
-    m = _HEX.match(key) if isinstance(key, str) else None
+    m = _HEX.fullmatch(key.strip(" ")) if isinstance(key, str) else None
     if m:
         v = int(m.group(1), 16)
         return v >> 16, (v >> 8) & 255, v & 255
-    raise ConfigError(f"{where}: colour {key!r} must be 'R,G,B' (0..255 each), 'R G B' or '#RRGGBB', quoted")
+    raise ConfigError(f"{where}: colour {quote(key)} must be 'R,G,B' (0..255 each, ASCII digits), 'R G B' or "
+                      "'#RRGGBB', quoted")
 
 
 def _upstream_id(key, where: str) -> int:
-    if isinstance(key, str) and key.strip().isdigit():
-        key = int(key)
+    """An upstream id: an integer, or a quoted string of 1-3 ASCII digits; 0..255."""
+    if isinstance(key, str) and _ID.fullmatch(key):
+        key = int(key, 10)
     if isinstance(key, bool) or not isinstance(key, int) or not 0 <= key <= 255:
-        raise ConfigError(f"{where}: upstream id {key!r} must be an integer 0..255 (mono8)")
+        raise ConfigError(f"{where}: upstream id {quote(key)} must be an integer 0..255 in ASCII decimal digits "
+                          "(mono8)")
     return key
 
 
 def _label(value, key, where: str) -> int:
     name = value.strip().lower() if isinstance(value, str) else None
     if name not in LABEL_NAMES:
-        raise ConfigError(f"{where}: {key!r} maps to {value!r}, which is no label; labels: {list(LABEL_NAMES)}")
+        raise ConfigError(f"{where}: {quote(key)} maps to {quote(value)}, which is no label; "
+                          f"labels: {', '.join(LABEL_NAMES)}")
     return LABEL_NAMES.index(name)
 
 
@@ -377,10 +486,10 @@ def label_map_from_dict(doc, name: str, where: str | None = None) -> LabelMap:
         raise ConfigError(f"{where} must be a mapping with 'labels' (and optionally 'encoding'), got {type(doc).__name__}")
     unknown = sorted(map(str, set(doc) - {"encoding", "labels"}))
     if unknown:
-        raise ConfigError(f"{where}: unknown keys {unknown}; a label map has 'encoding' and 'labels'")
+        raise ConfigError(f"{where}: unknown keys {quote(unknown[:5])}; a label map has 'encoding' and 'labels'")
     encoding = doc.get("encoding", "mono8")
-    if encoding not in LABEL_MAP_ENCODINGS:
-        raise ConfigError(f"{where}: encoding must be one of {list(LABEL_MAP_ENCODINGS)}, got {encoding!r}")
+    if not isinstance(encoding, str) or encoding not in LABEL_MAP_ENCODINGS:
+        raise ConfigError(f"{where}: encoding must be one of {list(LABEL_MAP_ENCODINGS)}, got {quote(encoding)}")
     labels = doc.get("labels")
     if not isinstance(labels, dict) or not labels:
         raise ConfigError(f"{where}: 'labels' must be a non-empty mapping of upstream "
@@ -391,8 +500,8 @@ def label_map_from_dict(doc, name: str, where: str | None = None) -> LabelMap:
     for key, value in labels.items():
         k = _upstream_id(key, where) if encoding == "mono8" else _color(key, where)
         if k in seen:
-            raise ConfigError(f"{where}: {key!r} names the same {'id' if encoding == 'mono8' else 'colour'} "
-                              f"as {seen[k][0]!r}")
+            raise ConfigError(f"{where}: {quote(key)} names the same {'id' if encoding == 'mono8' else 'colour'} "
+                              f"as {quote(seen[k][0])}")
         seen[k] = (key, _label(value, key, where))
     pairs = [(k, lab) for k, (_, lab) in seen.items()]
     return _mono8(name, pairs) if encoding == "mono8" else _rgb8(name, pairs)
@@ -403,12 +512,16 @@ __all__ = [
     "LABEL_NAMES",
     "MAX_FILE_BYTES",
     "MAX_PALETTE_COLORS",
+    "MAX_YAML_DEPTH",
+    "MAX_YAML_NODES",
     "NATIVE",
     "PRESET_NAMES",
     "LabelMap",
     "label_map",
     "label_map_from_dict",
     "load_label_map",
+    "file_kind",
     "pack_rgb",
+    "quote",
     "read_yaml_document",
 ]

@@ -253,3 +253,38 @@ def test_tiny_mixed_training_lowers_the_loss(camvid):
         opt.step()
         losses.append(loss.item())
     assert np.mean(losses[-5:]) < 0.8 * np.mean(losses[:5])
+
+
+@pytest.mark.parametrize("where", ["label_map", "labels_dir", "annotation"])
+def test_folder_fifo_or_device_in_place_of_a_file_is_named(folder, where):
+    """A FIFO, device or file where the reader expects something else is said as such (issue #29),
+    never opened (a FIFO would block) and never called "no such file"."""
+    import os  # noqa: PLC0415
+
+    if where == "label_map":
+        (folder / "label_map.yaml").unlink()
+        os.mkfifo(folder / "label_map.yaml")
+        with pytest.raises(ConfigError, match="is a FIFO, not a file"):
+            FolderDataset(folder)
+    elif where == "labels_dir":
+        import shutil  # noqa: PLC0415
+
+        shutil.rmtree(folder / "labels")
+        (folder / "labels").write_text("not a folder")
+        with pytest.raises(DatasetError, match="is a file, not a folder"):
+            FolderDataset(folder)
+    else:
+        lab = folder / "labels" / "a1.png"
+        lab.unlink()
+        lab.symlink_to("/dev/zero")
+        with pytest.raises(DatasetError, match="is a device, not a file") as e:
+            FolderDataset(folder)
+        assert str(lab) in str(e.value)
+        samples, skipped = FolderDataset(folder, skip_bad=True).load_all()
+        assert len(samples) == 1 and "device" in skipped[0][1]
+
+
+def test_folder_label_map_with_exotic_ids_is_refused(folder):
+    (folder / "label_map.yaml").write_text("labels:\n  0x07: road\n")
+    with pytest.raises(ConfigError, match="'0x07'"):
+        FolderDataset(folder)

@@ -181,8 +181,8 @@ def test_bad_specs_and_files(tmp_path):
     binary.write_bytes(b"labels: {1: road}\n\xff\xfe")
     with pytest.raises(ConfigError, match="UTF-8"):
         label_map(str(binary))
-    with pytest.raises(ConfigError, match="no such file"):
-        label_map(str(tmp_path))  # a directory
+    with pytest.raises(ConfigError, match="is a directory, not a file"):
+        label_map(str(tmp_path))  # a directory is named as such
     with pytest.raises(ConfigError, match="must be a mapping"):
         label_map_from_dict(None, "x")
 
@@ -269,3 +269,66 @@ def test_adapters_keep_size_checks_and_limits_for_every_label_map():
     msg = dataclasses.replace(msg, data=msg.data[:-1])  # truncated
     with pytest.raises(ma.EncodingError, match="bytes"):
         ma.image_to_labels(msg, label_map=lm)
+
+
+# Hostile and careless label-map files (issue #29): each is one short ConfigError line naming
+# the file (and the entry), found without building the document when it is a bomb.
+HOSTILE_YAML = [
+    ("labels: {0x10: road}\n", "'0x10'"),  # hex: YAML 1.1 would read 16
+    ("labels: {0o17: road}\n", "'0o17'"),
+    ("labels: {1_0: road}\n", "'1_0'"),
+    ("labels: {1:20: road}\n", "'1:20'"),  # sexagesimal
+    ("labels: {\u0663: road}\n", "ASCII decimal"),  # Arabic-Indic three
+    ("labels: {\uff13: road}\n", "ASCII decimal"),  # full-width three
+    ("labels: {'\u00b2': road}\n", "ASCII decimal"),  # superscript two (int() raises ValueError)
+    ("labels: {\u00b2: road}\n", "ASCII decimal"),
+    ("labels: {' 3': road}\n", "' 3'"),
+    ("labels: {'3 ': road}\n", "'3 '"),
+    ("labels: {!!int '0x10': road}\n", "'0x10'"),
+    ("labels: {300: road}\n", "0..255"),
+    ("labels: {1: roadz}\n", "'roadz', which is no label"),
+    ("encoding: rgb8\nlabels: {'\u0661,2,3': road}\n", "colour"),
+    ("encoding: rgb8\nlabels: {'1,2': road}\n", "colour '1,2'"),
+    ("encoding: rgb8\nlabels: {'#12345G': road}\n", "colour"),
+    ("encoding: [mono8]\nlabels: {1: road}\n", "encoding must be one of"),
+    ("labels: {!!python/object/apply:os.system ['true']: road}\n", "not valid YAML"),
+    ("labels: " + "[" * 50_000 + "]" * 50_000 + "\n", "(nested|nesting)"),  # was 80 s, then RecursionError
+    ("labels: " + "{a: " * 30_000 + "1" + "}" * 30_000 + "\n", "nested more than"),  # was RecursionError
+    ("labels:\n" + "".join(f"  x{i}: road\n" for i in range(60_000))[:MAX_FILE_BYTES - 10], "YAML nodes"),
+    ("a: &a [1, 1, 1, 1, 1, 1, 1, 1, 1]\nb: &b [*a, *a, *a, *a, *a, *a, *a, *a, *a]\nc: [*b, *b, *b, *b, *b]\n"
+     "labels: {1: road}\n", "aliases"),
+    ("labels: {1: " + "x" * 1_000_000 + "}\n", "which is no label"),  # a 1 MB name: a short line
+    ("labels:\n  ? " + "y" * 1_000_000 + "\n  : road\n", "upstream id"),  # a 1 MB key
+]
+
+
+@pytest.mark.parametrize("text, message", HOSTILE_YAML, ids=range(len(HOSTILE_YAML)))
+def test_hostile_yaml_files_are_one_short_error_line(tmp_path, text, message):
+    path = tmp_path / "map.yaml"
+    path.write_text(text, encoding="utf-8")
+    with pytest.raises(ConfigError, match=message) as info:
+        label_map(str(path))
+    msg = str(info.value)
+    assert str(path) in msg and "\n" not in msg and len(msg) < 400
+
+
+def test_ids_in_plain_ascii_decimal_still_read(tmp_path):
+    path = tmp_path / "map.yaml"
+    path.write_text("labels: {10: road, '011': vehicle, 255: pedestrian}\n")  # '011' is eleven, not octal
+    assert label_map(str(path)).to_dict()["labels"] == {10: "road", 11: "vehicle", 255: "pedestrian"}
+
+
+@pytest.mark.parametrize("kind", ["directory", "FIFO", "device"])
+def test_a_directory_fifo_or_device_is_named_as_such(tmp_path, kind):
+    import os  # noqa: PLC0415
+
+    path = tmp_path / "map.yaml"
+    if kind == "directory":
+        path.mkdir()
+    elif kind == "FIFO":
+        os.mkfifo(path)  # no writer: the reader must not wait for one
+    else:
+        path.symlink_to("/dev/zero")  # endless: never read
+    with pytest.raises(ConfigError, match=f"is a {kind}, not a file") as info:
+        label_map(str(path))
+    assert str(path) in str(info.value)
