@@ -63,7 +63,8 @@ from .command_line import CommandLineError, check_command_line, rcl_message, wan
 from .config import RUNTIME_PARAMETERS, NodeConfigError, node_config_from_params, with_runtime_parameters
 from .input_qos import RECHECK_S, CameraSubscription
 from .params import declare_parameters, parameter_help, read_parameters
-from .stats import NodeStats, clock_mismatch_text, diagnostic_values
+from .stats import WARN, NodeStats, clock_mismatch_text, diagnostic_values
+from .tf_source import TF_ERROR_KINDS, TfLookupError, make_tf_source
 from .worker import LatestSlot, Worker
 
 THROTTLE_S = 5.0
@@ -77,28 +78,7 @@ class _ShuttingDown(Exception):
     """The node stops: the worker abandons its frame without a word."""
 
 
-def _tf_lookup_for(node: Node):
-    """A TF lookup callable when tf2_ros is importable (a ROS install), else None."""
-    try:
-        from tf2_ros import Buffer, TransformListener  # noqa: PLC0415 - optional dependency
-    except ImportError:
-        return None
-    buffer = Buffer()
-    node._tf_listener = TransformListener(buffer, node)  # keep it alive with the node
-
-    def lookup(target: str, source: str):
-        from msg_adapters import transform_stamped_to_matrix  # noqa: PLC0415
-
-        try:
-            ts = buffer.lookup_transform(target, source, rclpy.time.Time())
-        except Exception:  # noqa: BLE001 - not yet available
-            return None
-        return transform_stamped_to_matrix(ts).matrix
-
-    return lookup
-
-
-#: How long a frame waits for the odometry of its stamp (temporal fusion only).
+#: How long a frame waits for the odometry (or TF) of its stamp (temporal fusion only).
 POSE_WAIT_S = 0.2
 
 
@@ -120,10 +100,25 @@ class MapperNode(Node):
         self._stopping = threading.Event()
         self.mapper = None
         self._mapper_version = -1
+        # TF: extrinsics (base_frame <- each CameraInfo's frame) and, per pose_source, ego poses;
+        # its problems are counted per kind (tf_errors_<kind> in /diagnostics), never fatal
+        self.tf_errors = dict.fromkeys(TF_ERROR_KINDS, 0)
+        self._tf_errors_reported = 0
+        self.tf_last_error = ""
+        self.tf = make_tf_source(self, self._tf_problem, cfg.clock_mismatch_s, self._contained) if cfg.use_tf else None
+        if cfg.use_tf and self.tf is None:
+            if cfg.pose_source == "tf":
+                raise NodeConfigError("pose_source tf needs tf2_ros, which is not importable here "
+                                      "(scripts/setup_venv.sh builds it; or source a ROS 2 distribution)")
+            self.get_logger().warning("use_tf: tf2_ros is not importable, so TF is not read: extrinsics come from the "
+                                      "extrinsics.<camera> parameters, ego poses from odom_topic")
         self.calibration = LiveCalibration(
-            cfg.rig, cfg.cameras, cfg.base_frame,
-            dict(cfg.extrinsics), _tf_lookup_for(self) if cfg.use_tf else None,
+            cfg.rig, cfg.cameras, cfg.base_frame, dict(cfg.extrinsics), self.tf,
+            max_jump_m=cfg.tf_extrinsic_jump_m, on_problem=self._tf_problem,
         )
+        self._sources_logged: dict[str, str] = {}
+        self._odom_seen = False
+        self.pose_used = ""  # where the last frame's pose came from: odom / tf / '' (none)
         self.sync = FrameSynchronizer(cfg.cameras, cfg.sync_config(), callback=self._on_set)
         self.slot: LatestSlot = LatestSlot()
         self.worker = Worker(self.slot, self._process, self._on_worker_error)
@@ -150,7 +145,7 @@ class MapperNode(Node):
         self._poses_lock = threading.Lock()
         self.fusion = TemporalFusion(cfg.grid, cfg.temporal) if cfg.temporal.window > 1 else None
         self.needs_pose = self.fusion is not None or mapper_class(cfg.mapper.method).uses_ego_pose
-        if self.needs_pose:
+        if self.needs_pose and cfg.pose_source != "tf":
             self._subs.append(self.create_subscription(
                 Odometry, cfg.odom_topic, self._contained("odometry", self._odom_cb), 50))
         self._grid_pubs = {c: self.create_publisher(OccupancyGrid, f"{cfg.output_prefix}/{c}", OUTPUT_QOS)
@@ -242,7 +237,32 @@ class MapperNode(Node):
         self.slot.put(synced)
 
     def _pose_at(self, stamp_ns: int):
-        """The ego pose at ``stamp_ns``; waits up to POSE_WAIT_S for odometry at or after the
+        """The ego pose at ``stamp_ns`` from odometry or TF, as ``pose_source`` says (``auto``:
+        odometry once some arrived, else TF); None when there is none (the fusion then maps the
+        frame without its history and says why).
+        """
+        src = self.cfg.pose_source
+        use_odom = src == "odom" or (src == "auto" and (self.tf is None or self._odom_seen))
+        self.pose_used = "odom" if use_odom else "tf"
+        return self._odom_pose_at(stamp_ns) if use_odom else self._tf_pose_at(stamp_ns)
+
+    def _tf_pose_at(self, stamp_ns: int):
+        """``odom_frame <- base_frame`` at ``stamp_ns`` (tf2 interpolates); waits up to
+        POSE_WAIT_S for TF to reach the stamp; a failure is counted and gives None.
+        """
+        deadline = time.monotonic() + POSE_WAIT_S
+        while True:
+            try:
+                return self.tf.lookup(self.cfg.odom_frame, self.cfg.base_frame, stamp_ns)
+            except TfLookupError as exc:
+                if exc.kind == "extrapolation" and time.monotonic() < deadline and not self._stopping.is_set():
+                    time.sleep(0.005)  # the TF of this instant may arrive just after the images
+                    continue
+                self._tf_problem(exc.kind, f"ego pose: {exc}")
+                return None
+
+    def _odom_pose_at(self, stamp_ns: int):
+        """The odometry pose at ``stamp_ns``; waits up to POSE_WAIT_S for odometry at or after the
         stamp (odometry of the same instant often arrives just after the images), else None.
         """
         deadline = time.monotonic() + POSE_WAIT_S
@@ -260,8 +280,23 @@ class MapperNode(Node):
             state = odometry_to_state(msg)
             with self._poses_lock:
                 self.poses.add(state.stamp_ns, state.world_from_ego)
+            self._odom_seen = True
         except BevMapperError as exc:
             self._bad_input(f"odometry: {exc}", "odometry")
+
+    def _tf_problem(self, kind: str, message: str) -> None:
+        """Count a TF problem of ``kind`` (:data:`TF_ERROR_KINDS`); log it at most every THROTTLE_S per kind."""
+        with self.stats.lock:
+            self.tf_errors[kind] += 1
+            self.tf_last_error = message
+        self._throttled_warning(f"tf:{kind}", f"TF ({kind}): {message}")
+
+    def _log_extrinsic_sources(self) -> None:
+        """Say where each camera's extrinsic comes from, whenever that changes."""
+        sources = self.calibration.sources()
+        if sources != self._sources_logged:
+            self._sources_logged = sources
+            self.get_logger().info(f"extrinsics: {self.calibration.describe_sources()}")
 
     def _throttled_warning(self, key: str, message: str) -> None:
         """Log a warning ``message`` at most every THROTTLE_S per ``key``."""
@@ -327,11 +362,13 @@ class MapperNode(Node):
             if tuple(self.mapper.class_names) != tuple(self.class_names):
                 raise BevMapperError(f"the mapper produces {list(self.mapper.class_names)}, "
                                      f"not the announced {list(self.class_names)}")
+            self._log_extrinsic_sources()
             self.get_logger().info(
                 f"calibration complete (extrinsics from {self.calibration.sources()}); publishing "
                 f"{list(self.class_names)} on {self.cfg.output_prefix}/<class>")
         elif self._mapper_version != self.calibration.version:
             self.mapper.set_rig(rig)
+            self._log_extrinsic_sources()
             self.get_logger().info("calibration changed: lookup tables recomputed")
         self._mapper_version = self.calibration.version
         return True
@@ -381,6 +418,9 @@ class MapperNode(Node):
         if not images:
             return
         stamp = synced.stamp_ns
+        if missing:
+            self._throttled_warning("missing", f"mapping a set without cameras {missing} ({synced.reason}); "
+                                               "/diagnostics counts them per camera (missing_by_camera)")
         pose = self._pose_at(stamp) if self.needs_pose else None
         pred = self.mapper.map(images, ego_pose=pose, stamp_ns=stamp)
         if self.mapper.uses_ego_pose:  # the method's own memory
@@ -409,15 +449,40 @@ class MapperNode(Node):
     # -------------------------------------------------------------- diagnostics
     def _publish_diagnostics(self) -> None:
         s = self.sync.stats
+        window_ms = self.sync.window_ns / 1e6
+        with self.stats.lock:
+            new_splits, self.stats.split_sets, self.stats.sync_window_ms = s.split - self.stats.split_sets, s.split, window_ms
+        if new_splits > 0:
+            self._throttled_warning("split", f"{s.split} frame(s) so far were split into two partial sets: their cameras' "
+                                             f"stamps spread wider than the {window_ms:.0f} ms window (raise sync_slop_s)")
         dropped = self.slot.dropped + s.late + s.overflow + s.dropped_on_reset
         level, text, values = diagnostic_values(self.stats, time.monotonic(), self.cfg, dropped)
         values["use_sim_time"] = str(self._use_sim_time()).lower()
+        level, text = self._tf_diagnostics(values, level, text)
         status = DiagnosticStatus(level=bytes([level]), name=f"{self.get_name()}: bev mapper",
                                   message=text, hardware_id=self.calibration.rig_name)
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.get_clock().now().to_msg()
         self._diag_pub.publish(msg)
+
+    def _tf_diagnostics(self, values: dict, level: int, text: str) -> tuple[int, str]:
+        """TF's key/values (which extrinsics, which pose, the error counters); WARN when TF
+        problems arrived since the last report."""
+        values["tf"] = "off" if not self.cfg.use_tf else ("tf2_ros" if self.tf is not None else "not importable")
+        values["extrinsics_source"] = ",".join(f"{c}:{s}" for c, s in self.calibration.sources().items())
+        values["pose_source"] = self.pose_used if self.needs_pose else ""
+        with self.stats.lock:
+            for kind, n in self.tf_errors.items():
+                values[f"tf_errors_{kind}"] = n
+            values["tf_last_error"] = self.tf_last_error
+            total, new = sum(self.tf_errors.values()), sum(self.tf_errors.values()) - self._tf_errors_reported
+            self._tf_errors_reported = total
+        if new > 0:
+            note = f"{new} TF problem(s) since the last report: {self.tf_last_error}"
+            text = note if level == 0 else f"{text}; {note}"
+            level = max(level, WARN)
+        return level, text
 
     def stop(self) -> None:
         """Stop the worker: its current frame is finished or abandoned, quietly."""

@@ -23,6 +23,7 @@ import sys
 from .config import PARAM_FIELDS, NodeConfig
 from .params import _EXTRINSICS_TEXT, _TYPE_NAMES, PARAMETERS, _shown
 from .stats import NodeStats, diagnostic_values
+from .tf_source import TF_ERROR_TEXTS
 
 README = pathlib.Path(__file__).resolve().parents[1] / "README.md"
 
@@ -33,6 +34,11 @@ DIAGNOSTIC_KEYS: dict[str, str] = {
     "bad_input": "messages refused since start-up (wrong encoding, size mismatch, truncated data, uncalibrated CameraInfo, ...)",
     "errors": "failures of the mapping step since start-up (logged; the node keeps running)",
     "sets_with_missing_cameras": "sets mapped without every camera (timed out after `sync_timeout_s`)",
+    "missing_by_camera": "per camera, the mapped sets that lacked it (`camera:count`, comma-separated)",
+    "split_sets": "frames whose cameras spread wider than the synchronizer's window, so that they were mapped as two "
+                  "partial sets (widen `sync_slop_s`)",
+    "sync_window_ms": "the stamp spread a set may have now: `sync_slop_s`, at most half the cameras' measured frame "
+                      "period",
     "cameras_missing": "cameras missing from the last mapped set, comma-separated",
     "waiting_for": "cameras still without CameraInfo or extrinsics, comma-separated",
     "last_error": "the last bad input or error message",
@@ -50,6 +56,14 @@ DIAGNOSTIC_KEYS: dict[str, str] = {
 #: Keys the node adds to :func:`~bev_mapper_ros.stats.diagnostic_values`'s (``mapper_node``).
 NODE_DIAGNOSTIC_KEYS: dict[str, str] = {
     "use_sim_time": "the node's `use_sim_time` (`true` / `false`)",
+    "tf": "`tf2_ros` (TF is read), `not importable` (extrinsics from parameters, poses from `odom_topic`) or `off` "
+          "(`use_tf` false)",
+    "extrinsics_source": "per camera, where its extrinsic comes from: `tf` or `parameter` (`camera:source`, "
+                         "comma-separated)",
+    "pose_source": "where the last frame's ego pose came from: `odom` or `tf` ('' = no pose needed)",
+    **{f"tf_errors_{kind}": f"TF problems of kind `{kind}` since start-up ({text}); none stops the node or reaches a map"
+       for kind, text in TF_ERROR_TEXTS.items()},
+    "tf_last_error": "the last TF problem",
 }
 
 

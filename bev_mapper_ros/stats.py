@@ -58,6 +58,9 @@ class NodeStats:
     errors: int = 0
     waiting: int = 0
     missing_camera_sets: int = 0
+    missing_by_camera: dict = field(default_factory=dict)  # camera -> mapped sets without it
+    split_sets: int = 0  # the synchronizer's SyncStats.split, copied before each diagnostics message
+    sync_window_ms: float | None = None  # the synchronizer's window now
     last_error: str = ""
     waiting_for: tuple[str, ...] = ()
     cameras_missing: tuple[str, ...] = ()
@@ -91,6 +94,8 @@ class NodeStats:
             self.cameras_missing = tuple(missing)
             if missing:
                 self.missing_camera_sets += 1
+            for camera in missing:
+                self.missing_by_camera[camera] = self.missing_by_camera.get(camera, 0) + 1
 
     def record_bad_input(self, message: str) -> None:
         """Count one rejected message or camera image."""
@@ -134,6 +139,9 @@ def diagnostic_values(stats: NodeStats, now_s: float, cfg, dropped: int) -> tupl
             "bad_input": stats.bad_input,
             "errors": stats.errors,
             "sets_with_missing_cameras": stats.missing_camera_sets,
+            "missing_by_camera": ",".join(f"{c}:{n}" for c, n in sorted(stats.missing_by_camera.items())),
+            "split_sets": stats.split_sets,
+            "sync_window_ms": "" if stats.sync_window_ms is None else round(stats.sync_window_ms, 1),
             "cameras_missing": ",".join(stats.cameras_missing),
             "waiting_for": ",".join(stats.waiting_for),
             "last_error": stats.last_error,

@@ -7,8 +7,12 @@ behaviour is reproducible in unit tests and in offline bag replay.
 Rules:
 
 * A message joins the pending set where its stream is still free and the set's stamp spread
-  (max - min) stays within ``slop_ns``; the closest such set wins. Otherwise it opens a new set
-  whose deadline is ``now + timeout_ns``.
+  (max - min) stays within the window; the closest such set wins. Otherwise it opens a new set
+  whose deadline is ``now + timeout_ns``. The window is ``slop_ns`` (50 ms: real rigs trigger
+  their cameras over tens of milliseconds, nuScenes' six over ~43 ms), but at most
+  ``max_slop_fraction`` of the cameras' frame period as measured from the stamps (the median
+  interval of each stream's last messages, the median over the streams), so that two
+  consecutive frames are never merged into one set (at 20 Hz the window is 25 ms).
 * A set is emitted as soon as every stream is filled. Older pending sets are emitted first
   (partial, reason ``'superseded'``), so output stamps are monotonic.
 * At ``now >= deadline`` a set is emitted partial (reason ``'timeout'``): the missing streams
@@ -37,7 +41,10 @@ from typing import Any
 
 from .errors import AdapterError, SyncConfigError
 
-#: Offline bag replay widens the live slop and timeout by this factor (see :meth:`SyncConfig.replay`).
+#: Intervals per stream kept to measure the frame period.
+_INTERVALS = 9
+
+#: Offline bag replay widens the live timeout by this factor (see :meth:`SyncConfig.replay`).
 REPLAY_WIDENING = 1.5
 
 
@@ -49,12 +56,14 @@ class SyncConfig:
     default to ``slop_ns`` / ``timeout_ns``. Offline replay uses :meth:`replay`.
     """
 
-    slop_ns: int = 20_000_000
+    slop_ns: int = 50_000_000
     timeout_ns: int = 200_000_000
     queue_size: int = 8
     jump_back_ns: int = 1_000_000_000
     #: Partial sets with fewer valid streams are dropped (counted in ``sparse``).
     min_valid: int = 1
+    #: The window never exceeds this fraction of the measured frame period (0 = no limit).
+    max_slop_fraction: float = 0.5
 
     def __post_init__(self) -> None:
         if self.slop_ns < 0 or self.timeout_ns < 0:
@@ -65,21 +74,20 @@ class SyncConfig:
             raise SyncConfigError(f"jump_back_ns must be > 0, got {self.jump_back_ns}")
         if self.min_valid < 1:
             raise SyncConfigError(f"min_valid must be >= 1, got {self.min_valid}")
+        if not 0.0 <= self.max_slop_fraction <= 1.0:
+            raise SyncConfigError(f"max_slop_fraction must be in [0, 1], got {self.max_slop_fraction}")
 
     @classmethod
-    def replay(cls) -> "SyncConfig":
-        """Settings for reading bags offline: slop and timeout :data:`REPLAY_WIDENING` times the
-        live defaults (30 ms / 300 ms), twice the queue.
+    def replay(cls, slop_ns: int | None = None, timeout_ns: int | None = None) -> "SyncConfig":
+        """Settings for reading bags offline: the live window (``slop_ns``), the timeout
+        :data:`REPLAY_WIDENING` times the live one (300 ms), twice the queue; ``slop_ns`` /
+        ``timeout_ns`` replace them (``bev-bag replay --sync-slop-ms / --sync-timeout-ms``).
 
-        A live node trades a tight window for latency; offline nothing waits, and recorded
-        bags may spread one frame's camera stamps wider than the live slop: ``bev-bag synth
-        --jitter-ms`` allows up to half the frame period. Measured on a 20-frame surround6
-        drive (seed 950000008): identical replays with either window at 0 and 10 ms jitter, but
-        at 15 ms the live window splits frames (33 partial sets instead of 20 frames, IPM mIoU
-        45.9 instead of 71.1).
+        Offline nothing waits for a late camera, so a longer timeout costs nothing; the window
+        is the live one, so that a bag replays into the sets the node maps.
         """
-        return cls(slop_ns=round(cls.slop_ns * REPLAY_WIDENING),
-                   timeout_ns=round(cls.timeout_ns * REPLAY_WIDENING),
+        return cls(slop_ns=cls.slop_ns if slop_ns is None else int(slop_ns),
+                   timeout_ns=round(cls.timeout_ns * REPLAY_WIDENING) if timeout_ns is None else int(timeout_ns),
                    queue_size=2 * cls.queue_size)
 
 
@@ -129,6 +137,9 @@ class SyncStats:
 
     complete: int = 0
     partial: int = 0
+    #: partial sets whose missing streams came in the next set, less than half a frame period
+    #: later: one frame whose cameras spread wider than the window (see :attr:`SyncConfig.slop_ns`)
+    split: int = 0
     late: int = 0
     overflow: int = 0
     sparse: int = 0
@@ -170,6 +181,8 @@ class FrameSynchronizer:
         self._newest_now: int | None = None
         self._newest_stamp: dict[str, int] = {}  # per stream
         self._last_emitted_lo: int | None = None
+        self._intervals: dict[str, deque[int]] = {n: deque(maxlen=_INTERVALS) for n in names}
+        self._last_partial: tuple[frozenset[str], int, int] | None = None  # (streams, lo, hi)
         self._stats = SyncStats()
         self._out: deque[SyncedSet] = deque()
         self._draining = False
@@ -180,6 +193,20 @@ class FrameSynchronizer:
         """A snapshot of the counters."""
         with self._lock:
             return self._stats
+
+    @property
+    def window_ns(self) -> int:
+        """The stamp spread a set may have now: ``slop_ns``, at most ``max_slop_fraction`` of the
+        measured frame period (see the module docstring).
+        """
+        with self._lock:
+            return self._window()
+
+    @property
+    def period_ns(self) -> int | None:
+        """The cameras' frame period measured from the stamps (``None`` until measured)."""
+        with self._lock:
+            return self._period()
 
     @property
     def pending(self) -> int:
@@ -230,6 +257,18 @@ class FrameSynchronizer:
             self._reset_locked()
 
     # --------------------------------------------------------------- internals
+    def _period(self) -> int | None:
+        """Median over the streams of each stream's median interval (streams with 2+ intervals)."""
+        per_stream = sorted(sorted(d)[len(d) // 2] for d in self._intervals.values() if len(d) >= 2)
+        return per_stream[len(per_stream) // 2] if per_stream else None
+
+    def _window(self) -> int:
+        cfg = self.config
+        period = self._period()
+        if period is None or cfg.max_slop_fraction <= 0:
+            return cfg.slop_ns
+        return min(cfg.slop_ns, int(period * cfg.max_slop_fraction))
+
     def _reset_locked(self) -> None:
         self._stats = replace(
             self._stats,
@@ -240,6 +279,9 @@ class FrameSynchronizer:
         self._newest_now = None
         self._newest_stamp.clear()
         self._last_emitted_lo = None
+        self._last_partial = None
+        for d in self._intervals.values():
+            d.clear()
 
     def _advance_now(self, now: int) -> None:
         """Track ``now``; reset on a backwards jump."""
@@ -255,14 +297,17 @@ class FrameSynchronizer:
         if now is None:  # stamp-driven time: the newest stamp of any stream
             now = stamp if self._newest_now is None else max(self._newest_now, stamp)
         self._advance_now(now)
+        if last is not None and stamp > last:
+            self._intervals[name].append(stamp - last)
         self._newest_stamp[name] = max(self._newest_stamp.get(name, stamp), stamp)
 
+        window = self._window()
         best, best_cost = None, None
         for i, s in enumerate(self._pending):
             if name in s.msgs:
                 continue
             lo, hi = min(s.lo, stamp), max(s.hi, stamp)
-            if hi - lo > cfg.slop_ns:
+            if hi - lo > window:
                 continue
             cost = abs(stamp - (s.lo + s.hi) / 2)
             if best_cost is None or cost < best_cost:
@@ -270,7 +315,7 @@ class FrameSynchronizer:
 
         out: list[SyncedSet] = []
         if best is None:
-            if self._last_emitted_lo is not None and stamp <= self._last_emitted_lo + cfg.slop_ns:
+            if self._last_emitted_lo is not None and stamp <= self._last_emitted_lo + window:
                 self._stats = replace(self._stats, late=self._stats.late + 1)
                 return self._expire(now)
             new = _Open(deadline_ns=now + cfg.timeout_ns, msgs={name: (stamp, msg)})
@@ -314,8 +359,10 @@ class FrameSynchronizer:
             return None
         if complete:
             self._stats = replace(self._stats, complete=self._stats.complete + 1)
+            self._last_partial = None
         else:
             self._stats = replace(self._stats, partial=self._stats.partial + 1)
+            self._count_split(s)
         return SyncedSet(
             names=self.names,
             messages={n: s.msgs[n][1] if n in s.msgs else None for n in self.names},
@@ -323,6 +370,20 @@ class FrameSynchronizer:
             valid=valid,
             reason="complete" if complete else reason,
         )
+
+    def _count_split(self, s: _Open) -> None:
+        """Count ``s`` as the second half of a split frame when it holds only streams that the
+        partial set emitted just before it lacked, within half a frame period of it.
+        """
+        streams, prev = frozenset(s.msgs), self._last_partial
+        self._last_partial = (streams, s.lo, s.hi)
+        if prev is None or streams & prev[0]:
+            return
+        period = self._period()
+        reach = period // 2 if period is not None else 4 * self.config.slop_ns
+        if max(s.hi, prev[2]) - min(s.lo, prev[1]) < reach:
+            self._stats = replace(self._stats, split=self._stats.split + 1)
+            self._last_partial = None
 
     def _enqueue(self, sets: list[SyncedSet]) -> None:
         """Queue emitted sets for the callback (called with the lock held, in emission order)."""

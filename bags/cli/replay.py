@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from pathlib import Path
@@ -13,7 +14,11 @@ from bev_mapper_core.labels.label_maps import PRESET_NAMES
 from bev_mapper_core.mapper import BACKENDS, INPUT_KINDS, MapperConfig, available_methods
 from bev_mapper_core.metrics import SCOPES, format_table, format_whole_grid_table
 from bev_mapper_core.temporal import TemporalConfig
+from msg_adapters.errors import SyncConfigError
+from msg_adapters.sync import SyncConfig
 
+from ..errors import BagError
+from ..io.rig_source import RigChoice
 from ..io.writer import STORAGES
 from ..replay import ReplayOptions, replay
 from .grid_args import add_grid_args, grid_from_args
@@ -122,7 +127,23 @@ def add_replay_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--storage", choices=STORAGES, default=ReplayOptions.storage, help="storage of bev_bag/")
     p.add_argument("--force", action="store_true", help="replace existing outputs in DIR")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    grid = p.add_argument_group("grid of bags without GT layers (default: the surround grid)")
+    rig = p.add_argument_group(
+        "a bag recorded elsewhere (what the bag lacks; its own CameraInfo and /tf_static win where present)")
+    rig.add_argument("--rig", default=RigChoice.name, metavar="NAME",
+                     help="the bag's rig: a preset (its cameras, in its order, their extrinsics and intrinsics, and "
+                          "its shipped weights) or any name; default: the bag's metadata, else a preset whose "
+                          "cameras and calibration the bag has, else the bag's file name")
+    rig.add_argument("--params-file", type=Path, default=RigChoice.params_file, metavar="FILE",
+                     help="the node's parameter file (e.g. config/surround6.yaml): rig, cameras, image_topic / "
+                          "camera_info_topic patterns, extrinsics.<camera>, base_frame, grid")
+    live = SyncConfig.replay()
+    sync = p.add_argument_group("synchronization of the cameras' images into sets")
+    sync.add_argument("--sync-slop-ms", type=float, default=None, metavar="MS",
+                      help=f"the widest stamp spread of one set (default {live.slop_ns / 1e6:g} ms, the node's "
+                           f"sync_slop_s; never more than {SyncConfig.max_slop_fraction:g} x the cameras' frame period)")
+    sync.add_argument("--sync-timeout-ms", type=float, default=None, metavar="MS",
+                      help=f"a set waits this long (bag time) for its missing cameras (default {live.timeout_ns / 1e6:g} ms)")
+    grid = p.add_argument_group("grid of bags without GT layers (default: the surround grid, or the --params-file's)")
     add_grid_args(grid, "the grid to map onto")
 
 
@@ -141,7 +162,31 @@ def options_from_args(args: argparse.Namespace) -> ReplayOptions:
         storage=args.storage, force=args.force,
         progress=not args.quiet and sys.stderr.isatty(),
         temporal=TemporalConfig(window=args.temporal_window), pipeline=args.pipeline,
+        rig=RigChoice(name=args.rig, params_file=args.params_file),
+        sync=sync_from_args(args),
     )
+
+
+def sync_from_args(args: argparse.Namespace) -> SyncConfig:
+    """``--sync-slop-ms`` / ``--sync-timeout-ms`` -> :meth:`SyncConfig.replay` (a longer timeout
+    follows a slop given wider than it).
+
+    Raises:
+        BagError: a value that is not a finite number >= 0.
+    """
+    ms = {}
+    for name in ("sync_slop_ms", "sync_timeout_ms"):
+        v = getattr(args, name)
+        if v is not None and not (math.isfinite(v) and 0 <= v <= 60_000):
+            raise BagError(f"--{name.replace('_', '-')} must be a number of milliseconds in [0, 60000], got {v}")
+        ms[name] = None if v is None else round(v * 1e6)
+    slop, timeout = ms["sync_slop_ms"], ms["sync_timeout_ms"]
+    if timeout is None and slop is not None:
+        timeout = max(SyncConfig.replay().timeout_ns, slop)
+    try:
+        return SyncConfig.replay(slop_ns=slop, timeout_ns=timeout)
+    except SyncConfigError as exc:
+        raise BagError(f"--sync-slop-ms / --sync-timeout-ms: {exc}") from None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -161,8 +206,11 @@ def run(args: argparse.Namespace) -> int:
         print(format_whole_grid_table(m))
     lat = m["latency_ms"]
     lat_text = f"; mapping p50 {lat['p50']} ms, p95 {lat['p95']} ms" if lat["p50"] is not None else ""
-    print(f"replayed {m['frames']} frame(s) ({m['frames_scored']} scored) with {m['method']} in "
-          f"{time.monotonic() - t0:.1f} s{lat_text}; outputs in {result.out}")
+    sync = m["sync"]
+    sync_text = (f"; {sync['partial_sets']} set(s) without some camera (metrics.json: sync)"
+                 if sync["partial_sets"] else "")
+    print(f"replayed {m['frames']} frame(s) ({m['frames_scored']} scored) with {m['method']} on rig "
+          f"{m['rig']['name']!r} in {time.monotonic() - t0:.1f} s{lat_text}{sync_text}; outputs in {result.out}")
     for note in result.notes:
         print(f"note: {note}", file=sys.stderr)
     if result.damage:

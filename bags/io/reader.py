@@ -25,7 +25,7 @@ import numpy as np
 
 from bev_mapper_core.errors import BevMapperError
 from bev_mapper_core.geometry.grid import BevGrid
-from bev_mapper_core.geometry.rig import Rig, RigCamera
+from bev_mapper_core.geometry.rig import Rig, RigCamera, preset_rig
 from bev_mapper_core.labels.classes import BEV_CLASS_NAMES
 from bev_mapper_core.labels.label_maps import LabelMap
 from msg_adapters import (
@@ -47,13 +47,15 @@ from msg_adapters import (
 from ..errors import BagContentError, BagCorruptError
 from . import topics as T
 from .input_checks import DECODE_ERRORS, InputIssues, StampDrift, check_grid_size, check_types, stamp_problem, type_problems
+from .rig_source import RIG_FLAGS_HINT, RigHints, matching_preset
 from .sources import TopicSummary, open_source
+from .sync_report import SyncReport
 
 log = logging.getLogger(__name__)
 
 MS = 1_000_000
-#: Default synchronization of bag frames: the replay window of :meth:`SyncConfig.replay`
-#: (cameras of one frame within 30 ms of each other: wider than the node's live window).
+#: Default synchronization of bag frames: :meth:`SyncConfig.replay` (the node's window, cameras
+#: of one frame within 50 ms of each other and half the frame period; a longer timeout).
 DEFAULT_SYNC = SyncConfig.replay()
 
 
@@ -131,18 +133,25 @@ class BagReader:
 
     Args:
         path: rosbag2 directory, ``.mcap`` or ``.db3`` file.
-        ego_frame: the frame the camera extrinsics are expressed in.
+        ego_frame: the frame the camera extrinsics are expressed in (``hints.base_frame``
+            replaces it).
+        hints: what the user says about the rig where the bag lacks it (``--rig``,
+            ``--params-file``: :mod:`bags.io.rig_source`): camera names and order, topic
+            patterns, extrinsics and intrinsics, the rig's name.
     """
 
-    def __init__(self, path: str | Path, *, ego_frame: str = "base_link") -> None:
+    def __init__(self, path: str | Path, *, ego_frame: str = "base_link", hints: RigHints | None = None) -> None:
         self.path = Path(path)
-        self.ego_frame = ego_frame
+        self.hints = hints or RigHints()
+        self.ego_frame = self.hints.base_frame or ego_frame
         self._src = open_source(self.path)
         self._rig: Rig | None = None
         self._grid: BevGrid | None = None
         #: messages skipped as damaged, cameras without calibration (see module docstring)
         self.issues = InputIssues()
         self.issues.cameras_without_calibration = list(self.uncalibrated_cameras)
+        #: cameras missing from synchronized sets, per camera (filled as :meth:`frames` runs)
+        self.sync_report = SyncReport()
 
     def __enter__(self) -> "BagReader":
         return self
@@ -175,9 +184,21 @@ class BagReader:
         """``custom_data`` of metadata.yaml (empty for plain files)."""
         return dict(self._src.custom_data)
 
+    def image_topic(self, camera: str, kind: str = "rgb") -> str:
+        """The image topic of ``camera`` (``/cameras/<camera>/image_raw`` unless the hints say)."""
+        return self.hints.image_topics[kind].format(camera=camera)
+
+    def camera_info_topic(self, camera: str) -> str:
+        """The CameraInfo topic of ``camera`` (``/cameras/<camera>/camera_info`` unless the hints say)."""
+        return self.hints.camera_info_topic.format(camera=camera)
+
     @property
     def camera_names(self) -> tuple[str, ...]:
-        """Cameras with a ``/cameras/<cam>/camera_info`` topic, in the bag's topic order."""
+        """The rig's cameras: the hints' (in their order) that have a CameraInfo topic or given
+        intrinsics; else those with a ``/cameras/<cam>/camera_info`` topic, in the bag's topic order.
+        """
+        if self.hints.cameras:
+            return tuple(c for c in self.hints.cameras if c not in self.uncalibrated_cameras)
         names = []
         for topic in self._src.topic_order:
             parsed = T.parse_camera_topic(topic)
@@ -187,7 +208,13 @@ class BagReader:
 
     @property
     def uncalibrated_cameras(self) -> tuple[str, ...]:
-        """Cameras with image topics but no ``camera_info`` topic (they cannot be mapped)."""
+        """Cameras with image topics but no CameraInfo topic (nor intrinsics from the hints):
+        they cannot be mapped.
+        """
+        if self.hints.cameras:
+            return tuple(c for c in self.hints.cameras
+                         if self.camera_info_topic(c) not in self._src.topics and c not in self.hints.intrinsics
+                         and any(self.image_topic(c, k) in self._src.topics for k in T.IMAGE_KINDS))
         names = []
         for topic in self._src.topic_order:
             parsed = T.parse_camera_topic(topic)
@@ -240,20 +267,26 @@ class BagReader:
 
     # ------------------------------------------------------------ rig & grid
     def rig(self) -> Rig:
-        """The camera rig from the first CameraInfo of each camera and ``/tf_static``.
+        """The camera rig: each camera's first CameraInfo and its extrinsics from ``/tf_static``;
+        where the bag has none, the hints' intrinsics and extrinsics. Named by the hints, else
+        the bag's ``bev_mapper.rig`` metadata, else the preset whose cameras and calibration it
+        has (:func:`~bags.io.rig_source.matching_preset`), else after the bag's file name.
 
         Raises:
-            BagContentError: no cameras, a camera without CameraInfo, or a camera frame that
-                ``/tf_static`` does not connect to ``ego_frame``.
+            BagContentError: no cameras, a camera without CameraInfo or a camera frame that
+                ``/tf_static`` does not connect to ``ego_frame``, and no hints for them (the
+                message names ``--rig`` / ``--params-file``).
         """
         if self._rig is not None:
             return self._rig
         names = self.camera_names
         if not names:
-            raise BagContentError(f"{self.path}: no /cameras/<name>/camera_info topics")
+            raise BagContentError(f"{self.path}: no /cameras/<name>/camera_info topics; {RIG_FLAGS_HINT}")
         infos: dict[str, Any] = {}
         tree = TfTree()
-        wanted = {T.camera_info_topic(n) for n in names} | {T.TF_STATIC}
+        info_topics = {self.camera_info_topic(n): n for n in names if self.camera_info_topic(n) in self._src.topics}
+        has_tf = T.TF_STATIC in self._src.topics
+        wanted = set(info_topics) | ({T.TF_STATIC} if has_tf else set())
         self._check_types(wanted)
         for m in self.messages(wanted):
             if m.topic == T.TF_STATIC:
@@ -262,24 +295,37 @@ class BagReader:
                 except DECODE_ERRORS as exc:
                     raise BagContentError(f"{self.path}: {T.TF_STATIC}: {exc}") from None
             else:
-                cam = T.parse_camera_topic(m.topic)[0]
-                infos.setdefault(cam, m.msg)
-            if len(infos) == len(names) and self._all_connected(tree, infos):
+                infos.setdefault(info_topics[m.topic], m.msg)
+            if len(infos) == len(info_topics) and (not has_tf or self._all_connected(tree, infos)):
                 break
-        missing = [n for n in names if n not in infos]
+        missing = [n for n in names if n not in infos and n not in self.hints.intrinsics]
         if missing:
-            raise BagContentError(f"{self.path}: no CameraInfo message for cameras {missing}")
-        cams = []
-        for n in names:
-            try:
-                frame = str(infos[n].header.frame_id).lstrip("/")
-                model = camera_info_to_model(infos[n])
-                ego_from_cam = tree.lookup(self.ego_frame, frame)
-                cams.append(RigCamera(n, model, ego_from_cam, frame))
-            except (BevMapperError, *DECODE_ERRORS) as exc:
-                raise BagContentError(f"{self.path}: camera {n!r}: {exc}") from None
-        self._rig = Rig(self.custom_data.get("bev_mapper.rig", self.path.stem), tuple(cams))
+            raise BagContentError(f"{self.path}: no CameraInfo message for cameras {missing}; {RIG_FLAGS_HINT}")
+        cams = [self._camera(n, infos.get(n), tree) for n in names]
+        rig = Rig(self.path.stem, tuple(cams))
+        name = self.hints.name or self.custom_data.get("bev_mapper.rig") or matching_preset(rig)
+        if name and not self.hints.cameras and matching_preset(rig) == name:
+            rig = Rig(name, tuple(rig[c] for c in preset_rig(name).names))  # the preset's camera order
+        self._rig = Rig(name or self.path.stem, rig.cameras)
         return self._rig
+
+    def _camera(self, name: str, info: Any, tree: TfTree) -> RigCamera:
+        """One camera of :meth:`rig`: the bag's CameraInfo and TF, else the hints'."""
+        try:
+            if info is not None:
+                frame = str(info.header.frame_id).lstrip("/")
+                model = camera_info_to_model(info)
+            else:
+                frame, model = name, self.hints.intrinsics[name]
+            try:
+                ego_from_cam = tree.lookup(self.ego_frame, frame)
+            except DECODE_ERRORS as exc:
+                if name not in self.hints.extrinsics:
+                    raise BagContentError(f"{self.path}: camera {name!r}: {exc}; {RIG_FLAGS_HINT}") from None
+                ego_from_cam = self.hints.extrinsics[name]
+            return RigCamera(name, model, ego_from_cam, frame)
+        except (BevMapperError, *DECODE_ERRORS) as exc:
+            raise BagContentError(f"{self.path}: camera {name!r}: {exc}") from None
 
     def _all_connected(self, tree: TfTree, infos: dict[str, Any]) -> bool:
         try:
@@ -321,16 +367,21 @@ class BagReader:
         names = self.camera_names
         sizes: dict[str, tuple[int, int]] = {}
         try:
-            for m in self.messages({T.camera_info_topic(n) for n in names}):
-                cam = T.parse_camera_topic(m.topic)[0]
+            topics = {self.camera_info_topic(n): n for n in names}
+            wanted = set(topics) & set(self._src.topics)
+            for m in self.messages(wanted):
+                cam = topics[m.topic]
                 try:  # the delivered size: after binning and ROI
                     sizes.setdefault(cam, tuple(camera_info_to_model(m.msg).image_size))
                 except (BevMapperError, *DECODE_ERRORS):
                     pass
-                if len(sizes) == len(names):
+                if len(sizes) == len(wanted):
                     break
         except BagCorruptError:
             pass  # the frame pass reports the damage
+        for n in names:  # cameras calibrated by the hints alone
+            if n not in sizes and n in self.hints.intrinsics:
+                sizes[n] = tuple(self.hints.intrinsics[n].image_size)
         return sizes
 
     # ----------------------------------------------------------------- frames
@@ -371,8 +422,8 @@ class BagReader:
         cams = self.camera_names
         kinds = [k for k, on in (("rgb", rgb), ("labels", labels)) if on]
         stream_of = {
-            T.image_topic(c, k): f"{c}/{k}" for c in cams for k in kinds
-            if T.image_topic(c, k) in self._src.topics
+            self.image_topic(c, k): f"{c}/{k}" for c in cams for k in kinds
+            if self.image_topic(c, k) in self._src.topics
         }
         if not stream_of:
             raise BagContentError(f"{self.path}: no image topics for {kinds} of cameras {cams}")
@@ -390,11 +441,13 @@ class BagReader:
 
         streams = [f"{c}/{k}" for c in cams for k in kinds]
         sync_ = FrameSynchronizer(streams, sync)
+        self.sync_report = SyncReport(cameras=cams, window_ms=sync.slop_ns / 1e6, cameras_without_images=tuple(
+            c for c in cams if not all(self.image_topic(c, k) in self._src.topics for k in kinds)))
         gt_buf = {c: deque() for c in gt_topics.values()}
         odom_buf: deque = deque()
         ready: deque[SyncedSet] = deque()
         ctx = dict(cams=cams, kinds=kinds, classes=classes, grid=grid, gt_buf=gt_buf,
-                   odom_buf=odom_buf, tol=sync.slop_ns, sizes=self._camera_sizes(), label_map=label_map)
+                   odom_buf=odom_buf, tol=sync.slop_ns, sizes=self._camera_sizes(), label_map=label_map, sync=sync_)
         drift = StampDrift()
         index = 0
         try:
@@ -426,6 +479,7 @@ class BagReader:
 
     def _build(self, s: SyncedSet, index: int, ctx: dict) -> BagFrame:
         images, valid, cam_stamps = self._images(s, index, ctx)
+        self.sync_report.add(valid, ctx["sync"])
         mean = s.mean_stamp_ns
         stamp, gt, known = self._gt(mean, ctx)
         ground = self._layer(T.GROUND_VISIBILITY, mean, index, ctx)
@@ -505,7 +559,7 @@ class BagReader:
                         images[k][c] = np.array(arr, copy=True)
                     except DECODE_ERRORS as exc:
                         log.warning("frame %d camera %s: %s", index, c, exc)
-                        self.issues.decode_error(T.image_topic(c, k), f"frame {index}: {exc}")
+                        self.issues.decode_error(self.image_topic(c, k), f"frame {index}: {exc}")
                         ok = False
                         break
                 if not ok:

@@ -44,13 +44,14 @@ import shutil
 from collections.abc import Callable
 from pathlib import Path
 
+from bev_mapper_core.errors import BevMapperError
 from bev_mapper_core.geometry.grid import BevGrid
 from bev_mapper_core.mapper import create_mapper
 
 from ..errors import BagContentError
 from ..files import partial_name
-from ..io import topics as T
 from ..io.reader import BagReader
+from ..io.rig_source import RIG_FLAGS_HINT
 from ..io.writer import BagWriter
 from .mapping import map_frames
 from .options import BAG_DIR, FRAMES_DIR, ReplayOptions, ReplayResult, ReplayRun, check_outputs
@@ -73,17 +74,23 @@ def replay(options: ReplayOptions, progress: Callable | None = None) -> ReplayRe
     """
     out = Path(options.out)
     check_outputs(out, options.force)
-    with BagReader(options.bag) as reader:
+    hints = options.rig.hints()
+    with BagReader(options.bag, hints=hints) as reader:
         rig = reader.rig()
         grid = reader.grid()
         notes: list[str] = []
         if grid is None:
-            grid = options.grid or BevGrid()
+            grid = options.grid or (hints and hints.grid) or BevGrid()
             notes.append(f"the bag has no GT layers: mapping onto {grid.describe()}, no metrics")
         elif options.grid is not None and not options.grid.isclose(grid):
             raise BagContentError(
                 f"the bag's GT grid is {grid.describe()}; grid flags only apply to bags without GT")
-        mapper = create_mapper(rig, grid, options.mapper)
+        try:
+            mapper = create_mapper(rig, grid, options.mapper)
+        except BevMapperError as exc:
+            if "rig" not in str(exc) or options.rig.hints() is not None:
+                raise
+            raise type(exc)(f"{exc} (the bag's rig was taken as {rig.name!r}: {RIG_FLAGS_HINT})") from None
         out.mkdir(parents=True, exist_ok=True)
         run = ReplayRun(options, reader, rig, grid, mapper, out, partial_name(out / FRAMES_DIR), notes)
         shutil.rmtree(run.tmp_frames, ignore_errors=True)
@@ -116,7 +123,7 @@ def _run(run: ReplayRun, progress: Callable | None) -> ReplayResult:
 def _progress_bar(run: ReplayRun, progress: Callable | None):
     """The caller's ``progress(total)`` bar, else a tqdm bar (hidden unless ``options.progress``)."""
     options, reader = run.options, run.reader
-    image_topic = T.image_topic(run.rig.names[0], run.input_kind)
+    image_topic = reader.image_topic(run.rig.names[0], run.input_kind)
     total = reader.topics[image_topic].count if image_topic in reader.topics else None
     if options.max_frames is not None:
         total = min(total or options.max_frames, options.max_frames)

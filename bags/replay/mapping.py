@@ -44,7 +44,7 @@ def map_frames(run: ReplayRun, finish: Callable, bar) -> MappingTally:
     tally = MappingTally({"window": window, "fused_frames": 0, "resets": 0, "frames_without_pose": 0})
     # with a pipeline, the next frames are read and decoded by a thread while this one maps
     frames = run.reader.frames(rgb=kind == "rgb", labels=kind == "labels",
-                               label_map=label_map(options.mapper.label_map))
+                               label_map=label_map(options.mapper.label_map), sync=options.sync)
     if options.pipeline:
         frames = Prefetch(frames, options.pipeline)
     fusion = TemporalFusion(run.grid, options.temporal) if window > 1 else None

@@ -13,7 +13,10 @@ from bev_mapper_core.mapper import MapperConfig
 from bev_mapper_core.metrics import SCOPES
 from bev_mapper_core.temporal import TemporalConfig
 
+from msg_adapters.sync import SyncConfig
+
 from ..errors import BagError, BagExistsError
+from ..io.rig_source import RigChoice
 from ..io.writer import STORAGES
 from .frame_scores import FrameScores
 
@@ -61,6 +64,9 @@ class ReplayOptions:
             one scores and writes the frames mapped before); 0 = one thread, every stage in turn.
             The outputs are the same either way, but the mapping latencies in ``metrics.json``
             are measured while the other stages run (0: the mapper's time alone).
+        rig: what the bag lacks about its rig (``--rig``, ``--params-file``;
+            :mod:`bags.io.rig_source`).
+        sync: how the cameras' images are grouped into sets (:meth:`SyncConfig.replay`).
     """
 
     bag: Path
@@ -78,6 +84,8 @@ class ReplayOptions:
     progress: bool = False
     temporal: TemporalConfig = field(default_factory=TemporalConfig)
     pipeline: int = 4
+    rig: RigChoice = field(default_factory=RigChoice)
+    sync: SyncConfig = field(default_factory=SyncConfig.replay)
 
     def __post_init__(self) -> None:
         if self.scope not in SCOPES:

@@ -52,7 +52,7 @@ class InfoCopier:
     """
 
     def __init__(self, bag: Path, reader: BagReader, writer: BagWriter) -> None:
-        self.topics = [T.camera_info_topic(c) for c in reader.camera_names]
+        self.topics = [t for t in map(reader.camera_info_topic, reader.camera_names) if t in reader.topics]
         if T.TF_STATIC in reader.topics:
             self.topics.insert(0, T.TF_STATIC)
         for t in self.topics:
@@ -187,6 +187,9 @@ def write_outputs(run: ReplayRun, sink: FrameSink, tally: MappingTally) -> Repla
     if gif_path is None:
         _remove_stale(out / GIF_FILE)
     metrics = metrics_document(run, sink.scorer, tally, sink.bag_counts)
+    sync_note = run.reader.sync_report.summary()
+    if sync_note:
+        run.notes.append(sync_note)
     result = ReplayResult(metrics, out, out / BAG_DIR, sink.pictures, gif_path, gif_note, tally.damage, run.notes,
                           tally.latencies, sink.scores, scoring=sink.scorer.state())
     if metrics["frames_scored"]:
@@ -239,5 +242,7 @@ def metrics_document(run: ReplayRun, scorer: ReplayScorer, tally: MappingTally, 
         "calibration": res["calibration"],
     }
     doc.update(run.reader.issues.to_metrics())
+    doc["sync"] = run.reader.sync_report.to_metrics()
+    doc["rig"] = {"name": run.rig.name, "cameras": list(run.rig.names)}
     doc["temporal"] = tally.temporal
     return doc
