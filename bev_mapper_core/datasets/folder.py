@@ -27,8 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError
-from ..labels.label_maps import (PRESET_NAMES, LabelMap, file_kind, label_map, label_map_from_dict, pack_rgb,
-                                 read_yaml_document)
+from ..labels.label_maps import PRESET_NAMES, LabelMap, file_kind, label_map, label_map_from_dict, pack_rgb, read_yaml_document
 from ..labels.spaces import IGNORE, space_from_labels
 from .base import DatasetError, LabeledImages, list_images, pair_by_stem, read_label_png
 
