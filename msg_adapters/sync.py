@@ -19,8 +19,9 @@ Rules:
   are masked out in :attr:`SyncedSet.valid`, the frame is not dropped.
 * More than ``queue_size`` pending sets: the oldest is emitted partial (``'overflow'``), which
   bounds each stream's queue to ``queue_size`` messages.
-* A message that joins no pending set and is not newer than the last emitted set (+ slop)
-  belongs to a set already emitted: it is dropped and counted as ``late``.
+* A message that joins no pending set and is not newer than the last emitted set (+ window)
+  belongs to a set already emitted: it is dropped and counted as ``late``; unless its stream
+  was in that set with an older stamp (then it is the next frame's).
 * A stamp more than ``jump_back_ns`` behind the newest stamp of the *same* stream, or a
   ``now`` that far behind the newest ``now`` (a bag loop, a simulator restart), resets the
   synchronizer; pending sets are dropped and counted. A camera that merely lags behind the
@@ -181,6 +182,7 @@ class FrameSynchronizer:
         self._newest_now: int | None = None
         self._newest_stamp: dict[str, int] = {}  # per stream
         self._last_emitted_lo: int | None = None
+        self._last_emitted: dict[str, int] = {}  # stream -> its stamp in the last emitted set
         self._intervals: dict[str, deque[int]] = {n: deque(maxlen=_INTERVALS) for n in names}
         self._last_partial: tuple[frozenset[str], int, int] | None = None  # (streams, lo, hi)
         self._stats = SyncStats()
@@ -279,6 +281,7 @@ class FrameSynchronizer:
         self._newest_now = None
         self._newest_stamp.clear()
         self._last_emitted_lo = None
+        self._last_emitted = {}
         self._last_partial = None
         for d in self._intervals.values():
             d.clear()
@@ -315,7 +318,8 @@ class FrameSynchronizer:
 
         out: list[SyncedSet] = []
         if best is None:
-            if self._last_emitted_lo is not None and stamp <= self._last_emitted_lo + window:
+            if (self._last_emitted_lo is not None and stamp <= self._last_emitted_lo + window
+                    and stamp <= self._last_emitted.get(name, stamp)):  # newer than its last: the next frame
                 self._stats = replace(self._stats, late=self._stats.late + 1)
                 return self._expire(now)
             new = _Open(deadline_ns=now + cfg.timeout_ns, msgs={name: (stamp, msg)})
@@ -347,6 +351,7 @@ class FrameSynchronizer:
             r = reason if i == last else ("flush" if reason == "flush" else "superseded")
             built = self._build(s, r)
             self._last_emitted_lo = s.lo
+            self._last_emitted = {n: t for n, (t, _) in s.msgs.items()}
             if built is not None:
                 out.append(built)
         return out

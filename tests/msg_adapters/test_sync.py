@@ -172,3 +172,43 @@ def test_callback_outside_lock_and_threads():
     sync.flush()
     assert seen == sorted(seen) and len(seen) == n
     assert sync.stats.complete == n
+
+
+SIX = ("front", "front_right", "back_right", "back", "back_left", "front_left")
+
+
+def test_default_window_takes_a_43_ms_rolling_trigger_as_one_set():
+    """nuScenes' six cameras fire over ~43 ms: with the defaults, one set per frame at 10 Hz."""
+    sync = FrameSynchronizer(SIX, SyncConfig())
+    out = feed(sync, frames(0, 10, cams=SIX, jitter=[round(j * 43 / 5) for j in range(6)]))
+    out += sync.flush()
+    assert [s.reason for s in out] == ["complete"] * 10
+    assert sync.stats.split == 0 and sync.window_ns == 50 * MS and sync.period_ns == 100 * MS
+
+
+def test_window_narrows_to_half_the_frame_period():
+    """At 20 Hz a 50 ms window could join one camera's image to the next frame: it narrows to
+    25 ms once the period is measured, and consecutive frames are never merged."""
+    sync = FrameSynchronizer(SIX, SyncConfig())
+    out = feed(sync, frames(0, 12, period_ms=50, cams=SIX, jitter=[0, 4, 8, 12, 16, 20]))
+    out += sync.flush()
+    assert sync.period_ns == 50 * MS and sync.window_ns == 25 * MS
+    assert [s.reason for s in out] == ["complete"] * 12
+    assert [s.stamps["front"] // MS for s in out] == [50 * i for i in range(12)]
+
+
+def test_a_set_split_by_a_narrow_window_is_counted():
+    sync = FrameSynchronizer(SIX, SyncConfig(slop_ns=20 * MS, timeout_ns=300 * MS))
+    out = feed(sync, frames(0, 5, cams=SIX, jitter=[round(j * 43 / 5) for j in range(6)]))
+    out += sync.flush()
+    assert len(out) == 10 and not any(s.complete for s in out)
+    assert sync.stats.split == 5 and sync.stats.partial == 10
+    # a camera that is merely absent is no split
+    sync = FrameSynchronizer(CAMS, SyncConfig())
+    out = feed(sync, [(c, t) for c, t in frames(0, 5) if c != "right"]) + sync.flush()
+    assert sync.stats.split == 0 and sync.stats.partial == 5
+
+
+def test_max_slop_fraction_is_checked():
+    with pytest.raises(SyncConfigError, match="max_slop_fraction"):
+        SyncConfig(max_slop_fraction=1.5)
