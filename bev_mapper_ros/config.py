@@ -27,6 +27,9 @@ from .rig_params import rig_parameters
 
 #: Values of ``image_reliability`` (:mod:`.input_qos` says what each means).
 RELIABILITY_CHOICES = ("auto", "reliable", "best_effort")
+#: Values of ``pose_source``: where the ego pose at an image stamp comes from (``auto``: odometry
+#: once ``odom_topic`` has delivered some, else TF).
+POSE_SOURCES = ("auto", "tf", "odom")
 DEFAULT_TOPICS = {"labels": "/cameras/{camera}/labels", "rgb": "/cameras/{camera}/image_raw"}
 
 
@@ -62,7 +65,15 @@ class NodeConfig:
         sync_timeout_s: wait this long for missing cameras before emitting a partial set
             (default: ``SyncConfig.timeout_ns``).
         extrinsics: camera name -> ``ego_from_cam`` 4x4 from parameters (used without TF).
-        use_tf: look extrinsics up in TF (tf2_ros) when it is importable.
+        use_tf: read TF (tf2_ros, when importable): camera extrinsics ``base_frame <- camera
+            frame`` (the parameters are the fallback) and, per ``pose_source``, the ego pose.
+        tf_extrinsic_jump_m: a TF extrinsic that moves a camera by more than this from the one
+            in use is refused (counted as ``tf_errors_extrinsic_jump``).
+        pose_source: where the ego pose at each image stamp comes from, for the temporal fusion
+            and methods with a memory (FocusBEV): ``odom`` (``odom_topic``), ``tf``
+            (``odom_frame -> base_frame`` at the image stamp, tf2's interpolation) or ``auto``
+            (odometry once ``odom_topic`` has delivered some, else TF).
+        odom_frame: the fixed frame of the TF ego pose.
         output_prefix: output topics are ``<output_prefix>/<class>`` and ``<output_prefix>/image``.
         diagnostics_period_s: period of ``/diagnostics`` messages.
         diagnostics_window_s: rate, latency and drop ratio in ``/diagnostics`` are over the
@@ -93,6 +104,9 @@ class NodeConfig:
     sync_timeout_s: float = _ns_to_s(SyncConfig.timeout_ns)
     extrinsics: tuple = ()
     use_tf: bool = True
+    tf_extrinsic_jump_m: float = 0.5
+    pose_source: str = "auto"
+    odom_frame: str = "odom"
     output_prefix: str = "bev"
     diagnostics_period_s: float = 1.0
     diagnostics_window_s: float = 5.0
@@ -123,6 +137,15 @@ class NodeConfig:
                 raise NodeConfigError(f"topic pattern {pat!r} must contain '{{camera}}'")
         if not self.base_frame:
             raise NodeConfigError("base_frame must not be empty")
+        if self.pose_source not in POSE_SOURCES:
+            raise NodeConfigError(f"pose_source must be one of {list(POSE_SOURCES)}, got {self.pose_source!r}")
+        if self.pose_source == "tf" and not self.use_tf:
+            raise NodeConfigError("pose_source tf needs use_tf true")
+        if not self.odom_frame or self.odom_frame.lstrip("/") == self.base_frame.lstrip("/"):
+            raise NodeConfigError(f"odom_frame must be a frame other than base_frame, got {self.odom_frame!r}")
+        if not (isinstance(self.tf_extrinsic_jump_m, (int, float)) and math.isfinite(self.tf_extrinsic_jump_m)
+                and self.tf_extrinsic_jump_m > 0):
+            raise NodeConfigError(f"tf_extrinsic_jump_m must be > 0, got {self.tf_extrinsic_jump_m}")
         if self.image_reliability not in RELIABILITY_CHOICES:
             raise NodeConfigError(f"image_reliability must be one of {list(RELIABILITY_CHOICES)}, "
                                   f"got {self.image_reliability!r}")
@@ -243,6 +266,9 @@ PARAM_FIELDS: dict[str, ParamField] = {
     "sync_slop_s": ParamField(NodeConfig, "sync_slop_s"),
     "sync_timeout_s": ParamField(NodeConfig, "sync_timeout_s"),
     "use_tf": ParamField(NodeConfig, "use_tf"),
+    "tf_extrinsic_jump_m": ParamField(NodeConfig, "tf_extrinsic_jump_m"),
+    "pose_source": ParamField(NodeConfig, "pose_source"),
+    "odom_frame": ParamField(NodeConfig, "odom_frame"),
     "output_prefix": ParamField(NodeConfig, "output_prefix"),
     "diagnostics_period_s": ParamField(NodeConfig, "diagnostics_period_s"),
     "diagnostics_window_s": ParamField(NodeConfig, "diagnostics_window_s"),

@@ -468,7 +468,8 @@ class MapperNode(Node):
 
     def _tf_diagnostics(self, values: dict, level: int, text: str) -> tuple[int, str]:
         """TF's key/values (which extrinsics, which pose, the error counters); WARN when TF
-        problems arrived since the last report."""
+        problems arrived since the last report.
+        """
         values["tf"] = "off" if not self.cfg.use_tf else ("tf2_ros" if self.tf is not None else "not importable")
         values["extrinsics_source"] = ",".join(f"{c}:{s}" for c, s in self.calibration.sources().items())
         values["pose_source"] = self.pose_used if self.needs_pose else ""

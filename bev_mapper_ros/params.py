@@ -34,6 +34,7 @@ from bev_mapper_core.mapper import BACKENDS, INPUT_KINDS, available_methods
 
 from .config import (
     PARAM_FIELDS,
+    POSE_SOURCES,
     RELIABILITY_CHOICES,
     RUNTIME_PARAMETERS,
     NodeConfigError,
@@ -86,7 +87,14 @@ _DECLARATIONS: dict[str, tuple] = {
     "base_frame": (_T.PARAMETER_STRING, "frame of the output grids"),
     "sync_slop_s": (_T.PARAMETER_DOUBLE, "max stamp spread in a synchronized set (s)"),
     "sync_timeout_s": (_T.PARAMETER_DOUBLE, "wait for missing cameras this long (s)"),
-    "use_tf": (_T.PARAMETER_BOOL, "look extrinsics up in TF when tf2_ros is importable"),
+    "use_tf": (_T.PARAMETER_BOOL, "read TF when tf2_ros is importable: camera extrinsics base_frame <- CameraInfo "
+               "frame_id (extrinsics.<camera> the fallback) and, per pose_source, the ego pose"),
+    "tf_extrinsic_jump_m": (_T.PARAMETER_DOUBLE, "a TF extrinsic moving a camera by more than this (m) is refused "
+                            "(tf_errors_extrinsic_jump in /diagnostics)"),
+    "pose_source": (_T.PARAMETER_STRING, f"ego pose for the temporal fusion and FocusBEV, one of {list(POSE_SOURCES)}: "
+                    "odom = odom_topic, tf = TF odom_frame -> base_frame at the image stamp (interpolated), "
+                    "auto = odometry once odom_topic delivers, else TF"),
+    "odom_frame": (_T.PARAMETER_STRING, "fixed frame of the TF ego pose (pose_source tf / auto)"),
     "output_prefix": (_T.PARAMETER_STRING, "output topics: <prefix>/<class>, <prefix>/image"),
     "diagnostics_period_s": (_T.PARAMETER_DOUBLE, "period of /diagnostics (s)"),
     "diagnostics_window_s": (_T.PARAMETER_DOUBLE, "rate, latency and drop ratio in /diagnostics: over this window (s)"),
@@ -136,6 +144,8 @@ def descriptor(name: str) -> ParameterDescriptor:
         desc.additional_constraints = f"one of {list(INPUT_KINDS)}"
     elif name == "label_map":
         desc.additional_constraints = f"one of {list(PRESET_NAMES)}, or a label-map YAML file"
+    elif name == "pose_source":
+        desc.additional_constraints = f"one of {list(POSE_SOURCES)}"
     elif name == "rig":
         desc.additional_constraints = f"a preset ({', '.join(PRESETS)}), or any name with cameras set"
     return desc

@@ -2,7 +2,9 @@
 # Create (or refresh) the project's virtual environment in .venv and install everything it needs:
 # the CPU build of torch, the package itself (editable) with the ROS 2 Jazzy wheels and test tools,
 # the ament layout that `ros2 run bev_mapper_ros mapper_node` needs, and, where the ROS 2 CLI
-# sources are beside the checkout (../shared/ros2cli), the `ros2` command itself.
+# sources are beside the checkout (../shared/ros2cli), the `ros2` command itself, and, where the
+# TF sources are (../shared/ros2src), tf2_ros, tf2_msgs and composition_interfaces built into
+# .venv (scripts/build_ros2src.sh; cached until the sources or that script change).
 # Idempotent: a second run with nothing changed only re-checks the installed set.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -47,4 +49,20 @@ if [ ! -x .venv/bin/ros2 ] && [ -f "$ros2cli/install.sh" ]; then
     echo "error: installing the ros2 CLI from $ros2cli failed (whole log: $log)" >&2
     exit 1
   fi
+fi
+# TF (tf2_msgs, tf2, tf2_py, tf2_ros) and composition_interfaces (`ros2 launch`): no wheel has them;
+# a ROS 2 distribution does, else they are built from released sources beside the checkout.
+ros2src=${BEV_ROS2SRC:-../shared/ros2src}
+tf_probe="import tf2_ros, tf2_msgs.msg, composition_interfaces.srv"
+without_tf="the node reads no TF (extrinsics from the extrinsics.<camera> parameters, poses from /odom only), \
+bev-bag play skips /tf and /tf_static, and ros2 launch does not start"
+if [ ! -f .venv/.bev_ros2src_built ] && .venv/bin/python -c "$tf_probe" 2>/dev/null; then
+  :  # a ROS 2 distribution on the path provides them
+elif [ -d "$ros2src" ]; then
+  if ! bash scripts/build_ros2src.sh .venv "$ros2src" >>"$log"; then
+    tail -n 30 "$log" >&2
+    echo "warning: building TF from $ros2src failed (whole log: $log): $without_tf" >&2
+  fi
+else
+  echo "note: no TF sources at $ros2src (set BEV_ROS2SRC=DIR) and no ROS 2 distribution: $without_tf" >&2
 fi

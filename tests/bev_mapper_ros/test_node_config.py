@@ -14,6 +14,7 @@ from bev_mapper_core.geometry.transforms import quat_to_rot
 from bev_mapper_ros.calibration import LiveCalibration
 from bev_mapper_ros.config import NodeConfigError, node_config_from_params
 from bev_mapper_ros.rig_params import CONFIG_DIR, METHOD_CONFIGS, write_configs
+from bev_mapper_ros.tf_source import TfLookupError
 from bev_mapper_ros.worker import LatestSlot, Worker
 
 
@@ -98,26 +99,72 @@ def test_worker_survives_a_failing_item():
     assert done == ["good"] and len(errors) == 1 and "boom" in str(errors[0])
 
 
+class _TfAnswers:
+    """A :class:`~bev_mapper_ros.tf_source.TfSource`: answers set by the test (a transform, or an error)."""
+
+    def __init__(self) -> None:
+        self.answer = TfLookupError("no_path", "no transform yet")
+
+    def lookup(self, target, source, stamp_ns=None):
+        if isinstance(self.answer, TfLookupError):
+            raise self.answer
+        return self.answer
+
+
 def test_live_calibration_prefers_tf_and_bumps_version_only_on_change():
     rig = preset_rig("front1")
     cam = rig.cameras[0]
-    tf_answer = {"T": None}
+    tf, problems = _TfAnswers(), []
     calib = LiveCalibration("front1", ["front"], "base_link", {"front": cam.ego_from_cam_array},
-                            tf_lookup=lambda target, source: tf_answer["T"])
+                            tf=tf, on_problem=lambda kind, text: problems.append(kind))
     assert calib.rig() is None and calib.missing() == ("front: camera_info",)
     assert calib.update_intrinsics("front", cam.model, cam.frame_id) is True
     assert calib.update_intrinsics("front", cam.model, cam.frame_id) is False
     first = calib.rig()
-    assert calib.sources() == {"front": "parameter"}
+    assert calib.sources() == {"front": "parameter"} and problems == []  # no TF yet: the fallback, no error
     np.testing.assert_allclose(first["front"].ego_from_cam_array, cam.ego_from_cam_array)
     v = calib.version
     lifted = cam.ego_from_cam_array.copy()
-    lifted[2, 3] += 0.5
-    tf_answer["T"] = lifted
+    lifted[2, 3] += 0.4
+    tf.answer = lifted
     second = calib.rig()
     assert calib.version > v and calib.sources() == {"front": "tf"}
+    assert "front: TF (base_link <- front_optical_frame)" in calib.describe_sources()
     np.testing.assert_allclose(second["front"].ego_from_cam_array, lifted)
     assert calib.rig() is second  # cached while nothing changes
+
+
+def test_live_calibration_refuses_tf_jumps_and_keeps_the_last_good_extrinsic():
+    rig = preset_rig("front1")
+    cam = rig.cameras[0]
+    tf, problems = _TfAnswers(), []
+    calib = LiveCalibration("front1", ["front"], "base_link", {"front": cam.ego_from_cam_array},
+                            tf=tf, max_jump_m=0.5, on_problem=lambda kind, text: problems.append(kind))
+    calib.update_intrinsics("front", cam.model, cam.frame_id)
+    tf.answer = cam.ego_from_cam_array.copy()
+    good = calib.rig()
+    assert calib.sources() == {"front": "tf"}
+    jumped = cam.ego_from_cam_array.copy()
+    jumped[0, 3] += 3.0  # metres: a broken transform, not a mount
+    tf.answer = jumped
+    assert calib.rig() is good and problems == ["extrinsic_jump"]
+    for kind in ("extrapolation", "cycle", "no_path"):  # TF lost after it had the camera: counted, kept
+        tf.answer = TfLookupError(kind, "gone")
+        assert calib.rig() is good
+    assert problems == ["extrinsic_jump", "extrapolation", "cycle", "no_path"]
+    np.testing.assert_allclose(good["front"].ego_from_cam_array, cam.ego_from_cam_array)
+
+
+@pytest.mark.parametrize("params, message", [
+    ({"pose_source": "gps"}, "pose_source must be one of"),
+    ({"pose_source": "tf", "use_tf": False}, "pose_source tf needs use_tf true"),
+    ({"odom_frame": "base_link"}, "odom_frame must be a frame other than base_frame"),
+    ({"tf_extrinsic_jump_m": 0.0}, "tf_extrinsic_jump_m must be > 0"),
+])
+def test_tf_parameters_are_checked(params, message):
+    with pytest.raises(NodeConfigError, match=message):
+        node_config_from_params({"rig": "front1", **params})
+    assert node_config_from_params({"rig": "front1"}).pose_source == "auto"
 
 
 def test_inference_threads_leave_a_core_to_the_callbacks(monkeypatch):
