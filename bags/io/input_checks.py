@@ -44,7 +44,7 @@ DECODE_ERRORS = (AdapterError, AttributeError, TypeError, ValueError, OverflowEr
 
 def expected_type(topic: str) -> str | None:
     """The message type a topic's name calls for, or ``None`` for topics the tool ignores."""
-    if topic == T.TF_STATIC:
+    if topic in (T.TF_STATIC, T.TF):
         return T.TF_TYPE
     if topic == T.ODOM:
         return T.ODOM_TYPE

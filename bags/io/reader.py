@@ -42,6 +42,7 @@ from msg_adapters import (
     image_to_rgb,
     occupancy_grid_to_layer,
     odometry_to_state,
+    tf_message_transforms,
 )
 
 from ..errors import BagContentError, BagCorruptError
@@ -436,7 +437,8 @@ class BagReader:
         if classes and set(classes) <= set(self.truth_classes):  # all or nothing
             gt_topics.update({T.truth_topic(c): T.truth_topic(c) for c in classes})
         want_odom = odom and T.ODOM in self._src.topics
-        topics = set(stream_of) | set(gt_topics) | ({T.ODOM} if want_odom else set())
+        want_tf = odom and not want_odom and T.TF in self._src.topics  # ego poses from /tf without /odom
+        topics = set(stream_of) | set(gt_topics) | ({T.ODOM} if want_odom else set()) | ({T.TF} if want_tf else set())
         self._check_types(topics)
 
         streams = [f"{c}/{k}" for c in cams for k in kinds]
@@ -452,6 +454,9 @@ class BagReader:
         index = 0
         try:
             for m in self.messages(topics):
+                if m.topic == T.TF:
+                    odom_buf.extend(self._tf_poses(m.msg))
+                    continue
                 bad = stamp_problem(m.msg)
                 stamp = header_stamp_ns(m.msg) if bad is None else 0
                 bad = bad or drift.problem(m.topic, stamp, m.log_ns)
@@ -477,6 +482,19 @@ class BagReader:
             yield self._build(ready.popleft(), index, ctx)
             index += 1
 
+    def _tf_poses(self, msg: Any) -> list[tuple[int, OdometryState]]:
+        """``(stamp, pose)`` of each ``<fixed frame> -> ego_frame`` transform of a ``/tf`` message,
+        the ego pose as the node's ``pose_source: tf`` reads it (no velocities); a message that
+        does not decode is counted in :attr:`issues` and skipped.
+        """
+        try:
+            found = [t for t in tf_message_transforms(msg) if t.child == self.ego_frame]
+        except DECODE_ERRORS as exc:
+            self.issues.decode_error(T.TF, str(exc))
+            return []
+        zero = np.zeros(3)
+        return [(t.stamp_ns, OdometryState(t.stamp_ns, t.parent, t.child, t.matrix, zero, zero)) for t in found]
+
     def _build(self, s: SyncedSet, index: int, ctx: dict) -> BagFrame:
         images, valid, cam_stamps = self._images(s, index, ctx)
         self.sync_report.add(valid, ctx["sync"])
@@ -495,7 +513,7 @@ class BagReader:
         hit = _nearest(ctx["odom_buf"], mean, ctx["tol"])
         if hit is not None:
             try:
-                odom_state = odometry_to_state(hit[1])
+                odom_state = hit[1] if isinstance(hit[1], OdometryState) else odometry_to_state(hit[1])
                 stamp = hit[0] if stamp is None else stamp
             except DECODE_ERRORS as exc:
                 self.issues.decode_error(T.ODOM, f"frame {index}: {exc}")

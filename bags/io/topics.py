@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 TF_STATIC = "/tf_static"
+#: ``tf2_msgs/TFMessage`` of the ego motion, ``odom -> base_link`` at each frame stamp.
+TF = "/tf"
 ODOM = "/odom"
 GT_PREFIX = "/bev/gt/"
 #: OccupancyGrid: 100 where the cell's ground point is seen by some camera, 0 elsewhere.

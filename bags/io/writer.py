@@ -199,6 +199,7 @@ def _frame_messages(f, rig: Rig, grid: BevGrid, classes, factory, ego_frame, odo
     s = int(f.stamp_ns)
     out.append((s, T.ODOM, make_odometry(factory, f.world_from_ego, f.linear_velocity,
                                          f.angular_velocity, s, odom_frame, ego_frame)))
+    out.append((s, T.TF, make_tf_message(factory, [StampedTransform(odom_frame, ego_frame, f.world_from_ego, s)])))
     visible = np.asarray(f.visibility, dtype=bool)
     for ci, c in enumerate(classes):
         layer = np.asarray(f.gt[ci], dtype=np.float32)
@@ -237,8 +238,8 @@ def write_drive(
     """Write synthetic drive frames (``SynthFrame``-like objects) as a rosbag2 directory.
 
     Topics: ``/cameras/<cam>/{image_raw,labels,camera_info}`` at each camera's stamp,
-    ``/tf_static`` once (latched) with ``ego_frame -> <camera optical frame>``, ``/odom``
-    (``odom_frame -> ego_frame``) and ``/bev/gt/<class>`` (100 present, 0 absent, -1 not
+    ``/tf_static`` once (latched) with ``ego_frame -> <camera optical frame>``, ``/odom`` and
+    ``/tf`` (both ``odom_frame -> ego_frame``, the same pose) and ``/bev/gt/<class>`` (100 present, 0 absent, -1 not
     visible) at the frame stamp, plus ``/bev/visibility/ground`` (100 where the cell's ground
     point is seen) for frames that carry ``ground_visibility``. With ``truth`` (default) also the
     full truth, whose ``gt`` holds what is in every cell whether seen or not:
@@ -259,6 +260,7 @@ def write_drive(
             bw.add_topic(T.image_topic(cam.name, "labels"), T.IMAGE_TYPE)
             bw.add_topic(T.camera_info_topic(cam.name), T.CAMERA_INFO_TYPE)
         bw.add_topic(T.ODOM, T.ODOM_TYPE)
+        bw.add_topic(T.TF, T.TF_TYPE)
         for c in classes:
             bw.add_topic(T.gt_topic(c.name), T.GRID_TYPE)
         if truth:

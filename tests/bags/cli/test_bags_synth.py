@@ -104,7 +104,7 @@ def assert_rig_matches(read_rig, rig):
 
 def assert_layout(reader, rig, n, ground=False):
     topics = reader.topics
-    expect = {T.TF_STATIC: (T.TF_TYPE, 1), T.ODOM: (T.ODOM_TYPE, n)}
+    expect = {T.TF_STATIC: (T.TF_TYPE, 1), T.ODOM: (T.ODOM_TYPE, n), T.TF: (T.TF_TYPE, n)}
     if ground:
         expect[T.GROUND_VISIBILITY] = (T.GRID_TYPE, n)
     for c in rig.names:
