@@ -8,7 +8,9 @@ exported to ONNX and run by onnxruntime or OpenVINO (optional extras:
 * ``onnxruntime`` / ``openvino``: the model is exported once (PyTorch's dynamo exporter, opset
   18, static shapes) into a cache keyed by a hash of every parameter and buffer of the model,
   calibration-dependent tables included, and of the input shapes: ``$BEV_MAPPER_CACHE`` or
-  ``~/.cache/bev_mapper``, ``onnx/<key>.onnx``. A new calibration or new weights export again
+  ``~/.cache/bev_mapper``, ``onnx/<key>.onnx`` with its record ``<key>.json`` (what it was made
+  from, its own SHA-256): verified before every use, a stale, damaged or refused file is
+  exported again (:mod:`.export_cache`). A new calibration or new weights export again
   (about 7 s for the shipped surround6 Bi-Mapper on this machine); a later start reuses the
   file. OpenVINO runs in f32 (``INFERENCE_PRECISION_HINT``: its default on CPUs with bf16 units
   differs from torch by up to 0.13 in logits).
@@ -42,7 +44,10 @@ import torch
 
 from ..errors import ConfigError
 from ..mapper import BACKENDS
+from .export_cache import load_cached
 from .runtime import inference_threads
+
+log = logging.getLogger("bev_mapper.export_cache")
 
 #: Python module of each optional backend.
 _MODULES = {"onnxruntime": "onnxruntime", "openvino": "openvino"}
@@ -123,48 +128,59 @@ class ExportedModel:
     """``module`` exported to ONNX and run by ``backend`` (``onnxruntime`` or ``openvino``):
     call it with numpy arrays shaped as the example inputs; returns a list of numpy outputs.
 
+    The exported file comes from the verified cache (:func:`~.export_cache.load_cached`);
+    ``fresh`` exports again whatever the cache holds.
+
     Raises (constructor):
-        ConfigError: the backend is not installed, or the export failed.
+        ConfigError: the backend is not installed, the export failed, or the runtime refuses
+            even a fresh export.
     """
 
-    def __init__(self, module: torch.nn.Module, inputs: Sequence[torch.Tensor], backend: str, threads: int) -> None:
+    def __init__(self, module: torch.nn.Module, inputs: Sequence[torch.Tensor], backend: str, threads: int,
+                 fresh: bool = False) -> None:
         self.backend = resolve_backend(backend)
         if self.backend == "torch":
             raise ConfigError("ExportedModel runs onnxruntime or openvino; torch runs the module itself")
         self.shapes = [tuple(t.shape) for t in inputs]
-        path = cache_dir() / "onnx" / f"{model_key(module, inputs)}.onnx"
-        if not path.is_file():
-            try:
-                export_onnx(module, inputs, path)
-            except Exception as exc:  # the exporter raises many kinds
-                raise ConfigError(f"could not export the model to ONNX for backend {self.backend!r} ({exc}); "
-                                  "use backend 'torch'") from None
-        self.path = path
+        self.threads, self.fresh = threads, fresh
+        # verified cache (export_cache): a stale, damaged or refused file is exported again
+        self._runner, self.path = load_cached(module, inputs, self.backend, cache_dir() / "onnx", export_onnx,
+                                              self._load, fresh=fresh)
+
+    def _load(self, path: Path):
+        """The runtime's session (onnxruntime) or compiled model (OpenVINO) of ``path`` and its
+        input names.
+        """
         if self.backend == "onnxruntime":
             import onnxruntime as ort
 
             opts = ort.SessionOptions()
-            opts.intra_op_num_threads = threads
+            opts.intra_op_num_threads = self.threads
             opts.inter_op_num_threads = 1
-            self._session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
-            self._names = [i.name for i in self._session.get_inputs()]
+            opts.log_severity_level = 4  # its own log lines for a refused file: the cache says it once
+            session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+            names = [i.name for i in session.get_inputs()]
         else:
             import openvino as ov
 
-            self._compiled = ov.Core().compile_model(str(path), "CPU", {"INFERENCE_NUM_THREADS": threads,
-                                                                        "INFERENCE_PRECISION_HINT": "f32"})
-            self._names = [i.get_any_name() for i in self._compiled.inputs]
+            session = ov.Core().compile_model(str(path), "CPU", {"INFERENCE_NUM_THREADS": self.threads,
+                                                                 "INFERENCE_PRECISION_HINT": "f32"})
+            names = [i.get_any_name() for i in session.inputs]
+        if len(names) != len(self.shapes):
+            raise ValueError(f"the file takes {len(names)} inputs, the model {len(self.shapes)}")
+        return session, names
 
     def __call__(self, *arrays: np.ndarray) -> list[np.ndarray]:
         """Run on numpy inputs (the example inputs' shapes)."""
         shapes = [a.shape for a in arrays]
         if shapes != self.shapes:
             raise ValueError(f"exported model takes inputs {self.shapes}, got {shapes}")
-        feed = dict(zip(self._names, arrays))
+        session, names = self._runner
+        feed = dict(zip(names, arrays))
         if self.backend == "onnxruntime":
-            return self._session.run(None, feed)
-        result = self._compiled(feed)
-        return [result[o] for o in self._compiled.outputs]
+            return session.run(None, feed)
+        result = session(feed)
+        return [result[o] for o in session.outputs]
 
 
 class BackendRunner:
@@ -205,7 +221,20 @@ class BackendRunner:
             return out if isinstance(out, tuple) else (out,)
         if self._exported is None:
             self._exported = ExportedModel(self.module.eval(), inputs, self.backend, self.threads)
-        return tuple(torch.from_numpy(o) for o in self._exported(*(t.numpy() for t in inputs)))
+        arrays = [t.numpy() for t in inputs]
+        try:
+            outputs = self._exported(*arrays)
+        except ValueError:  # inputs of other shapes: the caller's mistake, not the file's
+            raise
+        except Exception as exc:  # noqa: BLE001 - a runtime failing on the cached file: export again, once
+            if self._exported.fresh:
+                raise ConfigError(f"backend {self.backend!r} fails on a freshly exported model "
+                                  f"({' '.join(str(exc).split())[:200]}); use backend 'torch'") from None
+            log.warning("export cache: %s failed at run time (%s); exporting again", self._exported.path,
+                        " ".join(str(exc).split())[:200])
+            self._exported = ExportedModel(self.module.eval(), inputs, self.backend, self.threads, fresh=True)
+            outputs = self._exported(*arrays)
+        return tuple(torch.from_numpy(o) for o in outputs)
 
 
 def backend_runner(config, device: torch.device) -> BackendRunner:

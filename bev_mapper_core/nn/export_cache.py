@@ -1,0 +1,242 @@
+"""The ONNX export cache, verified before use.
+
+Beside each exported model ``<key>.onnx`` lies ``<key>.json``, a record of what the model was made
+from and of the file itself::
+
+    {"format": 1,
+     "made_from": {"weights_sha256": ..., "calibration_sha256": ..., "inputs": [[shape, dtype], ...],
+                   "exporter": {"torch": ..., "opset": 18}, "package": ...},
+     "backend": "openvino",                 # the backend that asked for the export
+     "runtimes": {"openvino": "2026.4.1"},  # runtimes (and versions) that loaded the file
+     "onnx_sha256": ..., "onnx_bytes": ...}
+
+``weights_sha256`` hashes the module's parameters, ``calibration_sha256`` its buffers (the
+calibration-dependent tables live there), ``inputs`` the example inputs' shapes and dtypes. The key
+(the file name) is a hash of ``made_from``. Before a cached model is used, its record must exist,
+parse, carry the same ``made_from``, and the file's size and SHA-256 must match; then the runtime
+loads it. Anything else (no or a damaged record, a record of other weights, a truncated, emptied,
+overwritten or bit-flipped file, a directory in its place, a runtime that refuses the file) means
+"export again", said once in the log (logger ``bev_mapper.export_cache``), never a traceback and
+never a stale model. The ONNX file itself does not depend on the runtime, so both runtimes share
+one export; each records its version in ``runtimes`` when it loads the file.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import shutil
+import tempfile
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import TypeVar
+
+import torch
+
+from ..errors import ConfigError
+
+log = logging.getLogger("bev_mapper.export_cache")
+
+#: Version of the record's layout (a record of another format is re-exported).
+CACHE_FORMAT = 1
+#: ONNX opset of the exports.
+OPSET = 18
+#: Largest record read (bytes).
+MAX_RECORD_BYTES = 1 << 16
+_RUNTIME_MODULES = {"onnxruntime": "onnxruntime", "openvino": "openvino"}
+
+T = TypeVar("T")
+
+
+def _tensor_hash(tensors) -> str:
+    h = hashlib.sha256()
+    for name, t in tensors:
+        h.update(name.encode())
+        h.update(str((tuple(t.shape), t.dtype)).encode())
+        h.update(t.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+def package_version() -> str:
+    """This package's installed version ("unknown" when not installed as a distribution)."""
+    from importlib.metadata import PackageNotFoundError, version  # noqa: PLC0415
+
+    try:
+        return version("bev_mapper_ros")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def runtime_version(backend: str) -> str:
+    """The version of ``backend``'s Python package ("unknown" when it says none)."""
+    import importlib  # noqa: PLC0415
+
+    try:
+        return str(getattr(importlib.import_module(_RUNTIME_MODULES[backend]), "__version__", "unknown"))
+    except (ImportError, KeyError):
+        return "unknown"
+
+
+def made_from(module: torch.nn.Module, inputs: Sequence[torch.Tensor]) -> dict:
+    """What an export of ``module`` on ``inputs`` depends on (JSON-ready): the weights, the
+    calibration tables (buffers), the inputs' shapes and dtypes, the exporter and this package.
+    """
+    return {
+        "weights_sha256": _tensor_hash(module.named_parameters()),
+        "calibration_sha256": _tensor_hash(module.named_buffers()),
+        "inputs": [[list(t.shape), str(t.dtype)] for t in inputs],
+        "exporter": {"torch": torch.__version__, "opset": OPSET},
+        "package": package_version(),
+    }
+
+
+def cache_key(made: dict) -> str:
+    """The file name stem of an export made from ``made``."""
+    return hashlib.sha256(json.dumps(made, sort_keys=True).encode()).hexdigest()[:32]
+
+
+def file_sha256(path: Path) -> str:
+    """SHA-256 of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def record_path(model: Path) -> Path:
+    """The record beside an exported model."""
+    return model.with_suffix(".json")
+
+
+def _read_record(path: Path) -> dict | str:
+    """The record at ``path``, or why it cannot be used."""
+    try:
+        with open(path, "rb") as f:
+            data = f.read(MAX_RECORD_BYTES + 1)
+    except FileNotFoundError:
+        return "it has no record of what it was made from"
+    except OSError as exc:
+        return f"its record is unreadable ({exc.strerror or exc})"
+    if len(data) > MAX_RECORD_BYTES:
+        return "its record is too large"
+    try:
+        record = json.loads(data.decode("utf-8"))
+    except (UnicodeDecodeError, ValueError):
+        return "its record is damaged (not JSON)"
+    if not isinstance(record, dict) or record.get("format") != CACHE_FORMAT:
+        return "its record is of another format"
+    return record
+
+
+def check_cached(model: Path, made: dict) -> str | None:
+    """None when ``model`` is a usable export made from ``made``, else why not (a short phrase)."""
+    if not model.exists():
+        return "absent"
+    if not model.is_file():
+        return "it is not a regular file"
+    record = _read_record(record_path(model))
+    if isinstance(record, str):
+        return record
+    if record.get("made_from") != made:
+        return "it was made from other weights, calibration, inputs or versions"
+    try:
+        size = model.stat().st_size
+        if size != record.get("onnx_bytes"):
+            return f"it has {size} bytes, its record says {record.get('onnx_bytes')}"
+        if file_sha256(model) != record.get("onnx_sha256"):
+            return "its contents differ from its record (damaged or replaced)"
+    except OSError as exc:
+        return f"it is unreadable ({exc.strerror or exc})"
+    return None
+
+
+def _write_json(path: Path, record: dict) -> None:
+    fd, tmp = tempfile.mkstemp(suffix=".json", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(record, f, indent=1, sort_keys=True)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def _remove(model: Path) -> None:
+    for p in (model, record_path(model)):
+        try:
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p)
+            elif p.exists() or p.is_symlink():
+                p.unlink()
+        except OSError:
+            pass  # the export's os.replace will say what is wrong
+
+
+def _short(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) <= 200 else text[:200] + "..."
+
+
+def load_cached(module: torch.nn.Module, inputs: Sequence[torch.Tensor], backend: str, directory: Path,
+                export: Callable[[torch.nn.Module, Sequence[torch.Tensor], Path], Path],
+                load: Callable[[Path], T], fresh: bool = False) -> tuple[T, Path]:
+    """``load(path)`` of the verified export of ``module`` on ``inputs`` in ``directory``: the
+    cached file when its record and hash match and ``backend`` loads it, else exported again
+    (``export(module, inputs, path)``, said once in the log) and loaded. ``fresh``: export again
+    whatever the cache holds (a cached model that failed at run time).
+
+    Raises:
+        ConfigError: the export failed, or the runtime refuses even a fresh export.
+    """
+    made = made_from(module, inputs)
+    model = directory / f"{cache_key(made)}.onnx"
+    reason = "a fresh export was asked for (the cached model failed)" if fresh else check_cached(model, made)
+    if reason is None:
+        try:
+            loaded = load(model)
+        except Exception as exc:  # noqa: BLE001 - every runtime raises its own kinds
+            reason = f"{backend} refused to load it ({_short(exc)})"
+        else:
+            _note_runtime(model, backend)
+            return loaded, model
+    if reason != "absent":
+        log.warning("export cache: %s is not used: %s; exporting again", model, reason)
+    _remove(model)
+    try:
+        export(module, inputs, model)
+        record = {"format": CACHE_FORMAT, "made_from": made, "backend": backend, "runtimes": {},
+                  "onnx_sha256": file_sha256(model), "onnx_bytes": model.stat().st_size}
+        _write_json(record_path(model), record)
+    except Exception as exc:  # noqa: BLE001 - the exporter raises many kinds
+        raise ConfigError(f"could not export the model to ONNX for backend {backend!r} in {directory} "
+                          f"({_short(exc)}); use backend 'torch'") from None
+    try:
+        loaded = load(model)
+    except Exception as exc:  # noqa: BLE001
+        raise ConfigError(f"backend {backend!r} cannot load the freshly exported model {model} ({_short(exc)}); "
+                          "use backend 'torch'") from None
+    _note_runtime(model, backend)
+    return loaded, model
+
+
+def _note_runtime(model: Path, backend: str) -> None:
+    """Record ``backend``'s version in the model's record (best effort: a read-only cache is fine)."""
+    record = _read_record(record_path(model))
+    if isinstance(record, str):
+        return
+    version = runtime_version(backend)
+    runtimes = record.get("runtimes") if isinstance(record.get("runtimes"), dict) else {}
+    if runtimes.get(backend) == version:
+        return
+    record["runtimes"] = {**runtimes, backend: version}
+    try:
+        _write_json(record_path(model), record)
+    except OSError:
+        pass
+
+
+__all__ = ["CACHE_FORMAT", "OPSET", "cache_key", "check_cached", "file_sha256", "load_cached", "made_from",
+           "package_version", "record_path", "runtime_version"]
