@@ -9,6 +9,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 
@@ -16,7 +17,7 @@ from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.mapper import MapperConfig
 
 from .. import METHODS, WEIGHTS_DIR
-from .model import Segmenter
+from .model import DECISION_WIDTH_FACTOR, Segmenter
 from .weights import load_segmenter
 
 #: The shipped segmenter used for rigs without their own (a segmenter works per camera image).
@@ -63,15 +64,22 @@ class SegmenterStage:
 
     def segment(self, images: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         """``{camera: (H, W, 3) uint8}`` -> ``{camera: (H, W) uint8 label ids}``; cameras of one
-        size are segmented as one batch.
+        size are segmented as one batch. An image ``k`` >= 2 times wider than the labels are
+        decided at (:meth:`Segmenter.decision_size`) is first reduced by a ``k x k`` box mean
+        (OpenCV's area resampling on the uint8 image), then resized to the model's input as any
+        other; the labels come back at the image's size.
         """
         out: dict[str, np.ndarray] = {}
         by_size: dict[tuple, list[str]] = {}
         for name, img in images.items():
             by_size.setdefault(img.shape, []).append(name)
         for names in by_size.values():
-            x = torch.from_numpy(np.stack([images[n] for n in names])).to(self.device)  # (B, H, W, 3)
-            labels = self.model.segment(x).cpu().numpy()  # (B, H, W)
+            H, W = images[names[0]].shape[:2]
+            k = max(1, W // (DECISION_WIDTH_FACTOR * self.model.config.input_width))
+            batch = [images[n] if k == 1 else cv2.resize(images[n], (W // k, H // k), interpolation=cv2.INTER_AREA)
+                     for n in names]  # a full-resolution camera: a k x k box mean first, cheap on uint8
+            x = torch.from_numpy(np.stack(batch)).to(self.device)  # (B, H/k, W/k, 3)
+            labels = self.model.segment(x, size=(H, W)).cpu().numpy()  # (B, H, W)
             out.update({n: np.ascontiguousarray(labels[i]) for i, n in enumerate(names)})
         return out
 
