@@ -69,6 +69,8 @@ def run(args: argparse.Namespace) -> int:
     """Run ``bev-bag evaluate``: print the per-bag and aggregate tables; 1 if a bag failed."""
     result = evaluate(options_from_args(args))
     print(format_summary(result.summary))
+    for r in result.summary.get("redone", []):
+        print(f"note: {r['name']} replayed again: {r['reason']}", file=sys.stderr)
     for r in result.records:
         if r["status"] != "ok":
             print(f"error: {r['name']} ({r['bag']}): {r['status']}: {r['error']}", file=sys.stderr)

@@ -11,8 +11,11 @@
   timings. Written last.
 
 Every file is written under a temporary name and renamed. With ``resume`` the bags whose
-``evaluate.json`` says ``ok`` for the same bag and options are not replayed again (their
-records are read back); a bag recorded with other options is an error, not a silent mix.
+``evaluate.json`` says ``ok`` for the same bag, identity and options are not replayed again
+(their records are read back, checked: :mod:`bags.fleet.records`); a bag changed since, or a
+damaged or hand-edited record, is replayed again and listed in ``summary.json``'s ``redone``
+with the reason; a bag recorded with other options is an error, not a silent mix. What killed
+workers left under temporary names is removed at the end of the run.
 """
 
 from __future__ import annotations
@@ -23,9 +26,10 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from ..errors import BagError, BagExistsError
-from ..files import remove_partials, write_atomic
+from ..files import remove_partials, remove_path, write_atomic
 from ..replay import METRICS_FILE, ReplayOptions
 from .ray_tasks import RayOptions, cluster_cpus, ray_runtime
+from .records import bag_identity, resumable, seal
 from .replay_tasks import OK, aggregate, bag_names, evaluate_bags, find_bags, options_record
 
 SUMMARY_FILE, RECORD_FILE, BAGS_DIR = "summary.json", "evaluate.json", "bags"
@@ -100,20 +104,31 @@ def evaluate(options: EvaluateOptions) -> EvaluateResult:
     _check_out(out, options)
     wanted = options_record(options.replay)
     records: dict[str, dict] = {}
+    identities: dict[str, dict | None] = {}
+    redone: list[dict] = []
     jobs = []
     for bag, name in zip(bags, names):
         bag_out = out / BAGS_DIR / name
-        done = _finished(bag, bag_out, wanted) if options.resume else None
+        done, why = resumable(bag, bag_out / RECORD_FILE, bag_out / METRICS_FILE, wanted, OK) \
+            if options.resume else (None, "")
         if done is not None:
             records[name] = {**done, "resumed": True}
-        else:
-            remove_partials(bag_out)  # a killed worker's; the bag is replayed again now
-            jobs.append((name, replace(options.replay, bag=bag, out=bag_out, force=True, progress=False)))
+            continue
+        if why:
+            redone.append({"name": name, "reason": why})
+        try:
+            identities[name] = bag_identity(bag)  # as the bag is when its replay starts
+        except OSError:
+            identities[name] = None  # its replay says what is wrong
+        remove_partials(bag_out)  # a killed worker's; the bag is replayed again now
+        if (bag_out / RECORD_FILE).exists() and not (bag_out / RECORD_FILE).is_file():
+            remove_path(bag_out / RECORD_FILE)  # a directory in its place: the new record goes there
+        jobs.append((name, replace(options.replay, bag=bag, out=bag_out, force=True, progress=False)))
 
     def on_record(record: dict) -> None:
         bag_out = out / BAGS_DIR / record["name"]
-        record = {**record, "bag": str(Path(record["bag"]).resolve()), "options": wanted,
-                  "resumed": False}
+        record = seal({**record, "bag": str(Path(record["bag"]).resolve()), "options": wanted,
+                       "bag_identity": identities.get(record["name"]) or {}, "resumed": False})
         bag_out.mkdir(parents=True, exist_ok=True)
         write_atomic(bag_out / RECORD_FILE, _json(record))
         records[record["name"]] = record
@@ -126,9 +141,13 @@ def evaluate(options: EvaluateOptions) -> EvaluateResult:
             timing["ray_start_s"] = time.perf_counter() - t
             workers = workers or cluster_cpus(ray)
             t = time.perf_counter()
-            evaluate_bags(ray, jobs, workers, show_progress=options.progress, on_record=on_record)
-            t_stop = time.perf_counter()
-            timing["tasks_s"] = t_stop - t
+            try:
+                evaluate_bags(ray, jobs, workers, show_progress=options.progress, on_record=on_record)
+            finally:
+                t_stop = time.perf_counter()
+                timing["tasks_s"] = t_stop - t
+                for _, job in jobs:  # what killed workers left: nothing else writes there now
+                    remove_partials(job.out)
         timing["ray_stop_s"] = time.perf_counter() - t_stop
     ordered = [records[n] for n in names]
     t = time.perf_counter()
@@ -141,6 +160,7 @@ def evaluate(options: EvaluateOptions) -> EvaluateResult:
         "bags": {"total": len(ordered), **counts, "resumed": sum(r["resumed"] for r in ordered)},
         "aggregate": agg,
         "per_bag": [_entry(r) for r in ordered],
+        "redone": redone,
         "options": wanted,
         "ray": {"address": options.ray_address or "local", "workers": workers},
         "timing": {k: round(v, 3) for k, v in timing.items()},
@@ -156,31 +176,16 @@ def _json(d: dict) -> bytes:
 def _check_out(out: Path, options: EvaluateOptions) -> None:
     if out.exists() and not out.is_dir():
         raise BagExistsError(f"{out} exists and is not a directory")
-    earlier = (out / SUMMARY_FILE).exists() or any((out / BAGS_DIR).glob("*"))
+    summary = out / SUMMARY_FILE
+    if (summary.exists() or summary.is_symlink()) and not summary.is_file():
+        raise BagExistsError(f"{summary} is not a file (a directory or another kind): remove it, or pass "
+                             "another --out")
+    if (out / BAGS_DIR).exists() and not (out / BAGS_DIR).is_dir():
+        raise BagExistsError(f"{out / BAGS_DIR} is not a directory: remove it, or pass another --out")
+    earlier = summary.exists() or any((out / BAGS_DIR).glob("*"))
     if earlier and not (options.resume or options.force):
         raise BagExistsError(f"{out} holds an earlier evaluation: pass --resume to continue it "
                              "or --force to start over")
-
-
-def _finished(bag: Path, bag_out: Path, wanted: dict) -> dict | None:
-    """The record of a bag an earlier run completed with the same options, else ``None``.
-
-    Raises:
-        BagError: the bag was completed with other options.
-    """
-    try:
-        record = json.loads((bag_out / RECORD_FILE).read_text())
-    except (OSError, ValueError):
-        return None
-    if not isinstance(record, dict) or record.get("status") != OK or \
-            record.get("bag") != str(bag.resolve()) or not (bag_out / METRICS_FILE).exists():
-        return None
-    if record.get("options") != wanted:
-        theirs = record.get("options") or {}
-        diff = sorted(k for k in set(wanted) | set(theirs) if wanted.get(k) != theirs.get(k))
-        raise BagError(f"{bag_out} was evaluated with other options (they differ in {diff}); "
-                       "pass the same options to resume, or --force to start over")
-    return record
 
 
 def _entry(r: dict) -> dict:

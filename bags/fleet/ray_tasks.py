@@ -37,6 +37,9 @@ PACKAGES = ("bags", "bev_mapper_core", "msg_adapters")
 UPLOAD_EXCLUDES = ("__pycache__", "*.pyc")
 #: ... unless the tasks map with the shipped weights: also not those.
 WEIGHTS_EXCLUDES = ("*.safetensors",)
+#: Ray's authentication setting: a local runtime gets ``token`` when the user has set none (what
+#: Ray chooses anyway, said explicitly so that Ray prints no warning about it).
+AUTH_MODE_ENV = "RAY_AUTH_MODE"
 #: ``--ray-address`` forms: ``auto`` (the cluster this machine is part of), ``HOST:PORT`` of a
 #: head node's GCS, or ``ray://HOST:PORT`` (Ray client, needs ``ray[client]``).
 ADDRESS_HELP = "auto | HOST:PORT | ray://HOST:PORT"
@@ -127,8 +130,12 @@ def ray_runtime(options: RayOptions, weights: bool = False) -> Iterator[Any]:
     Raises:
         BagError: Ray is not installed, or the cluster cannot be joined / the runtime started.
     """
-    ray = import_ray()
     local = options.address is None
+    auth_set = local and AUTH_MODE_ENV not in os.environ
+    if auth_set:  # Ray's default for a local runtime (token auth), said before Ray reads its config
+        os.environ[AUTH_MODE_ENV] = "token"
+        _refresh_ray_config()
+    ray = import_ray()
     main = threading.current_thread() is threading.main_thread()
     previous = signal.getsignal(signal.SIGTERM) if main else None
     kw: dict[str, Any] = dict(log_to_driver=False, logging_level=logging.WARNING,
@@ -142,6 +149,7 @@ def ray_runtime(options: RayOptions, weights: bool = False) -> Iterator[Any]:
     try:
         ray.init(**kw)
     except (ConnectionError, RuntimeError, ValueError, TimeoutError) as exc:
+        _unset_auth(auth_set)
         where = "start a local Ray runtime" if local else f"join the Ray cluster at {options.address!r}"
         raise BagError(f"cannot {where}: {exc}") from None
     finally:
@@ -153,6 +161,24 @@ def ray_runtime(options: RayOptions, weights: bool = False) -> Iterator[Any]:
         yield ray
     finally:
         ray.shutdown()  # a local runtime stops; a joined cluster is only disconnected from
+        _unset_auth(auth_set)
+
+
+def _refresh_ray_config() -> None:
+    """Make an already imported Ray see :data:`AUTH_MODE_ENV` (what Ray's own token set-up does)."""
+    import sys  # noqa: PLC0415
+
+    if "ray" in sys.modules:
+        with contextlib.suppress(Exception):  # a Ray without this config: nothing cached to refresh
+            from ray._raylet import Config  # noqa: PLC0415
+
+            Config.initialize("")
+
+
+def _unset_auth(was_set: bool) -> None:
+    if was_set:
+        os.environ.pop(AUTH_MODE_ENV, None)
+        _refresh_ray_config()
 
 
 def cluster_cpus(ray) -> int:
