@@ -23,7 +23,10 @@ from __future__ import annotations
 
 import os
 import pathlib
+import signal
 import sys
+import time
+import uuid
 
 import pytest
 
@@ -32,6 +35,14 @@ os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 # Discovery in ~0.1 s instead of up to 3 s (see the file); inherited by the ROS processes tests start.
 os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(TESTS / "fastdds_discovery.xml"))
 sys.path.insert(0, str(TESTS))
+
+#: Marks every process this test session starts (inherited through the environment, also by
+#: processes that detach, e.g. the ``ros2 daemon`` the ros2 CLI spawns): what the session-end
+#: check looks for.
+SESSION_ENV = "BEV_MAPPER_TEST_SESSION"
+os.environ[SESSION_ENV] = f"{os.getpid()}-{uuid.uuid4().hex[:8]}"
+#: Seconds the session-end check gives processes to finish exiting.
+LEFTOVER_GRACE_S = 10.0
 
 #: Fixtures that make a test a ``ros`` test.
 ROS_FIXTURES = {"ros_domain"}
@@ -58,6 +69,62 @@ def ros_domain():
         yield claim.id
     finally:
         claim.release()
+
+
+# ------------------------------------------------------------------ no leftovers
+def session_processes() -> dict[int, str]:
+    """``{pid: command line}`` of every live process that carries this session's mark (not this
+    process): children, grandchildren and detached daemons alike. Linux ``/proc`` only.
+    """
+    mark = f"{SESSION_ENV}={os.environ[SESSION_ENV]}".encode()
+    found = {}
+    for entry in pathlib.Path("/proc").iterdir():
+        if not entry.name.isdigit() or int(entry.name) == os.getpid():
+            continue
+        try:
+            if mark not in (entry / "environ").read_bytes().split(b"\0"):
+                continue
+            cmd = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace").strip()
+        except OSError:  # gone, or another user's
+            continue
+        if cmd:  # a zombie has no command line: exited, only not reaped yet
+            found[int(entry.name)] = cmd
+    return found
+
+
+def _stop(pids) -> None:
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        for pid in pids:
+            try:
+                os.kill(pid, sig)
+            except OSError:
+                pass
+        deadline = time.monotonic() + 3
+        while time.monotonic() < deadline and set(pids) & set(session_processes()):
+            time.sleep(0.1)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def no_leftover_processes():
+    """At the end of the session: stop the ``ros2 daemon`` processes the ros2 CLI spawned (one per
+    domain a test used it on), then fail if any other process this session started is still
+    running after :data:`LEFTOVER_GRACE_S` (it is stopped, and named in the failure).
+    """
+    yield
+    if not pathlib.Path("/proc/self/environ").exists():
+        return
+    daemons = [pid for pid, cmd in session_processes().items() if "ros2cli.daemon" in cmd]
+    _stop(daemons)
+    deadline = time.monotonic() + LEFTOVER_GRACE_S
+    left = session_processes()
+    while left and time.monotonic() < deadline:
+        time.sleep(0.2)
+        left = session_processes()
+    if left:
+        _stop(list(left))
+        listing = "; ".join(f"{pid}: {cmd[:160]}" for pid, cmd in sorted(left.items()))
+        pytest.fail(f"{len(left)} process(es) started by the tests outlived the session (now stopped): {listing}",
+                    pytrace=False)
 
 
 # ------------------------------------------------------------------ shared bags

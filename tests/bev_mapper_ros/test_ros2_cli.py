@@ -139,6 +139,7 @@ def test_ros2_run_param_node_info_and_topic_echo(layout, front_bag, tmp_path):
         assert "/bev/drivable: nav_msgs/msg/OccupancyGrid" in info.stdout, info.stdout
         assert "/cameras/front/labels: sensor_msgs/msg/Image" in info.stdout, info.stdout
     finally:
+        _stop_daemon(env)  # `param describe` / `topic echo` / `node info` spawned one
         if play is not None:
             play.send_signal(signal.SIGINT)
             play.wait(20)
@@ -221,6 +222,7 @@ def test_readme_live_commands_verbatim(layout, tmp_path):
         assert echo.returncode == 0, echo.stderr + logs[0].read_text() + logs[1].read_text()
         assert "width: 400" in echo.stdout and "height: 200" in echo.stdout, echo.stdout
     finally:
+        _stop_daemon(env)  # the README's `ros2 topic echo` spawned one
         for p in procs:
             if p.poll() is None:
                 os.killpg(p.pid, signal.SIGINT)
