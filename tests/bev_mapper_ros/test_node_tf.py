@@ -236,3 +236,51 @@ def test_bad_tf_is_counted_and_never_reaches_a_map(tmp_path, ros_domain):
         res = fusion.update(mapper.map({n: c.labels for n, c in f.cameras.items()}), f.stamp_ns,
                             f.world_from_ego if good_pose else None)
         assert_grids(d, grid, f.stamp_ns, res.prediction, what)
+
+
+def test_focusbev_memory_follows_tf_with_pose_source_auto(tmp_path, ros_domain):
+    """``config/front1_focusbev.yaml`` with the default ``pose_source: auto`` and no ``/odom``:
+    FocusBEV's memory bank is aligned by ``odom -> base_link`` from ``/tf``, and the grids equal
+    the core mapper's fed the same frames with the same poses (as with /odom,
+    test_node_temporal.py)."""
+    from bev_mapper_core.mapper import create_mapper
+
+    params = REPO / "config" / "front1_focusbev.yaml"
+    grid, rig = grid_preset("ahead"), preset_rig("front1")
+    classes = ("drivable", "vehicle")
+    log = tmp_path / "node.log"
+    proc = start_process(["bev_mapper_ros.mapper_node", "--ros-args", "--params-file", str(params),
+                          "-p", "threads:=1", "-p", "diagnostics_period_s:=0.2",
+                          "-p", f"classes:={list(classes)}".replace("'", '"')], ros_domain, log)
+    frames = at_now(list(generate_drive(rig, grid, SynthConfig(frames=4, seed=950_000_014))))
+    expected = create_mapper(rig_with(rig, {"front": rig.cameras[0].ego_from_cam_array}), grid,
+                             MapperConfig(method="focusbev", input_kind="rgb", classes=classes, threads=1))
+    node = None
+    try:
+        rclpy.init(domain_id=ros_domain)
+        node = rclpy.create_node("bev_test_tf_focusbev")
+        tf = tf2_ros.TransformBroadcaster(node)
+        d = Driver(node, rig, log, kind="rgb", classes=classes)
+        assert spin_until(node, lambda: tf.pub_tf.get_subscription_count() > 0, 60.0), log.read_text()
+        for f in frames:
+            assert d.calibrate(f.stamp_ns, 60.0), log.read_text()
+            tf.sendTransform(transform("odom", "base_link", f.world_from_ego, f.stamp_ns))
+            spin_until(node, lambda: False, 0.1)
+            d.send_frame(f)
+            assert d.wait_for(f.stamp_ns, 120.0), f"no grids for frame {f.index}:\n{log.read_text()}"
+        values = wait_diag(node, d, lambda v: v.get("pose_source"))
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+        assert stop_process(proc) in (0, -2), log.read_text()
+    assert values["pose_source"] == "tf", values
+    fused = []
+    for f in frames:
+        pred = expected.map({n: c.rgb for n, c in f.cameras.items()}, f.world_from_ego, f.stamp_ns)
+        fused.append(pred.frames)
+        for ci, c in enumerate(classes):
+            got = np.asarray(d.grids[c][f.stamp_ns].data, dtype=np.int16)
+            want = grid.to_occupancy(pred.probs[ci], pred.known).astype(np.int16)
+            assert np.abs(got - want).max() <= 1 and (got == want).mean() > 0.999, (c, f.index)
+    assert max(fused) == 2  # the memory bank brought in an earlier frame, aligned by TF's poses
