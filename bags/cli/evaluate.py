@@ -71,6 +71,12 @@ def run(args: argparse.Namespace) -> int:
     print(format_summary(result.summary))
     for r in result.summary.get("redone", []):
         print(f"note: {r['name']} replayed again: {r['reason']}", file=sys.stderr)
+    for e in result.summary["per_bag"]:
+        sync = e.get("sync") or {}
+        if sync.get("partial_sets"):
+            missing = ", ".join(f"{c}: {n}" for c, n in sync["missing_by_camera"].items() if n)
+            print(f"note: {e['name']}: {sync['partial_sets']} of {sync['sets']} set(s) mapped without some camera "
+                  f"({missing}; {sync['split_frames']} split by the {sync['window_ms']:g} ms window)", file=sys.stderr)
     for r in result.records:
         if r["status"] != "ok":
             print(f"error: {r['name']} ({r['bag']}): {r['status']}: {r['error']}", file=sys.stderr)

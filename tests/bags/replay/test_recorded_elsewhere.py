@@ -237,3 +237,17 @@ def test_params_file_errors(recorded, tmp_path):
                        (bad, "ros__parameters")):
         with pytest.raises(Exception, match=want):
             RigChoice(params_file=path).hints()
+
+
+def test_evaluate_takes_the_rig_and_reports_the_missing_camera(label_frames, tmp_path, capsys):
+    pytest.importorskip("ray")
+    bag = tmp_path / "bags" / "no_back"
+    bag.parent.mkdir()
+    write_recorded_bag(bag, label_frames[:2], skip=("back",))
+    out = tmp_path / "eval"
+    assert main(["evaluate", str(bag), "--out", str(out), "--quiet", "--method", "ipm", "--rig", "surround6",
+                 "--no-pictures", "--workers", "1"]) == 0
+    cap = capsys.readouterr()
+    entry = json.loads((out / "summary.json").read_text())["per_bag"][0]
+    assert entry["status"] == "ok" and entry["sync"]["missing_by_camera"]["back"] == 2
+    assert "no_back: 2 of 2 set(s) mapped without some camera (back: 2" in cap.err
