@@ -194,7 +194,7 @@ def _entry(r: dict) -> dict:
     return {"name": r["name"], "bag": r["bag"], "status": r["status"], "error": r["error"],
             "out": f"{BAGS_DIR}/{r['name']}", "frames": m.get("frames"),
             "frames_scored": m.get("frames_scored"), "miou": m.get("miou"),
-            "latency_p50_ms": lat.get("p50"), "seconds": _round(r["seconds"]),
+            "latency_p50_ms": lat.get("p50"), "sync": m.get("sync"), "seconds": _round(r["seconds"]),
             "cpu_seconds": _round(r.get("cpu_seconds")), "resumed": r["resumed"]}
 
 
