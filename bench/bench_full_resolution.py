@@ -55,7 +55,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--repeat", type=int, default=7)
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1: one core)")
-    p.add_argument("--rows", default=None, help="write the rows for bench_table.py here")
+    p.add_argument("--json", default=None, help="write the rows for bench_table.py here")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
@@ -102,7 +102,7 @@ def main() -> None:
     for a, b in pairs:
         print(f"{a} / {b}: {med[a] / med[b]:.2f}x")
         rows.append(row("full resolution", f"{a}: {med[a]:.1f} ms", f"{b}: {med[b]:.1f} ms", med[a] / med[b]))
-    write_rows(args.rows, "bench_full_resolution", rows)
+    write_rows(args.json, "bench_full_resolution", rows)
 
 
 if __name__ == "__main__":

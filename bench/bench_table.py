@@ -7,7 +7,8 @@ each printing ours next to its reference measured in the same run, and collects 
 Rows: IPM against its earlier algorithm (``bench_ipm.py``); Bi-Mapper by inference backend
 against torch eager, and by thread count with a competing process (``bench_backends.py
 --competitor``); the node at 10 and 20 Hz with reliable publishers and at 10 Hz with
-best-effort ones (``bench_node_rate.py``); replay against reading in turn (``bench_replay.py``).
+best-effort ones (``bench_node_rate.py``); replay against reading in turn (``bench_replay.py``);
+1600 x 900 cameras against 400 x 225 ones on RGB (``bench_full_resolution.py``).
 Run it on a quiet machine: every figure is a wall-clock time.
 """
 
@@ -36,6 +37,7 @@ RUNS = (
     ("bench_node_rate.py", ["--hz", "10", "--seconds", "15", "--publishers", "best_effort"]),
     ("bench_node_rate.py", ["--hz", "10", "--seconds", "15", "--node-arg", "backend:=auto"]),
     ("bench_replay.py", []),
+    ("bench_full_resolution.py", []),
 )
 
 
