@@ -4,7 +4,9 @@ Messages keep the bag's types. Each one is re-serialized to CDR with the rosbags
 (exact: the bytes rclpy itself would produce, up to padding) and published as a serialized
 message, so no per-type conversion code is needed; :func:`to_rclpy` gives the same message as
 an rclpy object (``rclpy.serialization.deserialize_message``). Topics whose type has no rclpy
-message class here (e.g. ``tf2_msgs/msg/TFMessage`` without tf2_msgs) are skipped with a warning.
+message class here (e.g. ``tf2_msgs/msg/TFMessage`` where tf2_msgs is neither in a ROS
+distribution nor built by ``scripts/setup_venv.sh``) are skipped with a warning; ``/tf`` and
+``/tf_static`` are played like any topic where it is.
 
 Playback is paced by the log times divided by ``--rate``; ``--start-offset`` skips the start
 (latched topics are still published first); ``--loop`` starts over at the end; ``--clock``

@@ -7,6 +7,7 @@ Without the CLI these tests are skipped, and say why.
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import pathlib
 import re
@@ -235,6 +236,8 @@ def test_readme_live_commands_verbatim(layout, tmp_path):
     node_log = logs[0].read_text()
     assert procs[0].returncode == 0, node_log
     assert "[ERROR]" not in node_log and "Traceback" not in node_log, node_log
+    if importlib.util.find_spec("tf2_ros") or os.environ.get("CI"):  # scripts/setup_venv.sh builds it
+        assert "extrinsics: front: TF (base_link <- front_optical_frame)" in node_log, node_log  # play's /tf_static
 
 
 def _stop_daemon(env: dict) -> None:
@@ -264,8 +267,6 @@ def test_launch_then_topic_echo(layout, front_bag, tmp_path):
     played with ``--clock`` (its ``/tf_static`` too: the node logs extrinsics from TF) and
     ``ros2 topic echo --once /bev/drivable`` receives a grid; a launch that cannot start says
     why in one line."""
-    import importlib.util
-
     if importlib.util.find_spec("composition_interfaces") is None and not os.environ.get("CI"):
         pytest.skip("composition_interfaces is not built into this venv (bash scripts/setup_venv.sh builds it)")
     env = cli_env(free_domain_id(13))
