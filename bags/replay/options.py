@@ -12,7 +12,6 @@ from bev_mapper_core.geometry.grid import BevGrid
 from bev_mapper_core.mapper import MapperConfig
 from bev_mapper_core.metrics import SCOPES
 from bev_mapper_core.temporal import TemporalConfig
-
 from msg_adapters.sync import SyncConfig
 
 from ..errors import BagError, BagExistsError
