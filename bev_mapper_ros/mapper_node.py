@@ -238,28 +238,45 @@ class MapperNode(Node):
 
     def _pose_at(self, stamp_ns: int):
         """The ego pose at ``stamp_ns`` from odometry or TF, as ``pose_source`` says (``auto``:
-        odometry once some arrived, else TF); None when there is none (the fusion then maps the
-        frame without its history and says why).
+        odometry once some arrived, else TF, else odometry that arrives within POSE_WAIT_S);
+        None when there is none (the fusion then maps the frame without its history and says
+        why). A TF failure is counted unless ``auto`` found the pose in odometry.
         """
         src = self.cfg.pose_source
-        use_odom = src == "odom" or (src == "auto" and (self.tf is None or self._odom_seen))
-        self.pose_used = "odom" if use_odom else "tf"
-        return self._odom_pose_at(stamp_ns) if use_odom else self._tf_pose_at(stamp_ns)
+        if src == "odom" or self.tf is None or (src == "auto" and self._odom_seen):
+            self.pose_used = "odom"
+            return self._odom_pose_at(stamp_ns)
+        try:
+            pose = self._tf_pose_at(stamp_ns)
+        except TfLookupError as exc:
+            if src == "auto":
+                pose = self._odom_pose_at(stamp_ns)
+                if pose is not None:
+                    self.pose_used = "odom"
+                    return pose
+            self.pose_used = "tf"
+            self._tf_problem(exc.kind, f"ego pose: {exc}")
+            return None
+        self.pose_used = "tf"
+        return pose
 
     def _tf_pose_at(self, stamp_ns: int):
         """``odom_frame <- base_frame`` at ``stamp_ns`` (tf2 interpolates); waits up to
-        POSE_WAIT_S for TF to reach the stamp; a failure is counted and gives None.
+        POSE_WAIT_S for TF to reach the stamp (the transform of the same instant often arrives
+        just after the images).
+
+        Raises:
+            TfLookupError: no transform at the stamp.
         """
         deadline = time.monotonic() + POSE_WAIT_S
         while True:
             try:
                 return self.tf.lookup(self.cfg.odom_frame, self.cfg.base_frame, stamp_ns)
             except TfLookupError as exc:
-                if exc.kind == "extrapolation" and time.monotonic() < deadline and not self._stopping.is_set():
-                    time.sleep(0.005)  # the TF of this instant may arrive just after the images
-                    continue
-                self._tf_problem(exc.kind, f"ego pose: {exc}")
-                return None
+                ahead = exc.kind == "extrapolation" and "past" not in str(exc)
+                if not ahead or time.monotonic() > deadline or self._stopping.is_set():
+                    raise
+                time.sleep(0.005)
 
     def _odom_pose_at(self, stamp_ns: int):
         """The odometry pose at ``stamp_ns``; waits up to POSE_WAIT_S for odometry at or after the
