@@ -28,7 +28,7 @@ from .rig_params import rig_parameters
 #: Values of ``image_reliability`` (:mod:`.input_qos` says what each means).
 RELIABILITY_CHOICES = ("auto", "reliable", "best_effort")
 #: Values of ``pose_source``: where the ego pose at an image stamp comes from (``auto``: odometry
-#: once ``odom_topic`` has delivered some, else TF).
+#: once ``odom_topic`` has delivered some; before that TF, else odometry).
 POSE_SOURCES = ("auto", "tf", "odom")
 DEFAULT_TOPICS = {"labels": "/cameras/{camera}/labels", "rgb": "/cameras/{camera}/image_raw"}
 
@@ -72,7 +72,7 @@ class NodeConfig:
         pose_source: where the ego pose at each image stamp comes from, for the temporal fusion
             and methods with a memory (FocusBEV): ``odom`` (``odom_topic``), ``tf``
             (``odom_frame -> base_frame`` at the image stamp, tf2's interpolation) or ``auto``
-            (odometry once ``odom_topic`` has delivered some, else TF).
+            (odometry once ``odom_topic`` has delivered some; before that TF, else odometry).
         odom_frame: the fixed frame of the TF ego pose.
         output_prefix: output topics are ``<output_prefix>/<class>`` and ``<output_prefix>/image``.
         diagnostics_period_s: period of ``/diagnostics`` messages.

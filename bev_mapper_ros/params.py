@@ -93,7 +93,7 @@ _DECLARATIONS: dict[str, tuple] = {
                             "(tf_errors_extrinsic_jump in /diagnostics)"),
     "pose_source": (_T.PARAMETER_STRING, f"ego pose for the temporal fusion and FocusBEV, one of {list(POSE_SOURCES)}: "
                     "odom = odom_topic, tf = TF odom_frame -> base_frame at the image stamp (interpolated), "
-                    "auto = odometry once odom_topic delivers, else TF"),
+                    "auto = odometry once odom_topic delivers; before that TF, else odometry"),
     "odom_frame": (_T.PARAMETER_STRING, "fixed frame of the TF ego pose (pose_source tf / auto)"),
     "output_prefix": (_T.PARAMETER_STRING, "output topics: <prefix>/<class>, <prefix>/image"),
     "diagnostics_period_s": (_T.PARAMETER_DOUBLE, "period of /diagnostics (s)"),
