@@ -123,6 +123,27 @@ def _calibration(reader: BagReader) -> tuple[list[dict], list[str]]:
     return cams, problems
 
 
+#: A camera with fewer images of a kind than this share of the camera with the most is said to
+#: be thinned out (``bev-bag info``'s problems).
+THIN_SHARE = 0.9
+
+
+def _thin_cameras(names: list[str], counts: dict[str, int]) -> list[str]:
+    """Problems: a camera with no images, or far fewer than the others, of a kind some camera has
+    (replay then maps sets without it: ``metrics.json`` ``sync``).
+    """
+    out = []
+    for kind in T.IMAGE_KINDS:
+        n = {c: counts.get(T.image_topic(c, kind), 0) for c in names}
+        most = max(n.values(), default=0)
+        for c, k in n.items():
+            if most and k < THIN_SHARE * most:
+                what = "no" if k == 0 else f"only {k}"
+                out.append(f"camera {c!r} has {what} {kind} images, the others up to {most}: replay maps "
+                           f"{most - k} set(s) without it (metrics.json: sync)")
+    return out
+
+
 def describe(path: Path) -> dict:
     """Everything ``bev-bag info`` prints, as a JSON-able dict."""
     with BagReader(path) as reader:
@@ -134,6 +155,8 @@ def describe(path: Path) -> dict:
             topics.append({"topic": name, "type": s.msgtype, "count": n if damage else s.count,
                            "rate_hz": None if rate is None else round(rate, 3)})
         cams, problems = _calibration(reader)
+        counts = {t["topic"]: t["count"] for t in topics}
+        problems += _thin_cameras([c["name"] for c in cams if c["calibration"]], counts)
         wrong_types = reader.type_problems
         gt = list(reader.gt_classes)
         grid = None

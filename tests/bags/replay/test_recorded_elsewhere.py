@@ -251,3 +251,12 @@ def test_evaluate_takes_the_rig_and_reports_the_missing_camera(label_frames, tmp
     entry = json.loads((out / "summary.json").read_text())["per_bag"][0]
     assert entry["status"] == "ok" and entry["sync"]["missing_by_camera"]["back"] == 2
     assert "no_back: 2 of 2 set(s) mapped without some camera (back: 2" in cap.err
+
+
+def test_info_says_which_camera_has_no_images(label_frames, tmp_path, capsys):
+    bag = tmp_path / "no_back"
+    write_recorded_bag(bag, label_frames[:2], skip=("back",))
+    assert main(["info", str(bag)]) == 0
+    out = capsys.readouterr().out
+    assert "camera 'back' has no labels images, the others up to 2" in out
+    assert "camera 'front'" not in out.split("problem:", 1)[-1]
