@@ -11,9 +11,10 @@ start says why in one line (``[ERROR] [launch]: ...``).
 
 import os
 
-from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
+
+from launch import LaunchDescription
 
 try:
     from launch_ros.actions import Node
