@@ -162,7 +162,9 @@ class MapperNode(Node):
         self.get_logger().info(
             f"mapping {list(cfg.cameras)} with {cfg.mapper.method} ({cfg.mapper.input_kind}{label_text}) onto "
             f"{cfg.grid.describe()} in {cfg.base_frame}; publishing {list(self.class_names)} on "
-            f"{cfg.output_prefix}/<class>; waiting for camera_info and extrinsics"
+            f"{cfg.output_prefix}/<class>; a set's images within {cfg.sync_slop_s * 1e3:g} ms of each other "
+            f"(at most half the cameras' frame period), {cfg.sync_timeout_s * 1e3:g} ms for a late one; "
+            "waiting for camera_info and extrinsics"
         )
 
     # ---------------------------------------------------------------- parameters
