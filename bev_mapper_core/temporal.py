@@ -22,6 +22,13 @@ The memory is dropped (and the frame mapped alone) when:
 * the gap to the previous frame exceeds ``max_gap_s``;
 * the pose moved more than ``max_jump_m`` since the previous frame (a relocalization).
 
+Before any memory sees a pose, :class:`OdometryCheck` vets the stream of poses (here and in
+FocusBEV's own memory, in replay and in the node): a missing or non-rigid pose, an odometry stamp
+that went back, repeats or lies far from the frame's, a switch of the odometry's frame ids, a
+motion no vehicle makes (more than ``max_accel_mps2`` of change in velocity, e.g. a 4 m spike
+between two frames 0.1 s apart) are counted per kind (:data:`ODOMETRY_PROBLEMS`) and reset the
+memory, which is said; a non-finite covariance is counted (the pose itself is used).
+
 ``window`` 1 is no fusion at all. Moving objects smear by their own motion over the window
 (only the ego motion is undone), which is why the window stays short.
 """
@@ -56,17 +63,23 @@ class TemporalConfig:
         max_gap_s: a longer gap between frames drops the memory.
         max_jump_m: a larger ego translation between consecutive frames drops the memory.
         layers: ``flat`` (the flat classes only) or ``all`` (see the module docstring).
+        max_accel_mps2: a larger change of the ego velocity between frames (m/s per s) is no
+            motion but an odometry jump: the memory is dropped (:class:`OdometryCheck`).
+        max_pose_offset_s: an odometry stamp further than this from its frame's stamp is not
+            that frame's pose.
     """
 
     window: int = 1
     max_gap_s: float = 0.5
     max_jump_m: float = 5.0
     layers: str = "flat"
+    max_accel_mps2: float = 50.0
+    max_pose_offset_s: float = 0.5
 
     def __post_init__(self) -> None:
         if isinstance(self.window, bool) or not isinstance(self.window, int) or not 1 <= self.window <= 16:
             raise ConfigError(f"temporal window must be an integer in 1..16, got {self.window!r}")
-        for name in ("max_gap_s", "max_jump_m"):
+        for name in ("max_gap_s", "max_jump_m", "max_accel_mps2", "max_pose_offset_s"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
                 raise ConfigError(f"{name} must be a finite number > 0, got {v!r}")
@@ -79,7 +92,8 @@ def pose_problem(odom_from_base) -> str:
     if odom_from_base is None:
         return "no ego pose for this frame: mapped without temporal fusion"
     try:
-        validate_transform(odom_from_base, "ego pose")
+        with np.errstate(all="ignore"):  # huge entries overflow in the check: refused all the same
+            validate_transform(odom_from_base, "ego pose")
     except CalibrationError as exc:
         return f"the ego pose is not a finite rigid 4x4 transform ({exc}): mapped without temporal fusion"
     return ""
@@ -185,4 +199,111 @@ class TemporalFusion:
                             note)
 
 
-__all__ = ["EPS", "TEMPORAL_LAYERS", "FusionResult", "TemporalConfig", "TemporalFusion", "drop_reason", "pose_problem"]
+#: What :class:`OdometryCheck` counts (``metrics.json`` ``temporal.odometry_problems``,
+#: ``/diagnostics`` ``odometry_<kind>``).
+ODOMETRY_PROBLEMS = ("no_pose", "bad_pose", "stamp_back", "duplicate_stamp", "far_stamp", "frame_change", "jump",
+                     "bad_covariance")
+
+
+@dataclass(frozen=True)
+class PoseVerdict:
+    """What :meth:`OdometryCheck.check` decided for one frame: the ``pose`` to use (None: map
+    without memory), whether the memories must be ``reset`` first, the ``problem`` kind ('' =
+    none) and a ``note`` for the log.
+    """
+
+    pose: np.ndarray | None
+    reset: bool = False
+    problem: str = ""
+    note: str = ""
+
+
+class OdometryCheck:
+    """Vets each frame's ego pose before a temporal memory uses it; counts what it finds.
+
+    Attributes:
+        counts: frames per problem kind (:data:`ODOMETRY_PROBLEMS`).
+        resets: memory resets it asked for.
+    """
+
+    def __init__(self, config: TemporalConfig = TemporalConfig()) -> None:
+        self.config = config
+        self.counts = dict.fromkeys(ODOMETRY_PROBLEMS, 0)
+        self.resets = 0
+        self._last: tuple[int, int | None, np.ndarray, tuple | None] | None = None  # stamp, pose stamp, pose, frames
+        self._velocity: np.ndarray | None = None  # m/s of the last accepted step
+
+    def forget(self) -> None:
+        """Start afresh (the memories were dropped for another reason)."""
+        self._last, self._velocity = None, None
+
+    def check(self, stamp_ns: int, pose, pose_stamp_ns: int | None = None, frames: tuple | None = None,
+              covariance=None) -> PoseVerdict:
+        """The verdict on frame ``stamp_ns``'s ``pose`` (odom <- base, 4x4, or None), taken from
+        odometry stamped ``pose_stamp_ns`` in ``frames`` (``(frame_id, child_frame_id)``), with
+        its pose ``covariance`` (any numbers; only checked for finiteness).
+        """
+        if covariance is not None and not np.all(np.isfinite(np.asarray(covariance, dtype=np.float64))):
+            self.counts["bad_covariance"] += 1
+        if pose is None:
+            return self._refuse("no_pose", "no ego pose for this frame: mapped without temporal memory")
+        problem = pose_problem(pose)
+        if problem:
+            return self._refuse("bad_pose", problem)
+        T = np.asarray(pose, dtype=np.float64)
+        stamp_ns = int(stamp_ns)
+        if pose_stamp_ns is not None and abs(int(pose_stamp_ns) - stamp_ns) > self.config.max_pose_offset_s * 1e9:
+            return self._refuse("far_stamp", f"odometry stamped {(int(pose_stamp_ns) - stamp_ns) / 1e9:+.3f} s from "
+                                             "its frame: mapped without temporal memory")
+        last = self._last
+        if last is None:
+            self._accept(stamp_ns, pose_stamp_ns, T, frames, None)
+            return PoseVerdict(T)
+        last_stamp, last_pose_stamp, last_T, last_frames = last
+        kind = note = ""
+        if pose_stamp_ns is not None and last_pose_stamp is not None and int(pose_stamp_ns) <= last_pose_stamp:
+            kind = "duplicate_stamp" if int(pose_stamp_ns) == last_pose_stamp else "stamp_back"
+            note = f"odometry stamp {'repeated' if kind == 'duplicate_stamp' else 'went back'}: temporal memory reset"
+        elif frames is not None and last_frames is not None and tuple(frames) != tuple(last_frames):
+            kind, note = "frame_change", (f"odometry frames changed from {last_frames} to {tuple(frames)}: "
+                                          "temporal memory reset")
+        elif stamp_ns > last_stamp:
+            dt = (stamp_ns - last_stamp) / 1e9
+            v = (T[:3, 3] - last_T[:3, 3]) / dt
+            if self._velocity is not None and dt <= self.config.max_gap_s:
+                accel = float(np.linalg.norm(v - self._velocity)) / dt
+                if accel > self.config.max_accel_mps2:
+                    kind = "jump"
+                    note = (f"ego pose jumped {float(np.linalg.norm(T[:3, 3] - last_T[:3, 3])):.2f} m in {dt:.3f} s "
+                            f"({accel:.0f} m/s^2 > {self.config.max_accel_mps2}): temporal memory reset")
+            if not kind and float(np.linalg.norm(T[:3, 3] - last_T[:3, 3])) > self.config.max_jump_m:
+                kind, note = "jump", (f"ego pose jumped {float(np.linalg.norm(T[:3, 3] - last_T[:3, 3])):.2f} m "
+                                      f"(> {self.config.max_jump_m} m): temporal memory reset")
+            velocity = None if kind or dt > self.config.max_gap_s else v
+            self._accept(stamp_ns, pose_stamp_ns, T, frames, velocity)
+            if kind:
+                self.counts[kind] += 1
+                self.resets += 1
+                return PoseVerdict(T, True, kind, note)
+            return PoseVerdict(T)
+        else:  # the frame stamp itself went back or repeated: the memories reset on it
+            self._accept(stamp_ns, pose_stamp_ns, T, frames, None)
+            return PoseVerdict(T)
+        self.counts[kind] += 1
+        self.resets += 1
+        self._accept(stamp_ns, pose_stamp_ns, T, frames, None)
+        return PoseVerdict(None if kind in ("duplicate_stamp", "stamp_back") else T, True, kind, note)
+
+    def _accept(self, stamp_ns, pose_stamp_ns, T, frames, velocity) -> None:
+        self._last = (stamp_ns, None if pose_stamp_ns is None else int(pose_stamp_ns), T,
+                      None if frames is None else tuple(frames))
+        self._velocity = velocity
+
+    def _refuse(self, kind: str, note: str) -> PoseVerdict:
+        self.counts[kind] += 1
+        self.forget()
+        return PoseVerdict(None, True, kind, note)
+
+
+__all__ = ["EPS", "ODOMETRY_PROBLEMS", "TEMPORAL_LAYERS", "FusionResult", "OdometryCheck", "PoseVerdict",
+           "TemporalConfig", "TemporalFusion", "drop_reason", "pose_problem"]

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from bev_mapper_core.errors import BevMapperError
 from bev_mapper_core.labels.label_maps import label_map
 from bev_mapper_core.mapper import BevPrediction
-from bev_mapper_core.temporal import TemporalFusion
+from bev_mapper_core.temporal import OdometryCheck, TemporalFusion
 
 from ..errors import BagCorruptError
 from .options import ReplayRun
@@ -42,6 +42,12 @@ def map_frames(run: ReplayRun, finish: Callable, bar) -> MappingTally:
     options, kind = run.options, run.input_kind
     window = options.temporal.window
     tally = MappingTally({"window": window, "fused_frames": 0, "resets": 0, "frames_without_pose": 0})
+    uses_pose = window > 1 or run.mapper.uses_ego_pose
+    check = OdometryCheck(options.temporal) if uses_pose else None
+    if check is not None:  # the odometry as the memories see it (bev_mapper_core.temporal.OdometryCheck)
+        tally.temporal["odometry_problems"] = check.counts
+    if run.mapper.uses_ego_pose:  # the method's own memory (FocusBEV's bank)
+        tally.temporal["method"] = {"fused_frames": 0, "resets": 0, "frames_without_pose": 0}
     # with a pipeline, the next frames are read and decoded by a thread while this one maps
     frames = run.reader.frames(rgb=kind == "rgb", labels=kind == "labels",
                                label_map=label_map(options.mapper.label_map), sync=options.sync)
@@ -58,7 +64,7 @@ def map_frames(run: ReplayRun, finish: Callable, bar) -> MappingTally:
                 continue
             t0 = time.perf_counter()
             try:
-                pred = _map_frame(run.mapper, fusion, frame, images, tally.temporal)
+                pred = _map_frame(run.mapper, fusion, check, frame, images, tally.temporal)
             except BevMapperError as exc:  # this frame's input: keep the outputs so far
                 tally.damage = f"frame {frame.index} could not be mapped: {exc}"
                 break
@@ -82,10 +88,29 @@ def map_frames(run: ReplayRun, finish: Callable, bar) -> MappingTally:
     return tally
 
 
-def _map_frame(mapper, fusion: TemporalFusion | None, frame, images, temporal: dict) -> BevPrediction:
-    """One frame through the mapper and the temporal fusion (counted in ``temporal``)."""
-    pose = frame.odom.world_from_ego if frame.odom is not None else None
+def _map_frame(mapper, fusion: TemporalFusion | None, check: OdometryCheck | None, frame, images,
+               temporal: dict) -> BevPrediction:
+    """One frame through the mapper and the temporal fusion (counted in ``temporal``); its pose
+    vetted by ``check`` first (a problem resets both memories and is counted).
+    """
+    odom = frame.odom
+    pose = odom.world_from_ego if odom is not None else None
+    if check is not None:
+        verdict = check.check(frame.stamp_ns, pose, None if odom is None else odom.stamp_ns,
+                              None if odom is None else (odom.frame_id, odom.child_frame_id))
+        if verdict.reset and verdict.pose is not None:  # a pose the memories cannot be aligned with
+            temporal["resets"] += 1
+            if fusion is not None:
+                fusion.reset()
+            if mapper.uses_ego_pose:
+                mapper.reset()
+        pose = verdict.pose
     pred = mapper.map(images, ego_pose=pose, stamp_ns=frame.stamp_ns)
+    if "method" in temporal:
+        method = temporal["method"]
+        method["fused_frames"] += pred.frames
+        if pred.note:
+            method["frames_without_pose" if pose is None else "resets"] += 1
     if fusion is None:
         return pred
     fused = fusion.update(pred, frame.stamp_ns, pose)

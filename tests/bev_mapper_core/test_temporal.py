@@ -10,7 +10,7 @@ from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.geometry.grid import BevGrid
 from bev_mapper_core.geometry.transforms import rpy_to_rot
 from bev_mapper_core.mapper import BevPrediction
-from bev_mapper_core.temporal import TemporalConfig, TemporalFusion
+from bev_mapper_core.temporal import ODOMETRY_PROBLEMS, OdometryCheck, TemporalConfig, TemporalFusion
 
 GRID = BevGrid(-10.0, 10.0, -5.0, 5.0, 0.5)  # 40 x 20 cells
 S = 1_000_000_000  # ns per s
@@ -113,7 +113,8 @@ def test_replay_fuses_over_the_bags_odometry_exactly_as_the_core(tmp_path):
     import json
 
     m = json.loads((tmp_path / "fused" / METRICS_FILE).read_text())
-    assert m["temporal"] == {"window": 2, "fused_frames": 7, "resets": 0, "frames_without_pose": 0}
+    assert m["temporal"] == {"window": 2, "fused_frames": 7, "resets": 0, "frames_without_pose": 0,
+                             "odometry_problems": dict.fromkeys(ODOMETRY_PROBLEMS, 0)}
     with BagReader(bag) as r:
         grid = r.grid()
         mapper = create_mapper(r.rig(), grid, MapperConfig(method="ipm"))
@@ -165,3 +166,135 @@ def test_eval_fuses_each_drive_over_its_poses(tmp_path):
     assert fused == 4  # frames 1, 2 of each drive
     assert res["miou"] == pytest.approx(acc.result()["miou"], abs=1e-12)
     assert res["miou"] != evaluate_mapper(mapper, fs, grid)["miou"]
+
+
+# ------------------------------------------------------------------ odometry abuse (issue #29)
+DT = S // 10  # 10 Hz
+
+
+def _drive(check: OdometryCheck, n: int, start: int = 0, speed: float = 10.0, **kw):
+    """Feed ``n`` frames of a 10 m/s drive; the verdicts."""
+    return [check.check(start + k * DT, pose(speed * (start + k * DT) / S), start + k * DT, ("odom", "base_link"),
+                        **kw) for k in range(n)]
+
+
+def test_odometry_check_passes_a_plain_drive_and_counts_nothing():
+    check = OdometryCheck()
+    verdicts = _drive(check, 30)
+    assert all(v.pose is not None and not v.reset and not v.problem for v in verdicts)
+    assert check.counts == dict.fromkeys(ODOMETRY_PROBLEMS, 0) and check.resets == 0
+
+
+@pytest.mark.parametrize("case, kind, pose_used", [
+    ("nan", "bad_pose", False),
+    ("not_rigid", "bad_pose", False),  # a non-unit quaternion's matrix
+    ("none", "no_pose", False),
+    ("spike_4m", "jump", True),  # under max_jump_m 5: a velocity change no vehicle makes
+    ("km_jump", "jump", True),
+    ("stamp_back", "stamp_back", False),
+    ("duplicate_stamp", "duplicate_stamp", False),
+    ("far_future", "far_stamp", False),
+    ("frame_change", "frame_change", True),
+])
+def test_odometry_check_counts_each_abuse_and_asks_for_a_reset(case, kind, pose_used):
+    check = OdometryCheck()
+    _drive(check, 5)
+    t = 5 * DT
+    good = pose(10.0 * t / S)
+    args = {"nan": (t, np.full((4, 4), np.nan), t), "not_rigid": (t, good * 1.3, t), "none": (t, None, None),
+            "spike_4m": (t, pose(10.0 * t / S + 4.0), t), "km_jump": (t, pose(2000.0), t),
+            "stamp_back": (t, good, t - 3 * DT), "duplicate_stamp": (t, good, 4 * DT),
+            "far_future": (t, good, t + 3600 * S), "frame_change": (t, good, t)}[case]
+    frames = ("map", "base_link") if case == "frame_change" else ("odom", "base_link")
+    v = check.check(*args, frames)
+    assert v.problem == kind and v.reset and v.note and check.counts[kind] == 1
+    assert (v.pose is not None) == pose_used
+    # the stream goes on: later plain frames pass again
+    later = [check.check(t + k * DT, pose(10.0 * (t + k * DT) / S + (4.0 if case == "spike_4m" else 0.0)),
+                         t + k * DT, ("map", "base_link") if case == "frame_change" else ("odom", "base_link"))
+             for k in range(1, 6)]
+    if case == "km_jump":  # the next frame jumps back: counted too, then clean
+        later = later[1:]
+    assert all(not lv.problem for lv in later), [lv.note for lv in later]
+
+
+def test_odometry_check_counts_a_nan_covariance_and_uses_the_pose():
+    check = OdometryCheck()
+    cov = np.zeros(36)
+    cov[7] = np.nan
+    verdicts = _drive(check, 3, covariance=cov)
+    assert check.counts["bad_covariance"] == 3 and all(v.pose is not None and not v.reset for v in verdicts)
+
+
+def test_fused_maps_stay_finite_under_any_pose_stream():
+    """Random abuse fed through check + fusion (as replay and the node do): every map finite."""
+    rng = np.random.default_rng(0)
+    check, fusion = OdometryCheck(), TemporalFusion(GRID, TemporalConfig(window=3))
+    stamp = 0
+    for _ in range(200):
+        stamp += int(rng.choice([DT, 0, -DT, DT, DT, 10 * S]))
+        roll = rng.random()
+        T = pose(rng.normal() * (1e6 if roll < 0.1 else 1.0), rng.normal(), rng.normal())
+        if roll > 0.9:
+            T = np.full((4, 4), np.nan if roll > 0.95 else 1e308)
+        v = check.check(stamp, T, stamp + int(rng.choice([0, 0, 0, -DT, 3600 * S])))
+        if v.reset and v.pose is not None:
+            fusion.reset()
+        out = fusion.update(pred(rng.random(GRID.shape)), stamp, v.pose).prediction
+        assert np.isfinite(out.probs).all() and out.probs.min() >= 0 and out.probs.max() <= 1
+    assert sum(check.counts.values()) > 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("abuse", ["spike_4m", "frame_change", "duplicate_stamps", "nan_covariance"])
+def test_replay_counts_odometry_abuse(tmp_path, abuse):
+    """``bev-bag replay --temporal-window 3`` on a drive whose /odom is abused from frame 2 on:
+    the problems are counted in ``metrics.json`` (``temporal.odometry_problems``), the memory
+    reset is counted, the maps are finite and the replay completes (no data was lost)."""
+    import dataclasses
+    import json
+
+    from bag_damage import make_base, rewrite
+    from bag_helpers import replay_ipm
+
+    from bags.io import topics as T
+    from bags.replay import METRICS_FILE
+
+    base = make_base(tmp_path / "base")
+
+    def edit(t, ty, ns, msg, i):
+        if t != T.ODOM or i < 2:
+            return [(t, ns, msg)]
+        if abuse == "spike_4m" and i == 4:
+            p = msg.pose.pose
+            p = dataclasses.replace(p, position=dataclasses.replace(p.position, x=p.position.x + 4.0))
+            msg = dataclasses.replace(msg, pose=dataclasses.replace(msg.pose, pose=p))
+        elif abuse == "frame_change" and i % 2 == 0:
+            msg = dataclasses.replace(msg, header=dataclasses.replace(msg.header, frame_id="map"))
+        elif abuse == "duplicate_stamps" and i % 2 == 1:  # this pose stamped as the previous one
+            s = msg.header.stamp
+            total = s.sec * S + s.nanosec - DT
+            msg = dataclasses.replace(msg, header=dataclasses.replace(
+                msg.header, stamp=dataclasses.replace(s, sec=total // S, nanosec=total % S)))
+        elif abuse == "nan_covariance":
+            cov = np.array(msg.pose.covariance, dtype=np.float64)
+            cov[0] = np.nan
+            msg = dataclasses.replace(msg, pose=dataclasses.replace(msg.pose, covariance=cov))
+        return [(t, ns, msg)]
+
+    (tmp_path / "w").mkdir()
+    bag = rewrite(base, tmp_path / "w", edit)
+    out = tmp_path / "out"
+    rc = replay_ipm(bag, out, "--temporal-window", "3", "--no-pictures", "--no-report")
+    m = json.loads((out / METRICS_FILE).read_text())
+    problems = m["temporal"]["odometry_problems"]
+    want = {"spike_4m": "jump", "frame_change": "frame_change", "duplicate_stamps": None,
+            "nan_covariance": None}[abuse]
+    if want is not None:
+        assert problems[want] >= 1, problems
+        assert m["temporal"]["resets"] >= 1
+    if abuse == "duplicate_stamps":  # a pose matched to the wrong frame is counted, not fused
+        assert problems["duplicate_stamp"] + problems["stamp_back"] + problems["far_stamp"] + \
+            m["temporal"]["frames_without_pose"] >= 1, m["temporal"]
+    assert rc == 0 and m["complete"], m["damage"]
+    assert np.isfinite(m["miou"])

@@ -351,6 +351,9 @@ def test_replay_maps_a_front1_bag_with_the_shipped_focusbev_and_its_memory(tmp_p
                  "--no-report", "--quiet"]) == 0
     m = json.loads((out / METRICS_FILE).read_text())
     assert m["method"] == "focusbev" and 0.0 < m["miou"] <= 1.0
+    # FocusBEV's own memory is counted (issue #29): 1 + 1 + 2 + 2 frames fused, nothing reset
+    assert m["temporal"]["method"] == {"fused_frames": 6, "resets": 0, "frames_without_pose": 0}
+    assert sum(m["temporal"]["odometry_problems"].values()) == 0
     with BagReader(bag) as r:
         mapper = create_mapper(r.rig(), r.grid(), MapperConfig(method="focusbev", input_kind="rgb"))
         preds = [(f.stamp_ns, mapper.map(f.rgb, f.odom.world_from_ego, f.stamp_ns)) for f in r.frames(labels=False)]
@@ -363,3 +366,32 @@ def test_replay_maps_a_front1_bag_with_the_shipped_focusbev_and_its_memory(tmp_p
     ci = mapper.class_names.index("drivable")
     for stamp, pred in preds:
         np.testing.assert_array_equal(got[stamp], grid_preset("ahead").to_occupancy(pred.probs[ci], pred.known))
+
+
+@pytest.mark.slow
+def test_replay_counts_focusbevs_frames_without_odometry(tmp_path):
+    """A front1 bag without /odom (issue #29): FocusBEV maps every frame alone and says so in
+    ``metrics.json``: ``temporal.method.frames_without_pose`` and ``odometry_problems.no_pose``."""
+    from bags.cli.main import main
+    from bags.io import topics as T
+    from bags.io.reader import BagReader
+    from bags.io.writer import BagWriter
+    from bags.replay import METRICS_FILE
+
+    bag, out = tmp_path / "bag", tmp_path / "out"
+    assert main(["synth", str(bag), "--rig", "front1", "--grid", "ahead", "--frames", "3", "--seed", "950000016"]) == 0
+    bare = tmp_path / "no_odom"
+    with BagReader(bag) as r, BagWriter(bare) as w:
+        for key, value in r.custom_data.items():
+            w.set_custom_data(key, value)
+        for topic, info in r.topics.items():
+            if topic not in (T.ODOM, T.TF):
+                w.add_topic(topic, info.msgtype, latched=topic in r.latched_topics)
+        for msg in r.messages():
+            if msg.topic not in (T.ODOM, T.TF):
+                w.write(msg.topic, msg.msg, msg.log_ns)
+    assert main(["replay", str(bare), "--out", str(out), "--method", "focusbev", "--input", "rgb", "--no-pictures",
+                 "--no-report", "--quiet"]) == 0
+    m = json.loads((out / METRICS_FILE).read_text())
+    assert m["temporal"]["method"] == {"fused_frames": 3, "resets": 0, "frames_without_pose": 3}
+    assert m["temporal"]["odometry_problems"]["no_pose"] == 3
