@@ -130,6 +130,10 @@ class TrainConfig:
         unlabeled_bag: rosbag2 paths of unlabeled frames (``bev-train --unlabeled``; no GT
             needed, the cameras of ``rig``): the ``bev-train`` command reads them with
             ``bags.io.train_data.UnlabeledBagSource``; instead of ``unlabeled_drives``.
+        unlabeled_real: a real-image dataset (``camvid:DIR`` / ``folder:DIR``, its training
+            split; labels never read) whose images are unlabeled frames of a one-camera rig
+            (:mod:`~bev_mapper_core.training.real_unlabeled`), beside ``unlabeled_drives``.
+        unlabeled_real_frames: use the first this many of its images (0 = all).
         label_map: what the bags' label images hold (``native``, a preset of another segmenter
             or a YAML file, see :mod:`~bev_mapper_core.labels.label_maps`; default: MapperConfig's);
             bags only: synthetic drives are in this package's own ids.
@@ -171,6 +175,8 @@ class TrainConfig:
     unlabeled_drives: int = 0
     unlabeled_style: str | None = None
     unlabeled_bag: tuple[str, ...] | None = None
+    unlabeled_real: str | None = None
+    unlabeled_real_frames: int = 0
     progress: bool = True
     grid: BevGrid = field(default_factory=BevGrid)
     model: Any = None
@@ -249,6 +255,14 @@ class TrainConfig:
         if v and self.bag is not None:
             raise ConfigError("unlabeled_drives are synthetic drives of the preset rig; they do not mix with "
                               "training bags (bag)")
+        n = self.unlabeled_real_frames
+        if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+            raise ConfigError(f"unlabeled_real_frames must be an integer >= 0, got {n!r}")
+        if self.unlabeled_real is not None and (self.unlabeled_bag is not None or self.bag is not None):
+            raise ConfigError("unlabeled_real joins synthetic drives' frames; it does not mix with bags "
+                              "(bag, unlabeled_bag)")
+        if n and self.unlabeled_real is None:
+            raise ConfigError("unlabeled_real_frames needs unlabeled_real (a dataset)")
 
     # ------------------------------------------------------------------ derived
     @property

@@ -157,11 +157,13 @@ class SynthSource(DataSource):
         self.check(needs)
         if needs.unlabeled and cfg.unlabeled_bag:
             raise ConfigError("unlabeled bags need the unlabeled-bag data source (the bev-train command passes it)")
-        if needs.unlabeled and not cfg.unlabeled_drives:
+        if needs.unlabeled and not (cfg.unlabeled_drives or cfg.unlabeled_real):
             raise ConfigError(f"method {cfg.method!r} also trains on unlabeled frames: set unlabeled_drives "
-                              "(bev-train --unlabeled-drives N) or give unlabeled bags (--unlabeled BAG ...)")
-        if cfg.unlabeled_drives and not needs.unlabeled:
-            raise ConfigError(f"method {cfg.method!r} does not train on unlabeled frames; unlabeled_drives must be 0")
+                              "(bev-train --unlabeled-drives N), real images (--unlabeled-real camvid:DIR) or "
+                              "give unlabeled bags (--unlabeled BAG ...)")
+        if (cfg.unlabeled_drives or cfg.unlabeled_real) and not needs.unlabeled:
+            raise ConfigError(f"method {cfg.method!r} does not train on unlabeled frames; drop unlabeled_drives "
+                              "/ unlabeled_real")
         t0 = time.time()
         rgb = None
         if needs.rgb:
@@ -172,11 +174,19 @@ class SynthSource(DataSource):
                                rgb=rgb, style=cfg.style)
         val = synth_frameset(rig, grid, cfg.class_names, cfg.held_out_seeds, cfg.frames_per_drive, cfg.stride,
                              cfg.cache, needs.image_size, progress=cfg.progress, rgb=rgb, style=cfg.style)
-        unlabeled = None
-        if needs.unlabeled:
-            unlabeled = synth_frameset(rig, grid, cfg.class_names, cfg.unlabeled_seeds, cfg.frames_per_drive,
-                                       cfg.stride, cfg.cache, needs.image_size, progress=cfg.progress, rgb=rgb,
-                                       style=cfg.unlabeled_style or cfg.style)
+        unlabeled, parts = None, []
+        if needs.unlabeled and cfg.unlabeled_drives:
+            parts.append(synth_frameset(rig, grid, cfg.class_names, cfg.unlabeled_seeds, cfg.frames_per_drive,
+                                        cfg.stride, cfg.cache, needs.image_size, progress=cfg.progress, rgb=rgb,
+                                        style=cfg.unlabeled_style or cfg.style))
+        if needs.unlabeled and cfg.unlabeled_real:
+            from .real_unlabeled import join_unlabeled, real_unlabeled_frameset  # noqa: PLC0415
+
+            parts.append(real_unlabeled_frameset(cfg.unlabeled_real, rig, needs, cfg.unlabeled_real_frames))
+            log(f"data: {len(parts[-1])} real unlabeled frames from {cfg.unlabeled_real}")
+            parts = [join_unlabeled(parts)]
+        if parts:
+            unlabeled = parts[0]
         extra = "" if unlabeled is None else f" / {len(unlabeled)} unlabeled"
         log(f"data: {len(train)} training{extra} / {len(val)} held-out frames ({time.time() - t0:.1f} s)")
         return with_window(TrainData(train, val, unlabeled), needs)

@@ -6,7 +6,7 @@ r"""``bev-train [train]``: train a learned method on synthetic drives (or bags w
         [--config run.yaml] [--epochs E] [--frames-per-epoch F] [--batch B] [--lr 1e-3] [--seed S]
         [--val-seeds 900000000,900000001 | --val-drives N] [--cache DIR | --no-cache]
         [--device cpu|cuda] [--threads T] [--nproc N] [--resume] [--bag PATH ... --val-bag PATH ... [--label-map PRESET|YAML]]
-        [--unlabeled-drives N [--unlabeled-style STYLE] | --unlabeled BAG ...]   (semi-supervised: s2g2)
+        [--unlabeled-drives N [--unlabeled-style STYLE] | --unlabeled BAG ...] [--unlabeled-real camvid:DIR]   (semi-supervised: s2g2)
         [method flags, Bi-Mapper's: --streams both|gv|lv|none --fusion sum|concat --no-asl
          --mutual async|sync|lv|gv|none --pos-weight auto|none --ipm-skip --lv-full-res ...]
 
@@ -110,6 +110,12 @@ def configure(p: argparse.ArgumentParser, argv: list[str]) -> None:
     p.add_argument("--unlabeled", dest="unlabeled_bag", nargs="+", metavar="BAG",
                    help="semi-supervised methods: rosbag2 paths of unlabeled frames (the rig's cameras; no GT "
                         "needed), instead of --unlabeled-drives")
+    p.add_argument("--unlabeled-real", dest="unlabeled_real", metavar="camvid:DIR|folder:DIR",
+                   help="semi-supervised methods on a one-camera rig: a real-image dataset's training images as "
+                        "unlabeled frames (centre-cropped to the camera's aspect, labels never read), beside "
+                        "--unlabeled-drives")
+    p.add_argument("--unlabeled-real-frames", dest="unlabeled_real_frames", type=nonneg_int,
+                   help=f"the first N images of --unlabeled-real (default {DEFAULTS['unlabeled_real_frames']}: all)")
     p.add_argument("--no-progress", dest="progress", action="store_false", default=argparse.SUPPRESS)
     g = p.add_argument_group(f"{cls.name} options")
     for f in cls.cli_flags:
