@@ -30,6 +30,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from nav_msgs.msg import OccupancyGrid, Odometry
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import NameValidationException, ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
@@ -62,6 +63,7 @@ from .calibration import LiveCalibration
 from .command_line import CommandLineError, check_command_line, rcl_message, wants_help
 from .config import RUNTIME_PARAMETERS, NodeConfigError, node_config_from_params, with_runtime_parameters
 from .input_qos import RECHECK_S, CameraSubscription
+from .odometry import ClockWatch, OdometryWatch
 from .params import declare_parameters, parameter_help, read_parameters
 from .stats import WARN, NodeStats, clock_mismatch_text, diagnostic_values
 from .tf_source import TF_ERROR_KINDS, TfLookupError, make_tf_source
@@ -145,6 +147,10 @@ class MapperNode(Node):
         self._poses_lock = threading.Lock()
         self.fusion = TemporalFusion(cfg.grid, cfg.temporal) if cfg.temporal.window > 1 else None
         self.needs_pose = self.fusion is not None or mapper_class(cfg.mapper.method).uses_ego_pose
+        # odometry vetted and counted before the memories see it; latency kept honest (issue #29)
+        self.odometry = OdometryWatch(cfg.temporal) if self.needs_pose else None
+        self.clock_watch = ClockWatch()
+        self._last_odom_mono: float | None = None
         if self.needs_pose and cfg.pose_source != "tf":
             self._subs.append(self.create_subscription(
                 Odometry, cfg.odom_topic, self._contained("odometry", self._odom_cb), 50))
@@ -153,8 +159,10 @@ class MapperNode(Node):
         self._image_pub = self.create_publisher(Image, f"{cfg.output_prefix}/image", OUTPUT_QOS)
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", QoSProfile(depth=10))
         self.create_timer(min(0.05, cfg.sync_timeout_s / 2), self._contained("synchronizer", self._poll_sync))
+        # on the steady clock: the period holds under sim time that loops or stops
         self._diag_timer = self.create_timer(cfg.diagnostics_period_s,
-                                             self._contained("diagnostics", self._publish_diagnostics))
+                                             self._contained("diagnostics", self._publish_diagnostics),
+                                             clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
         self.worker.start()
@@ -285,9 +293,12 @@ class MapperNode(Node):
         stamp (odometry of the same instant often arrives just after the images), else None.
         """
         deadline = time.monotonic() + POSE_WAIT_S
+        flowing = self._last_odom_mono is not None and time.monotonic() - self._last_odom_mono < 1.0
         while True:
             with self._poses_lock:
                 pose, latest = self.poses.at(stamp_ns), self.poses.latest_stamp_ns
+            if not flowing:  # no odometry kept in the last second: no use waiting for it
+                return pose
             if pose is not None or (latest is not None and latest >= stamp_ns) or time.monotonic() > deadline \
                     or self._stopping.is_set():
                 return pose
@@ -297,11 +308,25 @@ class MapperNode(Node):
         """Keep the ego pose of an odometry message (a bad one is counted and skipped)."""
         try:
             state = odometry_to_state(msg)
+            skew = self.stats.clock_skew_s  # node clock - newest image stamp
+            data_now = self._now_ns() - (0 if skew is None else int(skew * 1e9))
+            if self.odometry.received(state.stamp_ns, getattr(msg.pose, "covariance", None), data_now):
+                self._throttled_warning("odometry", f"odometry stamped {(state.stamp_ns - data_now) / 1e9:.1f} s "
+                                                    "ahead of the newest image skipped (odometry_far_stamp)")
+                return
             with self._poses_lock:
                 self.poses.add(state.stamp_ns, state.world_from_ego)
             self._odom_seen = True
+            self._last_odom_mono = time.monotonic()
         except BevMapperError as exc:
             self._bad_input(f"odometry: {exc}", "odometry")
+
+    def _reset_memories(self) -> None:
+        """Drop the temporal fusion's and the method's memory (a pose they cannot align with)."""
+        if self.fusion is not None:
+            self.fusion.reset()
+        if self.mapper.uses_ego_pose:
+            self.mapper.reset()
 
     def _tf_problem(self, kind: str, message: str) -> None:
         """Count a TF problem of ``kind`` (:data:`TF_ERROR_KINDS`); log it at most every THROTTLE_S per kind."""
@@ -441,8 +466,15 @@ class MapperNode(Node):
             self._throttled_warning("missing", f"mapping a set without cameras {missing} ({synced.reason}); "
                                                "/diagnostics counts them per camera (missing_by_camera)")
         pose = self._pose_at(stamp) if self.needs_pose else None
+        if self.odometry is not None:  # vetted: a pose the memories cannot align with resets them
+            verdict = self.odometry.vet(stamp, pose)
+            if verdict.reset and verdict.pose is not None:
+                self._reset_memories()
+                self._throttled_warning("temporal", verdict.note)
+            pose = verdict.pose
         pred = self.mapper.map(images, ego_pose=pose, stamp_ns=stamp)
         if self.mapper.uses_ego_pose:  # the method's own memory
+            self.odometry.count_memory(pred.note, pose)
             with self.stats.lock:
                 self.stats.temporal_frames, self.stats.temporal_note = pred.frames, pred.note
             if pred.note:
@@ -450,6 +482,7 @@ class MapperNode(Node):
         if self.fusion is not None:
             fused = self.fusion.update(pred, stamp, pose)
             pred = fused.prediction
+            self.odometry.count_memory(fused.note, pose)
             with self.stats.lock:
                 self.stats.temporal_frames, self.stats.temporal_note = fused.frames, fused.note
             if fused.note:
@@ -461,8 +494,11 @@ class MapperNode(Node):
         picture = bev_picture(self.cfg.grid, pred.probs, self.mapper.classes, pred.known)
         self._publish(self._image_pub, make_image(self.factory, picture, "rgb8", stamp, self.cfg.base_frame))
         processing_ms = (time.perf_counter() - t0) * 1000.0
-        latency_s = (self._now_ns() - stamp) / 1e9
-        latency_ms = latency_s * 1000.0 if abs(latency_s) <= self.cfg.clock_mismatch_s else None
+        jumps = self.clock_watch.jumps_back
+        latency_ms = self.clock_watch.latency_ms(self._now_ns(), stamp, processing_ms, self.cfg.clock_mismatch_s)
+        if self.clock_watch.jumps_back > jumps:
+            self._throttled_warning("clock_back", f"the node's clock jumped back {self.clock_watch.last_jump_s:.1f} s "
+                                                  "(a bag looping with /clock?): that set's latency is not measured")
         self.stats.record_mapped(time.monotonic(), processing_ms, latency_ms, missing)
 
     # -------------------------------------------------------------- diagnostics
@@ -477,6 +513,9 @@ class MapperNode(Node):
         dropped = self.slot.dropped + s.late + s.overflow + s.dropped_on_reset
         level, text, values = diagnostic_values(self.stats, time.monotonic(), self.cfg, dropped)
         values["use_sim_time"] = str(self._use_sim_time()).lower()
+        values["clock_jumps_back"] = self.clock_watch.jumps_back
+        if self.odometry is not None:
+            values.update(self.odometry.values())
         level, text = self._tf_diagnostics(values, level, text)
         status = DiagnosticStatus(level=bytes([level]), name=f"{self.get_name()}: bev mapper",
                                   message=text, hardware_id=self.calibration.rig_name)
