@@ -25,6 +25,7 @@ from bev_mapper_core.geometry.rig import Rig
 from bev_mapper_core.labels.classes import label_lut
 from bev_mapper_core.mapper import BevPrediction, Mapper, MapperConfig
 
+from .columns import ColumnOcclusion, column_raster
 from .occlusion import NEAR_EDGE_SLACK_CELLS, OcclusionModel, ray_raster
 
 #: bits per class of IPM's packed per-cell class counts (up to 15 cameras, 16 classes per uint64)
@@ -68,7 +69,7 @@ class LineOfSight:
     """Which ground cells each camera of a rig sees, from its label image (IPM's rays).
 
     A camera sees the cells of its ground table (:func:`ground_tables`) that its occlusion
-    model does not hide behind the near edge of an object in its warped labels
+    model does not hide behind the near edge of an object in its labels
     (:class:`~bev_mapper_core.methods.ipm.occlusion.OcclusionModel`). Built once per calibration.
 
     Args:
@@ -76,21 +77,53 @@ class LineOfSight:
         occlusion: the occlusion model (its priors); ``None`` = no occlusion reasoning (a camera
             sees its whole ground table, the classical IPM).
         tables: the rig's ground tables when already built (else built here).
+        columns: search the near edges per image column
+            (:mod:`~bev_mapper_core.methods.ipm.columns`, IPM's default) instead of along the
+            polar raster's BEV rays (:func:`~bev_mapper_core.methods.ipm.occlusion.ray_raster`).
+        gathers: the rig's gather tables when already built (column search only).
     """
 
     def __init__(self, rig: Rig, grid: BevGrid, occlusion: OcclusionModel | None,
-                 tables: dict[str, RemapTable] | None = None) -> None:
+                 tables: dict[str, RemapTable] | None = None, columns: bool = False,
+                 gathers: dict[str, GatherTable] | None = None) -> None:
         self.grid = grid
         self.tables = ground_tables(rig, grid) if tables is None else tables
         self.occlusion = occlusion
-        self.rays = ({} if occlusion is None else
-                     {c.name: ray_raster(c, grid, self.tables[c.name].valid) for c in rig.cameras})
+        self.columns = columns and occlusion is not None
+        self.rays, self.column_rasters, self.gathers = {}, {}, {}
+        if self.columns:
+            self.gathers = gathers if gathers is not None else {
+                c.name: GatherTable.from_remap(self.tables[c.name], c.model.image_size[::-1])
+                for c in rig.cameras}
+            self.column_rasters = {
+                c.name: column_raster(c, grid, self.tables[c.name].valid, self.gathers[c.name].cells,
+                                      self.gathers[c.name].pixels) for c in rig.cameras}
+            self._column_occlusion = ColumnOcclusion(occlusion)
+        elif occlusion is not None:
+            self.rays = {c.name: ray_raster(c, grid, self.tables[c.name].valid) for c in rig.cameras}
 
-    def camera_valid(self, name: str, warped: np.ndarray) -> np.ndarray:
-        """``(H, W)`` bool: the cells camera ``name`` sees, given its warped labels ``(H, W)``."""
+    def hidden(self, name: str, labels: np.ndarray, ids: np.ndarray) -> np.ndarray | None:
+        """Column search: ``(n,)`` bool over camera ``name``'s gathered cells, hidden from it
+        (``ids`` = its gather of ``labels``); ``None`` when none is."""
+        slack = self.grid.resolution * NEAR_EDGE_SLACK_CELLS
+        return self._column_occlusion.hidden(self.column_rasters[name], labels, ids, slack)
+
+    def camera_valid(self, name: str, warped: np.ndarray, labels: np.ndarray | None = None) -> np.ndarray:
+        """``(H, W)`` bool: the cells camera ``name`` sees, given its warped labels ``(H, W)``
+        (the polar raster's input) or its label image ``labels`` (the column search's)."""
         valid = self.tables[name].valid
         if self.occlusion is None:
             return valid
+        if self.columns:
+            if labels is None:
+                raise ValueError("the column search needs the camera's label image")
+            g = self.gathers[name]
+            hidden = self.hidden(name, labels, g.gather(labels))
+            if hidden is None:
+                return valid
+            out = valid.copy()
+            out.reshape(-1)[g.cells[hidden]] = False
+            return out
         slack = self.grid.resolution * NEAR_EDGE_SLACK_CELLS
         return valid & ~self.occlusion.occluded(self.rays[name], warped, valid, slack)
 
@@ -98,7 +131,8 @@ class LineOfSight:
         """``(H, W)`` bool: the cells some camera in ``images`` (name -> label image) sees."""
         known = np.zeros(self.grid.shape, bool)
         for name, labels in images.items():
-            known |= self.camera_valid(name, self.tables[name].warp(labels, cv2.INTER_NEAREST))
+            warped = None if self.columns else self.tables[name].warp(labels, cv2.INTER_NEAREST)
+            known |= self.camera_valid(name, warped, labels)
         return known
 
 
@@ -111,6 +145,9 @@ class IpmMapper(Mapper):
     """
 
     name = "ipm"
+    #: occlusion search per image column (:mod:`.columns`); ``False``: along the polar raster's
+    #: BEV rays, the search before issue #28 (kept for comparison: experiments/ipm_occlusion_columns.py)
+    occlusion_columns = True
 
     def __init__(self, rig: Rig, grid: BevGrid, config: MapperConfig) -> None:
         self.preflight(config, rig.name)
@@ -142,7 +179,7 @@ class IpmMapper(Mapper):
         self.gathers = {c.name: GatherTable.from_remap(self.tables[c.name], c.model.image_size[::-1])
                         for c in rig.cameras}
         self.sight = LineOfSight(rig, self.grid, self._occlusion if self.config.ipm_occlusion else None,
-                                 self.tables)
+                                 self.tables, columns=self.occlusion_columns, gathers=self.gathers)
 
     def map(self, images: Mapping[str, np.ndarray], ego_pose=None, stamp_ns=None) -> BevPrediction:
         """Warp each camera's labels to the ground and average the class indicators.
@@ -163,7 +200,11 @@ class IpmMapper(Mapper):
             g = self.gathers[name]
             ids = g.gather(labels)  # (n,) label ids of the seen cells
             cells = g.cells
-            if occlusion:  # the occlusion model reads the warped image
+            if occlusion and self.sight.columns:  # per image column: a mask over the gather
+                hidden = self.sight.hidden(name, labels, ids)
+                if hidden is not None:
+                    cells, ids = cells[~hidden], ids[~hidden]
+            elif occlusion:  # the polar raster reads the warped image
                 warped = np.zeros(H * W, labels.dtype)
                 warped[cells] = ids
                 keep = self.sight.camera_valid(name, warped.reshape(H, W)).reshape(-1)[cells]

@@ -186,18 +186,24 @@ class OcclusionModel:
         self._occluder_lut = np.zeros(256, np.uint8)  # label id -> 1 if it occludes
         self._occluder_lut[: len(self.heights)] = self.heights > 0
 
-    def _face_depth(self, rays: np.ndarray, d0: np.ndarray, lab0: np.ndarray) -> np.ndarray:
+    def _face_depth(self, rays: np.ndarray, d0: np.ndarray, lab0: np.ndarray,
+                    lateral: np.ndarray | None = None, face_break: np.ndarray | float = FACE_BREAK_M) -> np.ndarray:
         """Assumed depth (m) of the object beyond the near edge ``d0`` of each ray in ``rays``
         (sorted ray indices; ``lab0`` the near edges' labels).
 
         Adjacent rays whose near edges have the same label and lie within :data:`FACE_BREAK_M`
         of each other form a face; its lateral width ``e`` is the sum of ``d0 * ANGLE_STEP_RAD``
-        over its rays, and its depth ``clip(w * l / e, w, l)`` (see :data:`OBJECT_FOOTPRINT_M`).
+        over its rays (or of ``lateral``, each ray's own width at its near edge, when given),
+        and its depth ``clip(w * l / e, w, l)`` (see :data:`OBJECT_FOOTPRINT_M`). ``face_break``:
+        the largest jump of the near edge within a face, between each ray and the next (scalar, or
+        ``(len(rays) - 1,)``).
         """
         same = ((rays[1:] == rays[:-1] + 1) & (lab0[1:] == lab0[:-1])
-                & (np.abs(d0[1:] - d0[:-1]) <= FACE_BREAK_M))
+                & (np.abs(d0[1:] - d0[:-1]) <= face_break))
         face = np.concatenate([[0], np.cumsum(~same)])  # face id of each ray
-        e = np.bincount(face, weights=d0 * ANGLE_STEP_RAD)[face]  # lateral width of its face
+        if lateral is None:
+            lateral = d0 * ANGLE_STEP_RAD
+        e = np.bincount(face, weights=lateral)[face]  # lateral width of its face
         w, length = self.widths[lab0], self.lengths[lab0]
         return np.clip(w * length / np.maximum(e, 1e-6), w, length).astype(np.float32)
 

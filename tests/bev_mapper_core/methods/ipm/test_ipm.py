@@ -161,7 +161,7 @@ def _ipm_by_whole_image_warps(mapper: IpmMapper, images) -> tuple[np.ndarray, np
     lut = mapper._lut
     for name, labels in images.items():
         warped = mapper.tables[name].warp(labels, cv2.INTER_NEAREST)
-        valid = mapper.sight.camera_valid(name, warped)
+        valid = mapper.sight.camera_valid(name, warped, labels)
         warped = np.where(warped < lut.shape[0], warped, 0)
         acc[valid] += lut[warped[valid]]
         count += valid
