@@ -64,3 +64,14 @@ class FrameScores:
         score = FrameScore(int(index), int(stamp_ns), ious)
         self.frames.append(score)
         return score
+
+    def add_ious(self, index: int, stamp_ns: int, names: Sequence[str], ious) -> FrameScore:
+        """Keep a frame already scored: ``ious`` ``(C',)`` the frame's own IoU per class of
+        ``names`` (NaN: undefined), as :meth:`MetricAccumulator.update
+        <bev_mapper_core.metrics.MetricAccumulator.update>` returns it for the frame; the same
+        numbers :meth:`add` computes from the layers, without scoring the frame twice.
+        """
+        score = FrameScore(int(index), int(stamp_ns),
+                           {n: (None if math.isnan(float(v)) else float(v)) for n, v in zip(names, ious)})
+        self.frames.append(score)
+        return score

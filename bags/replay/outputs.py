@@ -121,10 +121,9 @@ class FrameSink:
         self.copier.upto(_frame_time(frame))
         write_frame_messages(self.bw, run.grid, mapper, pred, frame.stamp_ns, self.ego)
         gt, mask = scorer.update(frame, pred)
-        score = None if gt is None else self.scores.add(
-            frame.index, frame.stamp_ns, pred.probs, pred.known, mapper.class_names, gt,
-            [c.name for c in scorer.classes], mask, frame.ground_visibility,
-            scorer.scope_used, scorer.acc.threshold)
+        # the frame's IoU as the scorer counted it (FrameScores.add would score it again alike)
+        score = None if gt is None else self.scores.add_ious(
+            frame.index, frame.stamp_ns, [c.name for c in scorer.classes], scorer.frame_iou)
         options = run.options
         if options.pictures and index % options.frames_every == 0:
             pic = comparison_picture(

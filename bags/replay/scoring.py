@@ -69,13 +69,17 @@ class ReplayScorer:
         visible = np.stack([frame.gt_known[idx].all(axis=0) for idx in self._gt_idx]).all(axis=0)  # (H, W)
         masks = scope_masks(self._names, visible, frame.ground_visibility, self.scope_used)
         probs = pred.probs[self._pred_idx]
-        self.acc.update(probs, gt, masks, pred.known)
+        #: the frame's own IoU per scored class (NaN: undefined), as FrameScores would score it
+        self.frame_iou = self.acc.update(probs, gt, masks, pred.known)
         truth = None
         if frame.truth is not None:
             truth = np.stack([(frame.truth[idx] >= 0.5).any(axis=0) for idx in self._gt_idx])
         seen = frame.visibility if frame.visibility is not None else visible
-        published = np.rint(np.clip(probs, 0.0, 1.0) * 100.0) / 100.0  # as in the OccupancyGrids
-        self.whole.update(published, pred.known, seen, gt, truth, masks)
+        pct = np.rint(np.clip(probs, 0.0, 1.0) * 100.0)  # whole percent, as in the OccupancyGrids
+        published = pct / 100.0
+        with np.errstate(invalid="ignore"):  # NaN only in unknown cells, which are not counted
+            percent = pct.astype(np.uint8)
+        self.whole.update(published, pred.known, seen, gt, truth, masks, percent=percent)
         return gt, visible
 
     def state(self) -> dict | None:

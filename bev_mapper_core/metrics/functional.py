@@ -57,18 +57,83 @@ def mean_iou(ious) -> float:
 
 
 # --------------------------------------------------------------------------------- Chamfer
-def _distance_to(cells: np.ndarray, at: np.ndarray) -> np.ndarray:
+def _distance_to(cells: np.ndarray, at: np.ndarray, reach: float | None = None) -> np.ndarray:
     """Exact Euclidean distance (in cells) from each cell centre of ``at`` (bool, the same shape)
     to the nearest True cell of ``cells``, as a 1-D float64 array in ``at``'s order.
 
-    ``cells`` must contain at least one True cell.
+    ``cells`` must contain at least one True cell. With ``reach`` (cells), distances beyond it
+    are only known to be beyond it (at least ``reach``; the caller clips them). The cells of
+    ``at`` inside ``cells`` are 0; those with a cell of ``cells`` within :data:`_NEAR` cells find
+    it among the offsets around them, nearest first; for the others the transform runs on the box
+    around them widened by ``reach`` (every nearer cell of ``cells`` lies in it, so the distances
+    up to ``reach`` are the same as on the whole grid).
     """
-    # distanceTransform measures the distance to the nearest *zero* pixel.
-    src = np.where(cells, 0, 1).astype(np.uint8)
-    d = cv2.distanceTransform(src, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[at]
-    # Between cell centres the squared distance is an integer: snapping it removes the last-ulp
-    # noise of OpenCV's SIMD path (which varies with buffer alignment), so scores are exactly
-    # reproducible. Only the cells asked for are snapped.
+    if reach is None:
+        # distanceTransform measures the distance to the nearest *zero* pixel.
+        return _snap(cv2.distanceTransform(np.where(cells, 0, 1).astype(np.uint8), cv2.DIST_L2,
+                                           cv2.DIST_MASK_PRECISE)[at])
+    query = at & ~cells
+    out = np.zeros(int(np.count_nonzero(at)), np.float64)
+    if not query.any():
+        return out
+    H, W = cells.shape
+    q = np.flatnonzero(query)  # (n,) the cells asked for outside ``cells``, row-major
+    d2 = np.full(len(q), np.nan)  # squared distance in cells, found so far
+    todo = np.arange(len(q))
+    # nearby: look at the offsets of each squared distance in turn, nearest first
+    padded = np.zeros((H + 2 * _NEAR, W + 2 * _NEAR), bool)  # no cell outside the grid
+    padded[_NEAR:_NEAR + H, _NEAR:_NEAR + W] = cells
+    flat, wp = padded.ravel(), W + 2 * _NEAR
+    base = (q // W + _NEAR) * wp + (q % W + _NEAR)  # (n,) flat index into padded
+    for k, dy, dx in _NEAR_OFFSETS:
+        hit = flat[base[todo, None] + (dy * wp + dx)[None, :]].any(axis=1)  # (m, offsets) -> (m,)
+        d2[todo[hit]] = k
+        todo = todo[~hit]
+        if not len(todo):
+            break
+    if len(todo):  # farther: the transform around those cells, widened by reach
+        r = int(math.ceil(reach)) + 1
+        rows, cols = q[todo] // W, q[todo] % W
+        # one box around them all, or one per tile of _TILE cells holding some when that is less
+        tile = (rows // _TILE) * (W // _TILE + 1) + cols // _TILE
+        tiles, which = np.unique(tile, return_inverse=True)
+        box = ((min(int(rows.max()) + r + 1, H) - max(int(rows.min()) - r, 0))
+               * (min(int(cols.max()) + r + 1, W) - max(int(cols.min()) - r, 0)))
+        groups = [np.arange(len(todo))] if len(tiles) * (_TILE + 2 * r) ** 2 >= box else \
+            [np.flatnonzero(which == i) for i in range(len(tiles))]
+        for g in groups:
+            gr, gc = rows[g], cols[g]
+            r0, r1 = max(int(gr.min()) - r, 0), min(int(gr.max()) + r + 1, H)
+            c0, c1 = max(int(gc.min()) - r, 0), min(int(gc.max()) + r + 1, W)
+            src = (~cells[r0:r1, c0:c1]).view(np.uint8)  # (h, w) 1 = not a cell; the transform finds 0s
+            d = cv2.distanceTransform(np.ascontiguousarray(src), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+            d2[todo[g]] = np.rint(d[gr - r0, gc - c0].astype(np.float64) ** 2)
+    out[~cells[at]] = np.sqrt(d2)  # at's order: q is row-major, as at's cells
+    return out
+
+
+#: :func:`_distance_to` looks for the nearest cell among the offsets up to this many cells away
+#: before it runs a distance transform
+_NEAR = 4
+#: ... and runs it per tile of this many cells holding farther cells when that is less work
+_TILE = 32
+
+
+def _near_offsets(radius: int) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """``(d2, dy, dx)`` per squared distance ``d2`` up to ``radius ** 2``, increasing: the
+    offsets at exactly that distance (all of them, so the first hit is the nearest)."""
+    dy, dx = np.mgrid[-radius:radius + 1, -radius:radius + 1]
+    d2 = dy ** 2 + dx ** 2
+    return [(int(k), dy[d2 == k], dx[d2 == k]) for k in np.unique(d2) if 0 < k <= radius ** 2]
+
+
+_NEAR_OFFSETS = _near_offsets(_NEAR)
+
+
+def _snap(d: np.ndarray) -> np.ndarray:
+    """Distances between cell centres from OpenCV's float32 transform, exact: the squared
+    distance is an integer, and snapping it removes the last-ulp noise of OpenCV's SIMD path
+    (which varies with buffer alignment), so scores are exactly reproducible."""
     return np.sqrt(np.rint(d.astype(np.float64) ** 2))
 
 
@@ -76,18 +141,19 @@ def _chamfer_terms(pred: np.ndarray, gt: np.ndarray, resolution: float, clip: fl
     """Clipped per-cell distances ``(d_pred_to_gt, d_gt_to_pred)`` (1-D float64 arrays, metres).
 
     If the other set is empty every distance is ``clip`` (distance to an empty set is infinite,
-    then clipped).
+    then clipped). Distances are only computed as far as the clip (:func:`_distance_to`).
     """
     n_p = int(np.count_nonzero(pred))
     n_g = int(np.count_nonzero(gt))
+    reach = clip / resolution
     if n_g == 0:
         d_p = np.full(n_p, clip)
     else:
-        d_p = np.minimum(_distance_to(gt, pred) * resolution, clip)
+        d_p = np.minimum(_distance_to(gt, pred, reach) * resolution, clip)
     if n_p == 0:
         d_g = np.full(n_g, clip)
     else:
-        d_g = np.minimum(_distance_to(pred, gt) * resolution, clip)
+        d_g = np.minimum(_distance_to(pred, gt, reach) * resolution, clip)
     return d_p, d_g
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import cv2
 import numpy as np
 
 from ..errors import ConfigError, InputError
@@ -33,6 +34,37 @@ def _calibration_counts(probs: np.ndarray, truth: np.ndarray, mask: np.ndarray, 
     pairs = np.bincount(2 * flat + truth[mask], minlength=2 * size).reshape(C, bins, 2)
     count = pairs.sum(axis=2)
     pos = pairs[..., 1].astype(np.float64)
+    return count, conf, pos
+
+
+#: :func:`_percent_calibration_counts` sums exactly while a class has at most this many cells
+_EXACT_PERCENT_CELLS = 2 ** 22
+
+
+def _percent_calibration_counts(percent: np.ndarray, values: np.ndarray, truth: np.ndarray,
+                                mask: np.ndarray, bins: int):
+    """:func:`_calibration_counts` of probabilities given as whole percent, the same numbers.
+
+    ``percent`` ``(C, H, W)`` uint8 in 0..100 and ``values`` ``(101,)``, the probability each
+    percent stands for (``probs == values[percent]``); ``truth``, ``mask`` as there. One masked
+    histogram of ``2 * percent + truth`` per class replaces the per-cell sums: every value is a
+    float32 of at least 0.01, a multiple of 2**-30, so with fewer than 2**22 cells each partial
+    sum of the confidences is exact in float64 in any order, and ``count * value`` too.
+    """
+    C = percent.shape[0]
+    p = np.clip(np.asarray(values, np.float64), 0.0, 1.0)  # (101,) as the per-cell path reads them
+    bin_of = np.minimum((p * bins).astype(np.int64), bins - 1)  # (101,)
+    onehot = np.zeros((101, bins), np.float64)
+    onehot[np.arange(101), bin_of] = 1.0
+    code = (percent << 1) | truth.view(np.uint8)  # (C, H, W) uint8: 2 * percent + present
+    hist = np.empty((C, 202), np.float64)
+    for c in range(C):  # (202,) cells per (percent, present) inside the mask
+        hist[c] = cv2.calcHist([code[c]], [0], mask[c].view(np.uint8), [202], [0, 202]).ravel()
+    pairs = hist.reshape(C, 101, 2)
+    cells = pairs.sum(axis=2)  # (C, 101)
+    count = np.rint(cells @ onehot).astype(np.int64)  # (C, bins)
+    conf = (cells * p[None]) @ onehot
+    pos = pairs[..., 1] @ onehot
     return count, conf, pos
 
 
@@ -126,7 +158,7 @@ class WholeGridAccumulator(Mergeable):
         except (KeyError, TypeError, ValueError) as exc:
             raise ConfigError(f"invalid WholeGridAccumulator state configuration: {exc!r}") from exc
 
-    def update(self, probs, known, visible, gt, truth=None, calib_mask=None) -> None:
+    def update(self, probs, known, visible, gt, truth=None, calib_mask=None, percent=None) -> None:
         """Add one frame.
 
         Args:
@@ -138,6 +170,10 @@ class WholeGridAccumulator(Mergeable):
                 without it the false share of occluded claims is not counted for this frame.
             calib_mask: optional ``(H, W)`` or ``(C, H, W)`` bool, the cells whose calibration
                 counts (e.g. the IoU scope masks); default ``visible``. Only known cells count.
+            percent: optional ``(C, H, W)`` uint8, ``probs`` as whole percent when they are
+                (``probs == np.arange(101, dtype=probs.dtype)[percent] / 100.0``, as published in
+                the OccupancyGrids): the calibration counts then come from one histogram per
+                class, the same numbers (:func:`_percent_calibration_counts`).
 
         Raises:
             InputError: wrong dtypes or shapes.
@@ -173,7 +209,13 @@ class WholeGridAccumulator(Mergeable):
             self._claims_t += n_claims
             self._false += np.count_nonzero((claims & ~truth).reshape(C, -1), axis=1)
             self.frames_with_truth += 1
-        count, conf, pos = _calibration_counts(probs, gt, calib & known, self.bins)
+        if percent is not None and probs[0].size <= _EXACT_PERCENT_CELLS:
+            values = np.arange(101, dtype=probs.dtype) / 100.0
+            mask = np.ascontiguousarray(calib & known)
+            count, conf, pos = _percent_calibration_counts(np.ascontiguousarray(percent, np.uint8), values,
+                                                           np.ascontiguousarray(gt), mask, self.bins)
+        else:
+            count, conf, pos = _calibration_counts(probs, gt, calib & known, self.bins)
         self._count += count
         self._conf += conf
         self._pos += pos

@@ -1,0 +1,134 @@
+"""Issue #28: replay's faster scoring gives every output it gave before.
+
+The reference is the straightforward scoring the replay did before #28, restored here: the
+Chamfer distances from one distance transform of the whole grid per class and side, the
+calibration counts summed cell by cell, and each frame's IoU for the captions and the report
+scored a second time by ``FrameScores.add``. The replay of a small drive with pictures must give
+the same ``metrics.json`` (all but the timings), the same pictures and the same report.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+from bag_helpers import replay_ipm, synth_small
+
+import bags.replay.outputs as outputs
+import bev_mapper_core.metrics.accumulator as accumulator
+import bev_mapper_core.metrics.whole_grid as whole_grid
+from bags.replay import FRAMES_DIR, METRICS_FILE
+from bev_mapper_core.metrics import functional
+
+pytest.importorskip("bev_mapper_core.synth")
+
+
+def reference_chamfer_terms(pred, gt, resolution, clip):
+    """The Chamfer terms as computed before #28: a whole-grid transform per side."""
+    def distance_to(cells, at):
+        d = cv2.distanceTransform(np.where(cells, 0, 1).astype(np.uint8), cv2.DIST_L2,
+                                  cv2.DIST_MASK_PRECISE)[at]
+        return np.sqrt(np.rint(d.astype(np.float64) ** 2))
+
+    n_p, n_g = int(np.count_nonzero(pred)), int(np.count_nonzero(gt))
+    d_p = np.full(n_p, clip) if n_g == 0 else np.minimum(distance_to(gt, pred) * resolution, clip)
+    d_g = np.full(n_g, clip) if n_p == 0 else np.minimum(distance_to(pred, gt) * resolution, clip)
+    return d_p, d_g
+
+
+class ReferenceFrameScores(outputs.FrameScores):
+    """Captions' IoU scored again from the layers, as before #28."""
+
+    def add_ious(self, index, stamp_ns, names, ious):
+        raise AssertionError("the reference scores frames with add()")
+
+
+def _reference_finish(self, frame, pred, index):
+    """FrameSink.finish as before #28: FrameScores.add scores the frame a second time."""
+    run, mapper, scorer = self.run, self.run.mapper, self.scorer
+    self.copier.upto(outputs._frame_time(frame))
+    outputs.write_frame_messages(self.bw, run.grid, mapper, pred, frame.stamp_ns, self.ego)
+    gt, mask = scorer.update(frame, pred)
+    score = None if gt is None else self.scores.add(
+        frame.index, frame.stamp_ns, pred.probs, pred.known, mapper.class_names, gt,
+        [c.name for c in scorer.classes], mask, frame.ground_visibility, scorer.scope_used,
+        scorer.acc.threshold)
+    options = run.options
+    if options.pictures and index % options.frames_every == 0:
+        pic = outputs.comparison_picture(
+            run.grid, pred.probs, pred.known, mapper.classes, gt, mask, scorer.classes,
+            method=options.mapper.method, caption=outputs._caption(frame, score),
+            ious=None if score is None else score.ious)
+        name = f"frame_{frame.index:04d}.png"
+        outputs.write_atomic(run.tmp_frames / name, outputs.encode_png(pic))
+        self.pictures.append(run.out / FRAMES_DIR / name)
+
+
+def _outputs(out):
+    metrics = json.loads((out / METRICS_FILE).read_text())
+    metrics.pop("latency_ms")
+    metrics.pop("bag")
+    pictures = {p.name: p.read_bytes() for p in sorted((out / FRAMES_DIR).glob("*.png"))}
+    report = (out / "report.html").read_text().replace(str(out), "OUT")
+    # everything from the mapping latency on is timing (its numbers and its chart)
+    return metrics, pictures, report[:report.index("<h2>Mapping latency</h2>")]
+
+
+def test_replay_outputs_equal_the_straightforward_scoring(tmp_path, monkeypatch):
+    bag = synth_small(tmp_path / "drive", frames=5, seed=28)
+    assert replay_ipm(bag, tmp_path / "fast", "--frames-every", "2") == 0
+    with monkeypatch.context() as m:
+        m.setattr(accumulator, "_chamfer_terms", reference_chamfer_terms)
+        m.setattr(whole_grid, "_EXACT_PERCENT_CELLS", 0)  # the per-cell calibration sums
+        m.setattr(outputs.FrameSink, "finish", _reference_finish)
+        assert replay_ipm(bag, tmp_path / "reference", "--frames-every", "2") == 0
+    fast, ref = _outputs(tmp_path / "fast"), _outputs(tmp_path / "reference")
+    assert fast[0]["frames_scored"] == 5 and fast[0]["classes"]["drivable"]["cd"] is not None
+    assert fast[0] == ref[0]
+    assert fast[1] == ref[1] and len(fast[1]) == 3
+    assert "mIoU per frame" in fast[2] and fast[2] == ref[2]
+
+
+def test_chamfer_distances_equal_the_whole_grid_transform():
+    """Random layers of every density, sizes and clips: the distances found nearby, per tile and
+    in boxes are those of one transform of the whole grid, bit for bit."""
+    rng = np.random.default_rng(28)
+    checked = 0
+    for trial in range(300):
+        H, W = (int(v) for v in rng.integers(3, 260, 2))
+        pred = rng.random((H, W)) < rng.random() * 0.3
+        gt = rng.random((H, W)) < rng.random() ** 3 * 0.3
+        if trial % 3 == 0:  # one cell
+            gt[:] = False
+            gt[rng.integers(H), rng.integers(W)] = True
+        if trial % 5 == 0:  # one line
+            gt[:] = False
+            gt[rng.integers(H), : rng.integers(1, W + 1)] = True
+        res = float(rng.choice([0.1, 0.15, 0.25, 0.5]))
+        clip = float(rng.choice([0.3, 1.0, 2.5, 5.0, 20.0]))
+        if not gt.any() or not pred.any():
+            continue
+        for a, b in zip(functional._chamfer_terms(pred, gt, res, clip), reference_chamfer_terms(pred, gt, res, clip)):
+            np.testing.assert_array_equal(a, b)
+        checked += 1
+    assert checked > 250
+
+
+def test_percent_calibration_counts_equal_the_per_cell_sums():
+    rng = np.random.default_rng(29)
+    values = np.arange(101, dtype=np.float32) / 100.0
+    for _ in range(40):
+        C, H, W = int(rng.integers(1, 8)), int(rng.integers(2, 90)), int(rng.integers(2, 90))
+        percent = rng.integers(0, 101, (C, H, W)).astype(np.uint8)
+        percent[rng.random((C, H, W)) < 0.3] = rng.choice([0, 100])
+        probs = values[percent]
+        truth, mask = rng.random((C, H, W)) < 0.4, rng.random((C, H, W)) < 0.7
+        fast = whole_grid._percent_calibration_counts(percent, values, truth, mask, 10)
+        slow = whole_grid._calibration_counts(probs, truth, mask, 10)
+        for a, b in zip(fast, slow):
+            assert a.dtype == b.dtype
+            np.testing.assert_array_equal(a, b)
+    assert math.isclose(float(values[57]), 0.57, rel_tol=1e-6)
