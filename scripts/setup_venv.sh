@@ -63,6 +63,6 @@ elif [ -d "$ros2src" ]; then
     tail -n 30 "$log" >&2
     echo "warning: building TF from $ros2src failed (whole log: $log): $without_tf" >&2
   fi
-else
+elif ! .venv/bin/python -c "$tf_probe" 2>/dev/null; then
   echo "note: no TF sources at $ros2src (set BEV_ROS2SRC=DIR) and no ROS 2 distribution: $without_tf" >&2
-fi
+fi  # (sources gone but built before: the build stays)
