@@ -21,6 +21,7 @@ import pathlib
 import sys
 
 from .config import PARAM_FIELDS, NodeConfig
+from .odometry import FAR_AHEAD_S
 from .params import _EXTRINSICS_TEXT, _TYPE_NAMES, PARAMETERS, _shown
 from .stats import NodeStats, diagnostic_values
 from .tf_source import TF_ERROR_TEXTS
@@ -54,6 +55,18 @@ DIAGNOSTIC_KEYS: dict[str, str] = {
     "temporal_note": "why the last set was mapped without its history ('' = it was not); same condition",
 }
 #: Keys the node adds to :func:`~bev_mapper_ros.stats.diagnostic_values`'s (``mapper_node``).
+#: What each odometry problem kind (``bev_mapper_core.temporal.ODOMETRY_PROBLEMS``) means.
+ODOMETRY_TEXTS = {
+    "no_pose": "no pose at the set's stamp: mapped alone",
+    "bad_pose": "not a finite rigid transform: mapped alone",
+    "stamp_back": "an odometry stamp went back",
+    "duplicate_stamp": "an odometry stamp repeated",
+    "far_stamp": f"stamped more than {FAR_AHEAD_S:g} s ahead of the newest image: skipped",
+    "frame_change": "the odometry's frame ids changed: memory reset",
+    "jump": "a motion no vehicle makes (a velocity change over `max_accel_mps2` or a jump over "
+            "`max_jump_m`): memory reset",
+    "bad_covariance": "a NaN or infinite covariance (the pose is used)",
+}
 NODE_DIAGNOSTIC_KEYS: dict[str, str] = {
     "use_sim_time": "the node's `use_sim_time` (`true` / `false`)",
     "tf": "`tf2_ros` (TF is read), `not importable` (extrinsics from parameters, poses from `odom_topic`) or `off` "
@@ -64,6 +77,13 @@ NODE_DIAGNOSTIC_KEYS: dict[str, str] = {
     **{f"tf_errors_{kind}": f"TF problems of kind `{kind}` since start-up ({text}); none stops the node or reaches a map"
        for kind, text in TF_ERROR_TEXTS.items()},
     "tf_last_error": "the last TF problem",
+    "clock_jumps_back": "times the node's clock went back since start-up (a bag looping with `/clock`): that set's "
+                        "latency is not measured, never negative",
+    "temporal_resets": "temporal memory resets (the fusion's or the method's own) since start-up: a pose jump, a "
+                       "stamp going back, a gap (only with temporal fusion or FocusBEV)",
+    "frames_without_pose": "sets mapped without their history since start-up: no usable ego pose",
+    **{f"odometry_{kind}": f"odometry problems of kind `{kind}` since start-up ({text})"
+       for kind, text in ODOMETRY_TEXTS.items()},
 }
 
 
