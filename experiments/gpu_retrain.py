@@ -1,0 +1,217 @@
+"""Retrain every shipped RGB model in one go on a lent GPU machine (issue #26), within minutes.
+
+One prepared command for a device session (an H100 / H200 with 16 CPU cores, about ten
+minutes of work): it renders the drives every run needs in parallel on the machine's cores,
+trains all runs at once on the GPU, each stopping (resumable) at the time budget, and writes
+the weights, logs and a summary under ``--out`` for the trip home. Weights trained on a GPU are
+scored again on CPU before they ship (``bev-train eval``, the commands in ``docs/RESULTS.md``).
+
+Runs (``--runs``, default all; each a ``bev-train`` command of :data:`RUNS`, every one from the
+shipped backbone where the method has one, with the photometric augmentation on):
+
+* ``s2g2``: supervised-only S2G2, front1, ``ahead`` grid, its encoder the shipped segmenter's trunk;
+* ``s2g2_semi``: the same with unlabeled frames: synthetic drives in the held-out ``dusk`` style
+  and, with ``--camvid DIR``, CamVid's training images (``--unlabeled-real``);
+* ``focusbev``: FocusBEV, front1, ``ahead`` grid (its ResNet has no shipped weights yet);
+* ``bimapper_rgb``: end-to-end RGB Bi-Mapper, surround6.
+
+The drives are rendered with the cache specs the runs themselves compute (the method's input
+size, classes, grid, frames, stride, style), so ``bev-train --cache`` finds every drive and
+renders none. Phases resume: rendered drives stay in the cache, runs continue with ``--resume``.
+
+    python experiments/gpu_retrain.py --out $OUT --device cuda --budget-min 8 [--camvid camvid]
+    .venv/bin/python experiments/gpu_retrain.py --out /tmp/gr --tiny        # the CPU check (seconds)
+
+``--tiny`` shrinks every run (one short drive, a few steps, small models) so that the whole
+script runs on a laptop CPU in about a minute: ``tests/experiments/test_gpu_retrain.py``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:  # run as a script from anywhere (the device runs it from its copy)
+    sys.path.insert(0, str(REPO))
+
+#: run name -> its bev-train flags (the data and the method; --out, --cache, --device, budget added)
+RUNS: dict[str, list[str]] = {
+    "s2g2": ["--method", "s2g2", "--rig", "front1", "--input", "rgb", "--grid", "ahead", "--train-drives", "40",
+             "--epochs", "30", "--frames-per-epoch", "800", "--batch", "8", "--lr", "1e-3", "--lr-step-epoch", "22",
+             "--optimizer", "adam", "--val-frames", "60", "--supervised-only"],
+    "s2g2_semi": ["--method", "s2g2", "--rig", "front1", "--input", "rgb", "--grid", "ahead", "--train-drives", "40",
+                  "--epochs", "30", "--frames-per-epoch", "800", "--batch", "8", "--lr", "1e-3",
+                  "--lr-step-epoch", "22", "--optimizer", "adam", "--val-frames", "60", "--unlabeled-drives", "27",
+                  "--unlabeled-style", "dusk"],
+    "focusbev": ["--method", "focusbev", "--rig", "front1", "--input", "rgb", "--grid", "ahead", "--train-drives", "40",
+                 "--epochs", "28", "--frames-per-epoch", "800", "--batch", "8", "--lr", "4e-4",
+                 "--lr-step-epoch", "22", "--val-frames", "60"],
+    "bimapper_rgb": ["--method", "bimapper", "--rig", "surround6", "--input", "rgb", "--train-drives", "40",
+                     "--epochs", "20", "--frames-per-epoch", "800", "--batch", "4", "--lr", "1e-3",
+                     "--lr-step-epoch", "15", "--val-frames", "40", "--ipm-skip", "--pos-weight", "none"],
+}
+#: what --tiny changes in every run's flags: one short drive, a few steps
+TINY = ["--train-drives", "1", "--val-drives", "1", "--frames-per-drive", "3", "--stride", "2", "--epochs", "1",
+        "--frames-per-epoch", "2", "--batch", "1", "--val-frames", "2"]
+#: what --tiny sets through a --config file (model sizes without flags of their own; a small grid)
+TINY_CONFIG = {
+    "s2g2": {"input_width": 32, "width_mult": 0.25, "depth_mult": 0.25, "encoder_stages": 3, "bev_downsample": 4,
+             "decoder_channels": 8, "encoder_init": "none", "grid": [0.0, 16.0, -8.0, 8.0, 0.5]},
+    "focusbev": {"input_width": 64, "backbone_width": 8, "channels": 16, "decoder_channels": 8,
+                 "grid": [0.0, 16.0, -8.0, 8.0, 0.5]},
+    "bimapper": {"input_width": 64, "gv_hidden": 16, "decoder_min_channels": 4, "grid": [-8.0, 8.0, -4.0, 4.0, 0.5]},
+}
+
+
+def run_flags(name: str, tiny: bool, camvid: str | None, out: Path) -> list[str]:
+    """The bev-train flags of run ``name`` (data and method); with ``tiny``, shrunk (the data
+    flags replaced, the model sizes in ``out/tiny_<name>.yaml`` given with ``--config``).
+    """
+    flags = list(RUNS[name])
+    method = flags[flags.index("--method") + 1]
+    if tiny:
+        flags = _override(flags, TINY + (["--unlabeled-drives", "1"] if "--unlabeled-drives" in flags else []))
+        path = out / f"tiny_{name}.yaml"
+        path.write_text(json.dumps(TINY_CONFIG[method]) + "\n")  # JSON is YAML
+        flags = ["--config", str(path), *[f for f in flags if f not in ("--grid", "ahead")]]
+    if name == "s2g2_semi" and camvid:
+        flags += ["--unlabeled-real", f"camvid:{camvid}"]
+    return flags
+
+
+def _override(flags: list[str], pairs: list[str]) -> list[str]:
+    """``flags`` with each ``--name value`` pair of ``pairs`` replacing its own (or added)."""
+    out = list(flags)
+    for name, value in zip(pairs[::2], pairs[1::2]):
+        if name in out:
+            out[out.index(name) + 1] = value
+        else:
+            out += [name, value]
+    return out
+
+
+def drive_jobs(flags: list[str], cache: str) -> list[tuple]:
+    """``(rig, grid, spec, seed, cache)`` for every drive the run of ``flags`` loads: the specs
+    the run computes itself (:class:`~bev_mapper_core.training.sources.SynthSource`).
+    """
+    from bags.cli.train.train import train_parser
+    from bev_mapper_core.geometry.rig import preset_rig
+    from bev_mapper_core.training.config import TrainConfig
+    from bev_mapper_core.training.data import drive_spec, train_seeds
+    from bev_mapper_core.training.method import method_class
+
+    method = flags[flags.index("--method") + 1]
+    args = vars(train_parser(method).parse_args(flags))  # as bev-train builds its config
+    path = args.pop("config", None)
+    cfg = TrainConfig.from_yaml(path, **args) if path else TrainConfig.from_dict(args)
+    rig, grid = preset_rig(cfg.rig), cfg.grid
+    needs = method_class(cfg.method)(cfg, rig, grid).data_needs()
+    rgb = None
+    if needs.rgb:
+        w, h = rig.cameras[0].model.image_size
+        rgb = needs.image_size or (h, w)
+    jobs = []
+    for seeds, style in ((train_seeds(cfg.seed, cfg.train_drives), cfg.style), (cfg.held_out_seeds, cfg.style),
+                         (cfg.unlabeled_seeds, cfg.unlabeled_style or cfg.style)):
+        spec = drive_spec(rig, grid, cfg.class_names, cfg.frames_per_drive, cfg.stride, rgb, style)
+        jobs += [(rig, grid, spec, s, cache) for s in seeds]
+    return jobs
+
+
+def _render(job) -> int:
+    from bev_mapper_core.training.data import load_or_render
+
+    rig, grid, spec, seed, cache = job
+    load_or_render(rig, grid, spec, seed, cache)
+    return seed
+
+
+def render(jobs: list[tuple], workers: int) -> float:
+    """Render (or find in the cache) every drive of ``jobs`` in ``workers`` processes; seconds."""
+    t0 = time.monotonic()
+    unique = {(j[2], j[3]): j for j in jobs}  # one per (spec, seed)
+    with ProcessPoolExecutor(max(1, workers)) as ex:
+        list(ex.map(_render, unique.values()))
+    return time.monotonic() - t0
+
+
+def train_all(names: list[str], flags: dict[str, list[str]], a) -> dict[str, dict]:
+    """Start every run at once (its own bev-train process), wait for all; per run its status."""
+    procs = {}
+    for name in names:
+        out = Path(a.out) / "runs" / name
+        out.mkdir(parents=True, exist_ok=True)
+        cmd = [sys.executable, "-m", "bags.cli.train.main", *flags[name], "--out", str(out), "--cache", a.cache,
+               "--device", a.device, "--threads", str(a.threads), "--time-budget", str(a.budget_min),
+               "--no-progress", *(["--resume"] if (out / "last.json").is_file() else [])]
+        log = open(Path(a.out) / "logs" / f"{name}.log", "w")  # noqa: SIM115 - closed below
+        log.write("$ " + " ".join(cmd) + "\n")
+        log.flush()
+        procs[name] = (subprocess.Popen(cmd, cwd=REPO, stdout=log, stderr=subprocess.STDOUT), log, time.monotonic())
+    status = {}
+    for name, (proc, log, t0) in procs.items():
+        code = proc.wait()
+        log.close()
+        out = Path(a.out) / "runs" / name
+        last = out / "last.json"
+        doc = json.loads(last.read_text()) if last.is_file() else {}
+        status[name] = {"returncode": code, "seconds": round(time.monotonic() - t0, 1),
+                        "best_val_miou": doc.get("best_val_miou"), "epoch": doc.get("epoch"), "step": doc.get("step"),
+                        "weights": sorted(p.name for p in out.glob("*.safetensors"))}
+    return status
+
+
+def _cache_files(cache: str) -> set[Path]:
+    return set(Path(cache).rglob("drive_*.npz"))
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command line entry (see the module docstring)."""
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--out", required=True, help="weights, logs and summary.json go here")
+    p.add_argument("--runs", default=",".join(RUNS), help=f"comma list of {list(RUNS)}")
+    p.add_argument("--device", default="cpu", help="cpu | cuda")
+    p.add_argument("--budget-min", type=float, default=8.0, help="each run's training time budget (minutes)")
+    p.add_argument("--cache", default=None, help="drive cache (default OUT/cache)")
+    p.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="rendering processes")
+    p.add_argument("--threads", type=int, default=1, help="CPU threads per run")
+    p.add_argument("--camvid", default=None, help="CamVid folder: its training images as unlabeled real frames")
+    p.add_argument("--tiny", action="store_true", help="tiny runs: the CPU check of this script")
+    a = p.parse_args(argv)
+    names = [n for n in a.runs.split(",") if n]
+    unknown = [n for n in names if n not in RUNS]
+    if unknown:
+        print(f"error: unknown runs {unknown}; choose from {list(RUNS)}", file=sys.stderr)
+        return 2
+    a.cache = a.cache or str(Path(a.out) / "cache")
+    (Path(a.out) / "logs").mkdir(parents=True, exist_ok=True)
+    t0 = time.monotonic()
+    flags = {n: run_flags(n, a.tiny, a.camvid, Path(a.out)) for n in names}
+    jobs = [j for n in names for j in drive_jobs(flags[n], a.cache)]
+    render_s = render(jobs, a.workers)
+    print(f"rendered {len({(j[2], j[3]) for j in jobs})} drives in {render_s:.1f} s", flush=True)
+    cached = _cache_files(a.cache)
+    status = train_all(names, flags, a)
+    rendered_by_runs = len(_cache_files(a.cache) - cached)  # 0: every drive a run loaded was rendered above
+    summary = {"runs": status, "render_s": round(render_s, 1), "rendered_by_runs": rendered_by_runs,
+               "total_s": round(time.monotonic() - t0, 1),
+               "device": a.device, "budget_min": a.budget_min, "tiny": a.tiny,
+               "flags": {n: flags[n] for n in names}}
+    (Path(a.out) / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
+    print(json.dumps(status, indent=1))
+    failed = [n for n, s in status.items() if s["returncode"] != 0]
+    for n in failed:
+        print(f"error: run {n} failed (status {status[n]['returncode']}): see {Path(a.out) / 'logs' / (n + '.log')}",
+              file=sys.stderr)
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
