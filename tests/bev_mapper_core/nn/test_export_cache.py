@@ -66,6 +66,11 @@ def _damage(path, how: str, other=None) -> None:
         export_cache.record_path(path).write_bytes(export_cache.record_path(other).read_bytes())
     elif how == "record_missing":
         export_cache.record_path(path).unlink()
+    elif how == "refused":  # junk with a record that vouches for it: only the runtime can tell
+        path.write_bytes(b"\x08\x07" + b"junk" * 100)
+        rec = json.loads(export_cache.record_path(path).read_text())
+        rec.update(onnx_sha256=export_cache.file_sha256(path), onnx_bytes=path.stat().st_size)
+        export_cache.record_path(path).write_text(json.dumps(rec))
     elif how == "record_damaged":
         rec = json.loads(export_cache.record_path(path).read_text())
         del rec["onnx_sha256"]
@@ -75,7 +80,7 @@ def _damage(path, how: str, other=None) -> None:
 
 
 CASES = ["truncated", "empty", "text", "bitflip", "directory", "other_model", "record_of_other_weights",
-         "record_missing", "record_damaged"]
+         "record_missing", "record_damaged", "refused"]
 
 
 @pytest.mark.parametrize("backend", RUNTIMES)
@@ -103,6 +108,8 @@ def test_damaged_and_stale_cache_files_are_exported_again(backend, tmp_path, mon
             got, again = _run(mine, x, backend)
         said = [r.getMessage() for r in caplog.records if "exporting again" in r.getMessage()]
         assert len(said) == 1 and str(path) in said[0], (how, said)
+        if how == "refused":
+            assert f"{backend} refused to load it" in said[0], said
         np.testing.assert_allclose(got, want, atol=backends.TOLERANCE, err_msg=how)
         assert np.abs(got - other_want).max() > 1e-3, how  # never the other weights' outputs
         assert again.path == path and path.is_file()
