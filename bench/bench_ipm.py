@@ -3,7 +3,9 @@
 surround6 label images (400x225 each) -> the default 200x400 grid at 0.15 m, 7 classes. Rows,
 all measured in this run on the same frames:
 
-* ``IpmMapper.map``, classical (``ipm_occlusion`` off) and the default (occlusion reasoning on);
+* ``IpmMapper.map``, classical (``ipm_occlusion`` off), the default (occlusion reasoning on, its
+  near edges found per image column, issue #28) and the occlusion reasoning as it was before
+  (near edges searched along a polar raster of BEV rays, ``IpmMapper.occlusion_columns`` off);
 * the six per-camera **gathers alone** of the seen cells' pixels with precomputed indices
   (``labels.ravel()[pixels]``): reading the input once, no class lookup, no sums, no output;
 * ``cv2.remap`` of the six images alone: the warps the classical IPM did before its gather
@@ -19,7 +21,6 @@ all measured in this run on the same frames:
 from __future__ import annotations
 
 import argparse
-import statistics
 import time
 
 import numpy as np
@@ -58,15 +59,24 @@ def naive_ipm(rig, grid, images, lut):
     return probs.T.reshape(-1, H, W), known.reshape(H, W)  # (H*W, C) -> (C, H, W)
 
 
-def time_per_frame(fn, frames, repeat):
-    """Best-of-``repeat`` mean milliseconds per frame."""
-    best = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        for f in frames:
-            fn(f)
-        best.append((time.perf_counter() - t0) * 1000.0 / len(frames))
-    return min(best), statistics.median(best)
+def time_interleaved(fns, frames, repeat):
+    """Milliseconds per frame of each of ``fns`` (name -> function of a frame), interleaved
+    frame by frame (every function on a frame in turn, so all see the same load): ``(best,
+    median)``, the mean over the frames of each frame's fastest and median of ``repeat`` runs."""
+    times = {name: np.zeros((repeat, len(frames))) for name in fns}
+    for r in range(repeat):
+        for i, f in enumerate(frames):
+            for name, fn in fns.items():
+                t0 = time.perf_counter()
+                fn(f)
+                times[name][r, i] = (time.perf_counter() - t0) * 1000.0
+    return {name: (float(t.min(axis=0).mean()), float(np.median(t, axis=0).mean())) for name, t in times.items()}
+
+
+class PolarIpmMapper(IpmMapper):
+    """The occlusion reasoning before #28: near edges along the polar raster's BEV rays."""
+
+    occlusion_columns = False
 
 
 def main() -> None:
@@ -84,6 +94,7 @@ def main() -> None:
     mapper = IpmMapper(rig, grid, MapperConfig(method="ipm", ipm_occlusion=False))
     setup_ms = (time.perf_counter() - t0) * 1000.0
     occluding = IpmMapper(rig, grid, MapperConfig(method="ipm"))
+    polar = PolarIpmMapper(rig, grid, MapperConfig(method="ipm"))
     lut = label_lut(mapper.classes).astype(np.float32)
     gathers = [(n, g.pixels) for n, g in mapper.gathers.items()]
 
@@ -105,30 +116,38 @@ def main() -> None:
             count += t.valid
         return np.ascontiguousarray(np.moveaxis(acc / np.maximum(count, 1.0)[..., None], -1, 0)), count > 0
 
-    rows = [("IPM, classical (ours)", time_per_frame(mapper.map, frames, args.repeat)),
-            ("gathers alone", time_per_frame(floor, frames, args.repeat)),
-            ("cv2.remap x6 alone", time_per_frame(remaps, frames, args.repeat)),
-            ("IPM, classical, warps", time_per_frame(whole_image_ipm, frames, args.repeat)),
-            ("IPM, occlusion (default)", time_per_frame(occluding.map, frames, args.repeat)),
-            ("naive ray casting", time_per_frame(lambda f: naive_ipm(rig, grid, f, lut), frames, args.repeat))]
+    timed = time_interleaved({
+        "IPM, classical (ours)": mapper.map,
+        "gathers alone": floor,
+        "cv2.remap x6 alone": remaps,
+        "IPM, classical, warps": whole_image_ipm,
+        "IPM, occlusion (default)": occluding.map,
+        "IPM, occlusion, polar rays": polar.map,
+        "naive ray casting": lambda f: naive_ipm(rig, grid, f, lut),
+    }, frames, args.repeat)
+    rows = list(timed.items())
     w, h = rig.cameras[0].model.image_size
     print(f"surround6 {len(rig.cameras)}x{w}x{h} labels -> {grid.describe()}, {len(frames)} frames, "
           f"{len(mapper.classes)} classes")
     print(f"IPM lookup and gather tables: set-up {setup_ms:.1f} ms once per calibration")
     ref_ms = rows[2][1][0]
     for name, (best, med) in rows:
-        print(f"{name:26s}: {best:8.2f} ms/frame (best of {args.repeat}; median {med:.2f}) = "
+        print(f"{name:26s}: {best:8.2f} ms/frame (fastest of {args.repeat} per frame; median {med:.2f}) = "
               f"{best / ref_ms:6.2f}x the six cv2.remap warps alone")
     ms = {name: best for name, (best, _) in rows}
     classical, default = ms["IPM, classical (ours)"], ms["IPM, occlusion (default)"]
+    before = ms["IPM, occlusion, polar rays"]
+    print(f"occlusion reasoning: {default / classical:.2f}x the classical IPM per image column (default), "
+          f"{before / classical:.2f}x along the polar raster's rays (before #28); the rows interleaved")
     write_rows(args.json, "bench_ipm.py", [
         row("IPM, classical (6 x 400x225 labels -> 400x200)", f"{classical:.2f} ms",
             f"{ms['IPM, classical, warps']:.2f} ms (whole-image warps + masked sums, same output)",
             ms["IPM, classical, warps"] / classical,
             f"{classical / ms['cv2.remap x6 alone']:.1f}x the six cv2.remap alone, {classical / ms['gathers alone']:.0f}x "
             "the bare gathers"),
-        row("IPM, default (occlusion reasoning on)", f"{default:.2f} ms", f"{classical:.2f} ms (classical)",
-            classical / default, "the occluders' ray search per camera"),
+        row("IPM, default (occlusion reasoning on)", f"{default:.2f} ms = {default / classical:.2f}x classical",
+            f"{classical:.2f} ms (classical)", classical / default,
+            f"near edges per image column; before #28 (polar rays): {before:.2f} ms = {before / classical:.2f}x classical"),
     ])
 
 if __name__ == "__main__":

@@ -24,8 +24,6 @@ import time
 from collections import defaultdict
 from pathlib import Path
 
-import numpy as np
-
 from bags.io.reader import BagReader
 from bags.replay import ReplayScorer
 from bev_mapper_core.mapper import MapperConfig

@@ -1,0 +1,99 @@
+"""Benchmark: ``bev-bag replay``'s marginal rate (IPM, surround6 at 10 Hz) against real time and
+against the scoring before issue #28, measured in the same run.
+
+Writes a synthetic surround6 drive (full-size 400x225 cameras, the standard 400x200 grid at
+0.15 m, 10 Hz) unless ``--bag`` is given. The marginal cost of a frame is the replay of the
+whole drive less the replay of its first third, over the frames between (the process start,
+opening the bag and the IPM tables cancel out). Each repeat replays with today's scoring and with
+the scoring before #28 (``replay_reference.py``: whole-grid distance transforms, per-cell
+calibration sums, each frame scored twice; the same outputs) in turn, interleaved, so both see
+the same machine load; the best of the repeats is reported. Every output is written: the output
+bag, the pictures (every ``--frames-every``), ``report.html`` and ``metrics.json``.
+
+    .venv/bin/python bench/bench_replay_rate.py [--frames 60] [--repeat 3] [--bag BAG]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+from bench_replay import frame_rate  # noqa: E402
+from bench_rows import row, write_rows  # noqa: E402
+from replay_reference import reference_scoring  # noqa: E402
+
+from bags.cli.synth import SynthBagOptions, synth_bag  # noqa: E402
+from bags.replay import ReplayOptions, replay  # noqa: E402
+from bev_mapper_core.mapper import MapperConfig  # noqa: E402
+from bev_mapper_core.synth.config import SynthConfig  # noqa: E402
+
+
+def timed_replay(bag: Path, out: Path, frames: int | None, frames_every: int) -> tuple[float, int]:
+    """Wall seconds of one replay (IPM, all outputs) and the frames it mapped."""
+    shutil.rmtree(out, ignore_errors=True)
+    t0 = time.perf_counter()
+    result = replay(ReplayOptions(bag=bag, out=out, mapper=MapperConfig(method="ipm"), max_frames=frames,
+                                  frames_every=frames_every))
+    return time.perf_counter() - t0, result.metrics["frames"]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--bag", type=Path, default=None, help="replay this bag instead of a synth one")
+    ap.add_argument("--frames", type=int, default=60, help="frames of the synthetic drive")
+    ap.add_argument("--seed", type=int, default=3)
+    ap.add_argument("--rate-hz", type=float, default=10.0, help="the synthetic drive's frame rate")
+    ap.add_argument("--frames-every", type=int, default=ReplayOptions.frames_every)
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--json", default=None, help="also write the rows for bench/bench_table.py here")
+    args = ap.parse_args()
+    tmp = Path(tempfile.mkdtemp(prefix="bench_replay_rate_"))
+    try:
+        bag = args.bag
+        if bag is None:
+            bag = tmp / "drive"
+            synth_bag(SynthBagOptions(out=bag, synth=SynthConfig(frames=args.frames, seed=args.seed,
+                                                                 rate_hz=args.rate_hz)))
+        timed_replay(bag, tmp / "warm", 3, args.frames_every)  # imports, caches
+        best: dict[str, dict[str, float]] = {"ours": {}, "reference": {}}
+        n_all = n_few = 0
+        for _ in range(args.repeat):
+            for mode in ("ours", "reference"):
+                for part in ("all", "few"):
+                    limit = None if part == "all" else max(1, (n_all or args.frames) // 3)
+                    if mode == "ours":
+                        wall, n = timed_replay(bag, tmp / f"{mode}_{part}", limit, args.frames_every)
+                    else:
+                        with reference_scoring():
+                            wall, n = timed_replay(bag, tmp / f"{mode}_{part}", limit, args.frames_every)
+                    if part == "all":
+                        n_all = n
+                    else:
+                        n_few = n
+                    best[mode][part] = min(best[mode].get(part, float("inf")), wall)
+        rate = frame_rate(bag)[1]
+        ms = {m: 1000.0 * (b["all"] - b["few"]) / (n_all - n_few) for m, b in best.items()}
+        print(f"drive: {n_all} frames at {rate:.1f} Hz; marginal = (replay of all - replay of the first "
+              f"{n_few}) / {n_all - n_few} frames, best of {args.repeat}, interleaved")
+        for m, label in (("ours", "ours"), ("reference", "scoring before #28")):
+            x = f" = {1000.0 / ms[m] / rate:.1f}x real time"
+            print(f"{label:20s}: {ms[m]:6.1f} ms/frame marginal = {1000.0 / ms[m]:6.1f} frames/s{x}; "
+                  f"whole replay {best[m]['all']:.2f} s")
+        write_rows(args.json, "bench_replay_rate.py", [row(
+            f"bev-bag replay, IPM, surround6 drive at {rate:.0f} Hz, marginal rate",
+            f"{1000.0 / ms['ours'] / rate:.1f}x real time ({ms['ours']:.1f} ms/frame)",
+            f"{1000.0 / ms['reference'] / rate:.1f}x real time (scoring before #28, same outputs)",
+            ms["reference"] / ms["ours"],
+            f"{n_all - n_few} frames past the first {n_few}; all outputs, pictures every {args.frames_every}")])
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()

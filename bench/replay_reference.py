@@ -1,0 +1,67 @@
+"""The replay's scoring as it was before issue #28, for ``bench_replay_rate.py``'s reference:
+one distance transform of the whole grid per class and side for the Chamfer distances, the
+calibration counts summed cell by cell, and each frame's IoU for the captions scored a second
+time by ``FrameScores.add``. The outputs are the same (``tests/bags/replay/
+test_replay_scoring_unchanged.py``); :func:`reference_scoring` swaps it in for a block.
+"""
+
+from __future__ import annotations
+
+import contextlib
+
+import cv2
+import numpy as np
+
+import bags.replay.outputs as outputs
+import bev_mapper_core.metrics.accumulator as accumulator
+import bev_mapper_core.metrics.whole_grid as whole_grid
+from bags.replay import FRAMES_DIR
+
+
+def reference_chamfer_terms(pred, gt, resolution, clip):
+    """The Chamfer terms as computed before #28: a whole-grid transform per side."""
+    def distance_to(cells, at):
+        d = cv2.distanceTransform(np.where(cells, 0, 1).astype(np.uint8), cv2.DIST_L2,
+                                  cv2.DIST_MASK_PRECISE)[at]
+        return np.sqrt(np.rint(d.astype(np.float64) ** 2))
+
+    n_p, n_g = int(np.count_nonzero(pred)), int(np.count_nonzero(gt))
+    d_p = np.full(n_p, clip) if n_g == 0 else np.minimum(distance_to(gt, pred) * resolution, clip)
+    d_g = np.full(n_g, clip) if n_p == 0 else np.minimum(distance_to(pred, gt) * resolution, clip)
+    return d_p, d_g
+
+
+def reference_finish(self, frame, pred, index):
+    """``FrameSink.finish`` as before #28: ``FrameScores.add`` scores the frame a second time."""
+    run, mapper, scorer = self.run, self.run.mapper, self.scorer
+    self.copier.upto(outputs._frame_time(frame))
+    outputs.write_frame_messages(self.bw, run.grid, mapper, pred, frame.stamp_ns, self.ego)
+    gt, mask = scorer.update(frame, pred)
+    score = None if gt is None else self.scores.add(
+        frame.index, frame.stamp_ns, pred.probs, pred.known, mapper.class_names, gt,
+        [c.name for c in scorer.classes], mask, frame.ground_visibility, scorer.scope_used,
+        scorer.acc.threshold)
+    options = run.options
+    if options.pictures and index % options.frames_every == 0:
+        pic = outputs.comparison_picture(
+            run.grid, pred.probs, pred.known, mapper.classes, gt, mask, scorer.classes,
+            method=options.mapper.method, caption=outputs._caption(frame, score),
+            ious=None if score is None else score.ious)
+        name = f"frame_{frame.index:04d}.png"
+        outputs.write_atomic(run.tmp_frames / name, outputs.encode_png(pic))
+        self.pictures.append(run.out / FRAMES_DIR / name)
+        if options.gif:
+            self.gif_frames.append(pic)
+
+
+@contextlib.contextmanager
+def reference_scoring():
+    """Within the block, replays score as before #28."""
+    saved = (accumulator._chamfer_terms, whole_grid._EXACT_PERCENT_CELLS, outputs.FrameSink.finish)
+    accumulator._chamfer_terms = reference_chamfer_terms
+    whole_grid._EXACT_PERCENT_CELLS = 0  # the per-cell calibration sums
+    outputs.FrameSink.finish = reference_finish
+    try:
+        yield
+    finally:
+        accumulator._chamfer_terms, whole_grid._EXACT_PERCENT_CELLS, outputs.FrameSink.finish = saved
