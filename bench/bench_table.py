@@ -7,9 +7,13 @@ each printing ours next to its reference measured in the same run, and collects 
 Rows: IPM against its earlier algorithm (``bench_ipm.py``); Bi-Mapper by inference backend
 against torch eager, and by thread count with a competing process (``bench_backends.py
 --competitor``); the node at 10 and 20 Hz with reliable publishers and at 10 Hz with
-best-effort ones (``bench_node_rate.py``); replay against reading in turn (``bench_replay.py``);
+best-effort ones, and with ``backend:=torch`` against the default ``auto`` (``bench_node_rate.py``);
+replay against reading in turn (``bench_replay.py``) and its marginal rate against real time and
+the scoring before issue #28 (``bench_replay_rate.py``); the node's start to its first grid per
+method, cold and warm export cache (``bench_node_startup.py --methods``);
 1600 x 900 cameras against 400 x 225 ones on RGB (``bench_full_resolution.py``).
-Run it on a quiet machine: every figure is a wall-clock time.
+Run it on a quiet machine: every figure is a wall-clock time (on a shared one, only the ratios
+of a row hold).
 """
 
 from __future__ import annotations
@@ -35,8 +39,10 @@ RUNS = (
     ("bench_node_rate.py", ["--hz", "10", "--seconds", "15"]),
     ("bench_node_rate.py", ["--hz", "20", "--seconds", "15"]),
     ("bench_node_rate.py", ["--hz", "10", "--seconds", "15", "--publishers", "best_effort"]),
-    ("bench_node_rate.py", ["--hz", "10", "--seconds", "15", "--node-arg", "backend:=auto"]),
+    ("bench_node_rate.py", ["--hz", "10", "--seconds", "15", "--node-arg", "backend:=torch"]),
     ("bench_replay.py", []),
+    ("bench_replay_rate.py", []),
+    ("bench_node_startup.py", ["--methods", "--runs", "1"]),
     ("bench_full_resolution.py", []),
 )
 
@@ -62,7 +68,10 @@ def markdown(rows: list[dict]) -> str:
     """The table, with the machine, the date and the command that made it."""
     lines = [f"Measured by `.venv/bin/python bench/bench_table.py --write` on {machine()}, "
              f"{datetime.date.today().isoformat()}. Ratio: the reference's time over ours (above 1: ours is "
-             "faster); for the node, sets mapped over sets published; for replay, the pipeline's speed over one thread.",
+             "faster); for the node, sets mapped over sets published; for replay, the pipeline's speed over one thread; "
+             "for replay's marginal rate, ours over the scoring before issue #28; for the start-up, torch's over the "
+             "warm export cache's. The machine was shared with other jobs: a row's two figures come from the same "
+             "run, interleaved where the row says so, and only their ratio carries over.",
              "",
              "| path | ours | reference, same run | ratio | note | command |",
              "|---|---|---|---|---|---|"]

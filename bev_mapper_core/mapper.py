@@ -57,9 +57,10 @@ class MapperConfig:
             with ``input_kind`` ``rgb``): ``auto`` (the shipped segmenter; Bi-Mapper: only when
             no end-to-end RGB weights are given or shipped), ``none``, or a safetensors path.
             Label input ignores it.
-        backend: inference runtime of learned methods: ``torch`` (the reference), ``onnxruntime``
-            or ``openvino`` (the model exported to ONNX once per weights and calibration, cached;
-            optional extras), or ``auto`` (the fastest installed); see
+        backend: inference runtime of learned methods: ``auto`` (the default: the fastest
+            installed, OpenVINO, else onnxruntime, else torch), ``torch`` (the reference),
+            ``onnxruntime`` or ``openvino`` (the model exported to ONNX once per weights and
+            calibration, cached; optional extras); see
             :mod:`~bev_mapper_core.nn.backends`. Bi-Mapper, S2G2 and FocusBEV use it (FocusBEV
             for its image -> BEV feature part); segipm's segmenter runs torch.
         label_map: how the ids of the label images (``input_kind`` labels) map onto this
@@ -80,7 +81,7 @@ class MapperConfig:
     unknown_below: float = 0.05
     segmenter: str = "auto"
     label_map: str = NATIVE
-    backend: str = "torch"
+    backend: str = "auto"
 
     def __post_init__(self) -> None:
         v = self.unknown_below

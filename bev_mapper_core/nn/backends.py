@@ -4,7 +4,7 @@ exported to ONNX and run by onnxruntime or OpenVINO (optional extras:
 
 ``MapperConfig.backend``:
 
-* ``torch``: eager PyTorch (default);
+* ``torch``: eager PyTorch (the reference; tests that compare maps cell for cell pin it);
 * ``onnxruntime`` / ``openvino``: the model is exported once (PyTorch's dynamo exporter, opset
   18, static shapes) into a cache keyed by a hash of every parameter and buffer of the model,
   calibration-dependent tables included, and of the input shapes: ``$BEV_MAPPER_CACHE`` or
@@ -14,7 +14,9 @@ exported to ONNX and run by onnxruntime or OpenVINO (optional extras:
   (about 7 s for the shipped surround6 Bi-Mapper on this machine); a later start reuses the
   file. OpenVINO runs in f32 (``INFERENCE_PRECISION_HINT``: its default on CPUs with bf16 units
   differs from torch by up to 0.13 in logits).
-* ``auto``: the fastest installed: OpenVINO, else onnxruntime, else torch.
+* ``auto`` (the default, issue #28): the fastest installed: OpenVINO, else onnxruntime, else
+  torch. The first start with new weights or a new calibration exports (and says so in the log,
+  with the time it took); later starts load the cached file.
 
 What is exported, per method (:class:`BackendRunner`): Bi-Mapper's whole forward pass with its
 calibration; S2G2's image -> logits of the inference branch; FocusBEV's image -> BEV feature

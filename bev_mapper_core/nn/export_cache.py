@@ -29,6 +29,7 @@ import logging
 import os
 import shutil
 import tempfile
+import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TypeVar
@@ -205,11 +206,15 @@ def load_cached(module: torch.nn.Module, inputs: Sequence[torch.Tensor], backend
     if reason != "absent":
         log.warning("export cache: %s is not used: %s; exporting again", model, reason)
     _remove(model)
+    log.warning("export cache: exporting the model to ONNX for %s (once per weights and calibration; "
+                "later starts reuse %s) ...", backend, model)
+    started = time.perf_counter()
     try:
         export(module, inputs, model)
         record = {"format": CACHE_FORMAT, "made_from": made, "backend": backend, "runtimes": {},
                   "onnx_sha256": file_sha256(model), "onnx_bytes": model.stat().st_size}
         _write_json(record_path(model), record)
+        log.warning("export cache: exported in %.1f s", time.perf_counter() - started)
     except Exception as exc:  # noqa: BLE001 - the exporter raises many kinds
         raise ConfigError(f"could not export the model to ONNX for backend {backend!r} in {directory} "
                           f"({_short(exc)}); use backend 'torch'") from None

@@ -300,7 +300,7 @@ def test_bimapper_on_labels_withholds_the_cells_no_ray_reaches(box_scene, tmp_pa
     torch.manual_seed(0)
     path = tmp_path / "box.safetensors"
     save_weights(BiMapper(replace(TINY, ipm_skip=True, classes=("drivable", "vehicle")), rig, grid).eval(), path)
-    preds = {occ: BiMapperMapper(rig, grid, MapperConfig(weights=str(path), ipm_occlusion=occ)).map(
+    preds = {occ: BiMapperMapper(rig, grid, MapperConfig(backend="torch", weights=str(path), ipm_occlusion=occ)).map(
         {"front": labels}) for occ in (False, True)}
     xs, ys = grid.centers
     frustum = preds[False].known
@@ -317,7 +317,7 @@ def test_bimapper_on_labels_withholds_the_cells_no_ray_reaches(box_scene, tmp_pa
     np.testing.assert_array_equal(preds[True].probs, preds[False].probs)  # and changes no probability
     # a model that does not map vehicles keeps IPM's face-width depth: the box, seen end-on
     # (2 m wide), may reach 1.8 * 4.5 / 2 = 4.05 m, so the cells from 12.5 m on are withheld
-    drivable_only = BiMapperMapper(rig, grid, MapperConfig(weights=str(path), classes=("drivable",)))
+    drivable_only = BiMapperMapper(rig, grid, MapperConfig(backend="torch", weights=str(path), classes=("drivable",)))
     known = drivable_only.map({"front": labels}).known
     assert known[depth & (xs < 11.5)].all()
     assert not known[depth & (xs > 12.6)].any()

@@ -81,7 +81,7 @@ def test_each_trainable_method_builds_round_trips_its_weights_and_maps(name, tmp
 
     method, field = RUNS_AS.get(name, (name, "weights"))
     kind = cfg.model.input_kind
-    mc = MapperConfig(method=method, input_kind=kind, threads=1, **{field: str(path)})
+    mc = MapperConfig(backend="torch", method=method, input_kind=kind, threads=1, **{field: str(path)})
     mapper = create_mapper(rig, GRID, mc)
     frame = next(iter(generate_drive(rig, GRID, SynthConfig(frames=1, seed=950_000_011))))
     images = {n: (c.rgb if kind == "rgb" else c.labels) for n, c in frame.cameras.items()}
@@ -107,5 +107,5 @@ def test_each_training_free_method_maps_a_frame(name):
     frame = next(iter(generate_drive(rig, GRID, SynthConfig(frames=1, seed=950_000_011))))
     kind = INPUT.get(name, "labels")
     images = {n: (c.rgb if kind == "rgb" else c.labels) for n, c in frame.cameras.items()}
-    pred = create_mapper(rig, GRID, MapperConfig(method=name, input_kind=kind, threads=1)).map(images)
+    pred = create_mapper(rig, GRID, MapperConfig(backend="torch", method=name, input_kind=kind, threads=1)).map(images)
     assert pred.probs.shape == (len(pred.classes), *GRID.shape) and pred.known.any()

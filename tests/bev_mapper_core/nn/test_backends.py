@@ -51,7 +51,7 @@ def test_exported_bimapper_maps_as_torch_does(backend, tmp_path_factory, monkeyp
     cache = tmp_path_factory.getbasetemp() / "onnx_cache"  # shared by both backends: one export
     monkeypatch.setenv(backends.CACHE_ENV, str(cache))
     rig, grid = preset_rig("surround6"), BevGrid()
-    ref = create_mapper(rig, grid, MapperConfig(threads=1))
+    ref = create_mapper(rig, grid, MapperConfig(backend="torch", threads=1))
     fast = create_mapper(rig, grid, MapperConfig(threads=1, backend=backend))
     assert fast.backend == backend
     frames = list(generate_drive(rig, grid, SynthConfig(frames=2, seed=950_000_018)))
@@ -85,7 +85,7 @@ def test_exported_monocular_methods_map_as_torch_does(method, backend, tmp_path,
 
     monkeypatch.setenv(backends.CACHE_ENV, str(tmp_path))
     rig, grid = preset_rig("front1"), grid_preset("ahead")
-    cfg = MapperConfig(method=method, input_kind="rgb", threads=1)
+    cfg = MapperConfig(backend="torch", method=method, input_kind="rgb", threads=1)
     ref, fast = create_mapper(rig, grid, cfg), create_mapper(rig, grid, MapperConfig(**{**cfg.__dict__, "backend": backend}))
     frames = list(generate_drive(rig, grid, SynthConfig(frames=3, seed=950_000_011)))
     for k, f in enumerate(frames):

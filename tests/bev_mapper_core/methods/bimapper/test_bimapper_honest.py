@@ -97,7 +97,8 @@ def test_old_weights_load_and_behave_as_before(tmp_path):
         exp = torch.sigmoid(model(raw)["logits"][0]).numpy()
         frustum = model.known()[0].numpy()
     for ub in (0.0, 0.5, 0.99):  # no head: unknown_below changes nothing
-        pred = BiMapperMapper(RIG, GRID, MapperConfig(weights=str(path), unknown_below=ub, ipm_occlusion=False)).map(_images(raw))
+        pred = BiMapperMapper(RIG, GRID, MapperConfig(
+            backend="torch", weights=str(path), unknown_below=ub, ipm_occlusion=False)).map(_images(raw))
         np.testing.assert_array_equal(pred.probs, exp)
         np.testing.assert_array_equal(pred.known, frustum)
 
@@ -124,7 +125,7 @@ def test_unknown_below_makes_unobservable_cells_unknown(tmp_path):
         path = tmp_path / f"b{bias}.safetensors"
         save_weights(model, path)
         for ub in (0.0, 0.5):
-            config = MapperConfig(weights=str(path), unknown_below=ub, ipm_occlusion=False)
+            config = MapperConfig(backend="torch", weights=str(path), unknown_below=ub, ipm_occlusion=False)
             results[bias, ub] = BiMapperMapper(RIG, GRID, config).map(_images(raw))
     assert not results[-50.0, 0.5].known.any()
     np.testing.assert_array_equal(results[50.0, 0.5].known, frustum)
@@ -137,7 +138,7 @@ def test_unknown_below_makes_unobservable_cells_unknown(tmp_path):
         model.decoder.vis_head[-1].bias.fill_(-0.5)
     path = tmp_path / "half.safetensors"
     save_weights(model, path)
-    mapper = BiMapperMapper(RIG, GRID, MapperConfig(weights=str(path), unknown_below=0.5, ipm_occlusion=False))
+    mapper = BiMapperMapper(RIG, GRID, MapperConfig(backend="torch", weights=str(path), unknown_below=0.5, ipm_occlusion=False))
     with torch.no_grad():
         p_vis = torch.sigmoid(mapper.model(raw)["visibility_logits"][0, 0]).numpy()
     pred = mapper.map(_images(raw))
@@ -198,7 +199,7 @@ def test_temperature_is_stored_and_applied(tmp_path):
     path = tmp_path / "t.safetensors"
     save_weights(model, path)
     assert WeightsFile.open(path).config.temperature == (2.0, 1.0, 0.5)
-    pred = BiMapperMapper(RIG, GRID, MapperConfig(weights=str(path))).map(_images(raw))
+    pred = BiMapperMapper(RIG, GRID, MapperConfig(backend="torch", weights=str(path))).map(_images(raw))
     exp = torch.sigmoid(logits / torch.tensor([2.0, 1.0, 0.5]).view(-1, 1, 1)).numpy()
     np.testing.assert_allclose(pred.probs, exp, atol=1e-6)
     with pytest.raises(ConfigError, match="temperature"):

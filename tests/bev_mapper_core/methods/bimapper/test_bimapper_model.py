@@ -347,7 +347,7 @@ def test_bad_weights_files_are_rejected(saved, tmp_path):
 # ------------------------------------------------------------------- mapper
 def test_mapper_adapter(saved):
     _, path = saved
-    mapper = BiMapperMapper(RIG, GRID, MapperConfig(method="bimapper", weights=str(path)))
+    mapper = BiMapperMapper(RIG, GRID, MapperConfig(backend="torch", method="bimapper", weights=str(path)))
     assert mapper.class_names == CLASSES
     imgs = {c.name: render(c) for c in RIG.cameras}
     pred = mapper.map(imgs)
@@ -362,7 +362,7 @@ def test_mapper_adapter(saved):
     with pytest.raises(ConfigError, match="segmenter is 'none'"):  # label weights on RGB need a segmenter
         BiMapperMapper(RIG, GRID, MapperConfig(method="bimapper", weights=str(path), input_kind="rgb", segmenter="none"))
     # a subset of the weights' classes, in another order: those layers only
-    sub = BiMapperMapper(RIG, GRID, MapperConfig(method="bimapper", weights=str(path), classes=("sidewalk", "drivable")))
+    sub = BiMapperMapper(RIG, GRID, MapperConfig(backend="torch", method="bimapper", weights=str(path), classes=("sidewalk", "drivable")))
     part = sub.map(imgs)
     assert sub.class_names == ("sidewalk", "drivable")
     np.testing.assert_allclose(part.probs, pred.probs[[2, 0]], atol=1e-6)
@@ -381,7 +381,7 @@ def test_mapper_feeds_camera_size_images(flag, tmp_path):
     model = BiMapper(replace(TINY, streams=streams, **{flag: True}), RIG, GRID).eval()
     path = tmp_path / "w.safetensors"
     save_weights(model, path)
-    mapper = BiMapperMapper(RIG, GRID, MapperConfig(method="bimapper", weights=str(path)))
+    mapper = BiMapperMapper(RIG, GRID, MapperConfig(backend="torch", method="bimapper", weights=str(path)))
     raw = random_labels(5)
     pred = mapper.map({c.name: raw[0, n].numpy() for n, c in enumerate(RIG.cameras)})
     with torch.no_grad():

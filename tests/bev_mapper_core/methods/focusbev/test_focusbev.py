@@ -207,7 +207,7 @@ def test_weights_round_trip_and_refusals(weights, tmp_path):
 
 
 def test_mapper_equals_the_model_and_fuses_the_frame_one_interval_back(weights):
-    cfg = MapperConfig(method="focusbev", input_kind="rgb", weights=str(weights))
+    cfg = MapperConfig(backend="torch", method="focusbev", input_kind="rgb", weights=str(weights))
     a, b = _rgb(1), _rgb(2)
     fresh = create_mapper(RIG, GRID, cfg)
     single = fresh.map({"front": b}, _pose(0.0), 10**9)
@@ -236,7 +236,7 @@ def test_mapper_equals_the_model_and_fuses_the_frame_one_interval_back(weights):
 
 
 def test_memory_bank_resets_on_a_backward_stamp_and_without_a_pose(weights):
-    cfg = MapperConfig(method="focusbev", input_kind="rgb", weights=str(weights))
+    cfg = MapperConfig(backend="torch", method="focusbev", input_kind="rgb", weights=str(weights))
     a, b = _rgb(1), _rgb(2)
     alone = create_mapper(RIG, GRID, cfg).map({"front": b}, _pose(0.0), 10**9)
     m = create_mapper(RIG, GRID, cfg)
@@ -268,7 +268,7 @@ def test_memory_bank_resets_on_a_backward_stamp_and_without_a_pose(weights):
 def test_preflight_refuses_what_the_weights_cannot_serve(weights):
     from bev_mapper_core.mapper import preflight
 
-    cfg = MapperConfig(method="focusbev", input_kind="rgb", weights=str(weights))
+    cfg = MapperConfig(backend="torch", method="focusbev", input_kind="rgb", weights=str(weights))
     preflight(cfg, "front1", GRID, ("front",))
     with pytest.raises(WeightsError, match="grid"):
         preflight(cfg, "front1", BevGrid(0.0, 32.0, -16.0, 16.0, 0.25), ("front",))
@@ -329,7 +329,7 @@ def test_training_run_on_windows_through_the_trainer(tmp_path):
     assert doc["epoch"] == 1 and doc["step"] == 6  # 0-based: 2 epochs of 3 windows of 2
     meta = read_focusbev_metadata(tmp_path / "run" / "best.safetensors")
     assert meta["memory_interval_s"] == pytest.approx(0.3) and meta["config"]["window"] == 2
-    m = create_mapper(RIG, GRID, MapperConfig(method="focusbev", input_kind="rgb",
+    m = create_mapper(RIG, GRID, MapperConfig(backend="torch", method="focusbev", input_kind="rgb",
                                               weights=str(tmp_path / "run" / "best.safetensors")))
     assert m.map({"front": _rgb()}, _pose(0.0), 1).probs.shape == (3, *GRID.shape)
 
@@ -347,7 +347,7 @@ def test_replay_maps_a_front1_bag_with_the_shipped_focusbev_and_its_memory(tmp_p
 
     bag, out = tmp_path / "bag", tmp_path / "out"
     assert main(["synth", str(bag), "--rig", "front1", "--grid", "ahead", "--frames", "4", "--seed", "950000015"]) == 0
-    assert main(["replay", str(bag), "--out", str(out), "--method", "focusbev", "--input", "rgb", "--no-pictures",
+    assert main(["replay", str(bag), "--out", str(out), "--method", "focusbev", "--backend", "torch", "--input", "rgb", "--no-pictures",
                  "--no-report", "--quiet"]) == 0
     m = json.loads((out / METRICS_FILE).read_text())
     assert m["method"] == "focusbev" and 0.0 < m["miou"] <= 1.0
@@ -355,7 +355,7 @@ def test_replay_maps_a_front1_bag_with_the_shipped_focusbev_and_its_memory(tmp_p
     assert m["temporal"]["method"] == {"fused_frames": 6, "resets": 0, "frames_without_pose": 0}
     assert sum(m["temporal"]["odometry_problems"].values()) == 0
     with BagReader(bag) as r:
-        mapper = create_mapper(r.rig(), r.grid(), MapperConfig(method="focusbev", input_kind="rgb"))
+        mapper = create_mapper(r.rig(), r.grid(), MapperConfig(backend="torch", method="focusbev", input_kind="rgb"))
         preds = [(f.stamp_ns, mapper.map(f.rgb, f.odom.world_from_ego, f.stamp_ns)) for f in r.frames(labels=False)]
     assert [p.frames for _, p in preds] == [1, 1, 2, 2]
     with BagReader(out / BAG_DIR) as r:

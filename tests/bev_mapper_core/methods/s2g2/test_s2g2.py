@@ -274,7 +274,7 @@ def test_mapper_maps_a_frame_and_refuses_multi_camera_rigs(tmp_path):
     torch.manual_seed(3)
     model = S2G2(TINY, RIG, GRID).eval()
     path = save_s2g2(model, tmp_path / "w.safetensors", inference_branch="passive")
-    cfg = MapperConfig(method="s2g2", input_kind="rgb", weights=str(path), threads=1)
+    cfg = MapperConfig(backend="torch", method="s2g2", input_kind="rgb", weights=str(path), threads=1)
     mapper = create_mapper(RIG, GRID, cfg)
     assert mapper.class_names == CLASSES and mapper.branch == "passive"
     rgb = _rgb(1, seed=5)
@@ -581,14 +581,14 @@ def test_replay_maps_a_front1_bag_with_the_shipped_s2g2_weights(tmp_path):
     bag, out = tmp_path / "bag", tmp_path / "out"
     assert main(["synth", str(bag), "--rig", "front1", "--grid", "ahead", "--frames", "3", "--seed", "950000013",
                  "--style", "dusk"]) == 0
-    assert main(["replay", str(bag), "--out", str(out), "--method", "s2g2", "--input", "rgb", "--no-pictures",
+    assert main(["replay", str(bag), "--out", str(out), "--method", "s2g2", "--backend", "torch", "--input", "rgb", "--no-pictures",
                  "--no-report", "--quiet"]) == 0
     m = json.loads((out / METRICS_FILE).read_text())
     assert m["method"] == "s2g2" and m["input"] == "rgb" and 0.0 < m["miou"] <= 1.0
     assert set(m["classes"]) == set(read_s2g2_metadata(shipped_s2g2("front1", "rgb"))["classes"])
     with BagReader(bag) as r:
         assert r.grid() == grid_preset("ahead")
-        mapper = create_mapper(r.rig(), r.grid(), MapperConfig(method="s2g2", input_kind="rgb"))
+        mapper = create_mapper(r.rig(), r.grid(), MapperConfig(backend="torch", method="s2g2", input_kind="rgb"))
         expected = {f.stamp_ns: mapper.map(f.rgb) for f in r.frames(labels=False)}
     with BagReader(out / BAG_DIR) as r:
         got = {}

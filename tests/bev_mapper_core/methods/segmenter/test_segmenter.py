@@ -171,18 +171,18 @@ def test_label_bimapper_runs_chained_on_rgb(tmp_path):
     torch.manual_seed(2)
     seg_path = save_segmenter(Segmenter(SMALL), tmp_path / "seg.safetensors")
     w = save_weights(BiMapper(replace(TINY, ipm_skip=True), RIG, GRID).eval(), tmp_path / "bm.safetensors")
-    chained = BiMapperMapper(RIG, GRID, MapperConfig(input_kind="rgb", weights=str(w), segmenter=str(seg_path)))
+    chained = BiMapperMapper(RIG, GRID, MapperConfig(backend="torch", input_kind="rgb", weights=str(w), segmenter=str(seg_path)))
     assert chained.stage is not None and chained.model_input == "labels"
     rgb, _ = _rig_images(4)
     labels = SegmenterStage(seg_path).segment(rgb)
-    direct = BiMapperMapper(RIG, GRID, MapperConfig(weights=str(w))).map(labels)
+    direct = BiMapperMapper(RIG, GRID, MapperConfig(backend="torch", weights=str(w))).map(labels)
     got = chained.map(rgb)
     np.testing.assert_array_equal(got.probs, direct.probs)
     np.testing.assert_array_equal(got.known, direct.known)
     with pytest.raises(ConfigError, match="segmenter is 'none'"):
         BiMapperMapper(RIG, GRID, MapperConfig(input_kind="rgb", weights=str(w), segmenter="none"))
     w_rgb = save_weights(BiMapper(replace(TINY, input_kind="rgb"), RIG, GRID), tmp_path / "rgb.safetensors")
-    e2e = BiMapperMapper(RIG, GRID, MapperConfig(input_kind="rgb", weights=str(w_rgb)))
+    e2e = BiMapperMapper(RIG, GRID, MapperConfig(backend="torch", input_kind="rgb", weights=str(w_rgb)))
     assert e2e.stage is None and e2e.map(rgb).probs.shape[1:] == GRID.shape
     with pytest.raises(ConfigError, match="takes no segmenter"):
         BiMapperMapper(RIG, GRID, MapperConfig(input_kind="rgb", weights=str(w_rgb), segmenter=str(seg_path)))
