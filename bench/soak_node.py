@@ -4,7 +4,7 @@ Starts ``mapper_node`` (default: the shipped surround6 Bi-Mapper, ``temporal_win
 ``use_sim_time``) and ``bev-bag play --loop --clock`` of a drive (default: the demo drive,
 ``data/demo_drive``; ``bash scripts/demo.sh`` writes it), both in their own processes on a private
 domain, and samples every ``--every`` seconds: the node's resident memory (``VmRSS``), the grids
-received on ``/bev/drivable`` and the last ``/diagnostics`` (level, rate, latency, temporal
+received on ``/bev/drivable``, the ``/diagnostics`` messages and the last one (level, rate, latency, temporal
 resets, clock jumps back). Prints one row per sample and a summary: RSS after the warm-up (the
 first sample past ``--warmup``) against the last, and its largest step.
 
@@ -84,12 +84,14 @@ def main() -> int:
     rclpy.init()
     node = rclpy.create_node("soak_node_bench")
     grids = [0]
+    diag_count = [0]
     diag: dict = {}
     node.create_subscription(OccupancyGrid, "/bev/drivable", lambda m: grids.__setitem__(0, grids[0] + 1), 10)
 
     def on_diag(msg) -> None:
         for st in msg.status:
             if "bev mapper" in st.name:
+                diag_count[0] += 1
                 diag.clear()
                 diag.update({kv.key: kv.value for kv in st.values}, level=int.from_bytes(st.level, "little"))
 
@@ -123,7 +125,8 @@ def main() -> int:
     if len(after) >= 2:
         steps = [b - a for a, b in zip(after, after[1:])]
         print(f"RSS after warm-up {after[0]:.1f} MB -> last {after[-1]:.1f} MB ({after[-1] - after[0]:+.1f} MB), "
-              f"largest step {max(steps, key=abs):+.1f} MB; {grids[0]} grids; node exit {node_rc}, player exit {play_rc}")
+              f"largest step {max(steps, key=abs):+.1f} MB; {grids[0]} grids; {diag_count[0]} /diagnostics messages "
+              f"in {samples[-1][0]:.0f} s; node exit {node_rc}, player exit {play_rc}")
     return 0
 
 
