@@ -229,6 +229,9 @@ class OdometryState:
     world_from_ego: np.ndarray
     linear_velocity: np.ndarray
     angular_velocity: np.ndarray
+    #: the pose's 6x6 covariance as sent (row-major, 36 values; None: not read). Not checked here:
+    #: the temporal memories count a non-finite one (bev_mapper_core.temporal.OdometryCheck).
+    pose_covariance: np.ndarray | None = None
 
 
 def _vec(v: Any, what: str) -> np.ndarray:
@@ -239,7 +242,7 @@ def _vec(v: Any, what: str) -> np.ndarray:
 
 
 def odometry_to_state(msg: Any) -> OdometryState:
-    """Parse a ``nav_msgs/Odometry`` (pose and twist; covariances are ignored).
+    """Parse a ``nav_msgs/Odometry`` (pose, twist and the pose covariance as sent).
 
     Raises:
         TransformError: a field is missing or of the wrong type, a non-finite pose or twist, a
@@ -258,7 +261,17 @@ def odometry_to_state(msg: Any) -> OdometryState:
                                       "odometry pose"),
         linear_velocity=_vec(get("twist.twist.linear"), "odometry linear velocity"),
         angular_velocity=_vec(get("twist.twist.angular"), "odometry angular velocity"),
+        pose_covariance=_covariance(msg),
     )
+
+
+def _covariance(msg: Any) -> np.ndarray | None:
+    """``pose.covariance`` as 36 floats (NaN allowed), or None when absent or not 36 numbers."""
+    try:
+        cov = np.asarray(msg.pose.covariance, dtype=np.float64).reshape(-1)
+    except (AttributeError, TypeError, ValueError):
+        return None
+    return cov if cov.size == 36 else None
 
 
 def make_odometry(

@@ -97,7 +97,8 @@ def _map_frame(mapper, fusion: TemporalFusion | None, check: OdometryCheck | Non
     pose = odom.world_from_ego if odom is not None else None
     if check is not None:
         verdict = check.check(frame.stamp_ns, pose, None if odom is None else odom.stamp_ns,
-                              None if odom is None else (odom.frame_id, odom.child_frame_id))
+                              None if odom is None else (odom.frame_id, odom.child_frame_id),
+                              getattr(odom, "pose_covariance", None))
         if verdict.reset and verdict.pose is not None:  # a pose the memories cannot be aligned with
             temporal["resets"] += 1
             if fusion is not None:
