@@ -61,13 +61,10 @@ def _tensor_hash(tensors) -> str:
 
 
 def package_version() -> str:
-    """This package's installed version ("unknown" when not installed as a distribution)."""
-    from importlib.metadata import PackageNotFoundError, version  # noqa: PLC0415
+    """This package's version (``bev_mapper_core.__version__``, the one setup.py installs)."""
+    from .. import __version__  # noqa: PLC0415
 
-    try:
-        return version("bev_mapper_ros")
-    except PackageNotFoundError:
-        return "unknown"
+    return str(__version__)
 
 
 def runtime_version(backend: str) -> str:
