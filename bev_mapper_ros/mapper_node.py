@@ -487,6 +487,9 @@ class MapperNode(Node):
                 self.stats.temporal_frames, self.stats.temporal_note = fused.frames, fused.note
             if fused.note:
                 self._throttled_warning("temporal", fused.note)
+        if self.odometry is not None and verdict.note and verdict.pose is not None:  # the reset it asked for
+            with self.stats.lock:
+                self.stats.temporal_note = self.stats.temporal_note or verdict.note
         for ci, name in enumerate(self.class_names):
             msg = make_occupancy_grid(self.factory, self.cfg.grid, pred.probs[ci], pred.known,
                                       stamp, self.cfg.base_frame)
