@@ -87,9 +87,26 @@ def session_processes() -> dict[int, str]:
             cmd = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace").strip()
         except OSError:  # gone, or another user's
             continue
-        if cmd:  # a zombie has no command line: exited, only not reaped yet
+        if cmd and not _own_helper(entry, cmd):  # a zombie has no command line: exited, only not reaped yet
             found[int(entry.name)] = cmd
     return found
+
+
+#: Helper processes multiprocessing starts for this interpreter (torch's DataLoader and spawn do):
+#: they exit when it does, so they are no leftover.
+MULTIPROCESSING_HELPERS = ("from multiprocessing.resource_tracker import main",
+                           "from multiprocessing.forkserver import main")
+
+
+def _own_helper(entry: pathlib.Path, cmd: str) -> bool:
+    """True for a multiprocessing helper process whose parent is this interpreter."""
+    if not any(h in cmd for h in MULTIPROCESSING_HELPERS):
+        return False
+    try:
+        ppid = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+    except (OSError, IndexError, ValueError):
+        return False
+    return ppid == os.getpid()
 
 
 def _stop(pids) -> None:
