@@ -323,7 +323,8 @@ class FrameSet:
 
     def batch(self, idx: np.ndarray) -> dict:
         """Torch batch of frames ``idx``: ``images`` (B, N, h, w) uint8, ``target`` float, ``mask``
-        bool[, ``rgb``; ``poses`` (B, 4, 4) float64, ``stamps``, ``drives`` (B,)].
+        bool, ``index`` (B,) int64 (the frames' ids in this set, e.g. for cached features)[,
+        ``rgb``; ``poses`` (B, 4, 4) float64, ``stamps``, ``drives`` (B,)].
 
         With :attr:`window` ``T`` > 1, each sample is the window ending at its frame:
         ``images`` (B, T, N, h, w), ``rgb`` (B, T, N, h, w, 3), ``poses`` (B, T, 4, 4) and
@@ -332,7 +333,8 @@ class FrameSet:
         import torch
 
         idx = np.asarray(idx)
-        out = {"target": torch.from_numpy(self.target[idx]).float(), "mask": torch.from_numpy(self.mask[idx])}
+        out = {"target": torch.from_numpy(self.target[idx]).float(), "mask": torch.from_numpy(self.mask[idx]),
+               "index": torch.from_numpy(idx.astype(np.int64))}
         if self.window > 1:
             ids, present = self.windows(idx, self.window)
             out["present"] = torch.from_numpy(present)

@@ -63,8 +63,9 @@ class DataNeeds:
                                          ("poses", self.poses), ("rgb", self.rgb)) if on)
 
 
-#: Keys of an unlabeled batch: the inputs only (a FrameSet batch without ``target`` / ``mask``).
-UNLABELED_KEYS = ("images", "rgb")
+#: Keys of an unlabeled batch: the inputs and the frames' ids in their set (a FrameSet batch
+#: without ``target`` / ``mask``).
+UNLABELED_KEYS = ("images", "rgb", "index")
 
 
 @dataclass

@@ -216,6 +216,12 @@ class S2G2(nn.Module):
             raise ValueError(f"input {tuple(x.shape)} does not match the model input size {self.input_size}")
         with torch.set_grad_enabled(torch.is_grad_enabled() and not frozen_encoder):
             front = self.encoder(x)[-1]  # (B, C, hf, wf)
+        return self.from_front(front)
+
+    def from_front(self, front: torch.Tensor) -> dict[str, torch.Tensor]:
+        """:meth:`features` from the encoder's features ``front`` ``(B, C, hf, wf)`` (e.g. cached
+        ones of a frozen encoder).
+        """
         bev = self.to_bev(front)  # (B, C, hb, wb)
         front_cycled = self.to_front(bev)  # (B, C, hf, wf)
         f_c = bev if self.cross_view is None else self.cross_view(front, bev, front_cycled)
@@ -227,7 +233,10 @@ class S2G2(nn.Module):
         of the active branch on ``F_C`` and ``passive_logits`` (B, K, H, W) of the passive branch
         on ``F_I``, computed without gradient (the consistency target).
         """
-        out = self.features(x, frozen_encoder)
+        return self.heads(self.features(x, frozen_encoder))
+
+    def heads(self, out: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """:meth:`features`' outputs ``out`` with both branches' logits added (see :meth:`forward`)."""
         out["active_logits"] = self.active(out["f_c"])[0]
         with torch.no_grad():
             out["passive_logits"] = self.passive(out["f_i"])[0]

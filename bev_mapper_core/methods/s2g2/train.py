@@ -80,6 +80,7 @@ weights' metadata).
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -90,7 +91,7 @@ import torch
 from typing_extensions import override
 
 from bev_mapper_core.errors import ConfigError
-from bev_mapper_core.nn.augment import Augment, step_augment
+from bev_mapper_core.nn.augment import Augment, AugmentConfig, step_augment
 from bev_mapper_core.training.class_weights import POS_WEIGHTS, class_pos_weight
 from bev_mapper_core.training.method import CliFlag, TrainMethod
 from bev_mapper_core.training.sources import DataNeeds, TrainData
@@ -108,6 +109,10 @@ OPTIMIZERS = ("sgd", "adam")
 UNLABELED_BN = ("running", "batch")
 #: The paper's SGD settings.
 SGD_MOMENTUM, SGD_WEIGHT_DECAY = 0.9, 1e-4
+#: ``S2G2Training.feature_copies`` at most (memory: copies x frames x the encoder's features).
+MAX_FEATURE_COPIES = 16
+#: Frames encoded at once while filling the feature cache.
+CACHE_BATCH = 32
 
 
 @dataclass(frozen=True)
@@ -142,6 +147,15 @@ class S2G2Training:
             see the module docstring.
         augment: photometric augmentation of every training frame's camera image (RGB input;
             see the module docstring).
+        frozen_encoder: the encoder (the shipped segmenter's trunk, ``encoder_init``) never
+            trains: no gradient, its BatchNorm on its running statistics. Everything after it
+            trains as before.
+        feature_copies: with ``frozen_encoder``, the encoder's features of every training and
+            unlabeled frame are computed once, before the first step, and the view transforms
+            and heads train on them: ``n`` copies per frame, copy 0 of the image as it is, copies
+            1..n-1 of augmented images (each step draws one copy per frame); 0 = no cache (the
+            encoder runs every step). With one copy and ``augment`` off, a step's loss equals the
+            uncached frozen step's.
     """
 
     cycle_weight: float = S2G2LossConfig.cycle_weight
@@ -160,6 +174,8 @@ class S2G2Training:
     cycle_into_encoder: bool = False
     unlabeled_into_encoder: bool = False
     augment: bool = True
+    frozen_encoder: bool = False
+    feature_copies: int = 0
 
     def __post_init__(self) -> None:
         if not isinstance(self.encoder_init, str) or not self.encoder_init:
@@ -168,7 +184,7 @@ class S2G2Training:
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not 0 <= v <= 1:
             raise ConfigError(f"ema_decay must be a number in [0, 1], got {v!r}")
         for name in ("ema_warmup", "supervised_only", "cycle_into_encoder", "unlabeled_into_encoder",
-                     "augment"):
+                     "augment", "frozen_encoder"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"{name} must be true or false, got {getattr(self, name)!r}")
         for name, choices in (("pos_weight", POS_WEIGHTS), ("optimizer", OPTIMIZERS),
@@ -178,6 +194,15 @@ class S2G2Training:
                 raise ConfigError(f"{name} must be one of {choices}, got {getattr(self, name)!r}")
         if self.unlabeled_bn == "batch" and not self.unlabeled_into_encoder:
             raise ConfigError("unlabeled_bn 'batch' (one batch with the labeled frames) needs unlabeled_into_encoder")
+        n = self.feature_copies
+        if isinstance(n, bool) or not isinstance(n, int) or not 0 <= n <= MAX_FEATURE_COPIES:
+            raise ConfigError(f"feature_copies must be an integer in 0..{MAX_FEATURE_COPIES}, got {n!r}")
+        if n and not self.frozen_encoder:
+            raise ConfigError("feature_copies caches the encoder's features: it needs frozen_encoder")
+        if n > 1 and not self.augment:
+            raise ConfigError("feature_copies > 1 caches augmented copies: it needs augment")
+        if self.frozen_encoder and (self.cycle_into_encoder or self.unlabeled_into_encoder):
+            raise ConfigError("a frozen encoder trains from no loss: drop cycle_into_encoder / unlabeled_into_encoder")
         self.loss_config()  # validates the weights and the ramp
 
     def loss_config(self, pos_weight: tuple[float, ...] | None = None) -> S2G2LossConfig:
@@ -265,6 +290,11 @@ class S2G2Method(TrainMethod):
                      "trunk (auto: the shipped segmenter's on RGB input)"),
         CliFlag("--augment", "augment", action="boolean",
                 help="photometric augmentation (colour, exposure, blur, noise) of every training image (RGB input)"),
+        CliFlag("--frozen-encoder", "frozen_encoder", action="store_true",
+                help="the encoder (the shipped segmenter's trunk) never trains"),
+        CliFlag("--feature-copies", "feature_copies", min_value=0,
+                help="with --frozen-encoder: cache the encoder's features of N copies of every frame (copy 0 as "
+                     "it is, the others augmented) and train on them (default 0: no cache)"),
     )
 
     @override
@@ -273,11 +303,14 @@ class S2G2Method(TrainMethod):
         self.encoder_source = encoder_source(self.cfg.loss.encoder_init, self.cfg.model.input_kind, self.rig.name)
         if self.encoder_source is not None:
             load_segmenter_trunk(model.encoder, self.encoder_source)
+        if self.cfg.loss.frozen_encoder:
+            model.encoder.requires_grad_(False)
+        self._cache: dict[str, torch.Tensor] = {}
         return model
 
     @override
     def trainable_parameters(self):
-        return self.model.trainable_parameters()
+        return [p for p in self.model.trainable_parameters() if p.requires_grad]
 
     @override
     def configure_optimizer(self, lr: float) -> torch.optim.Optimizer:
@@ -315,7 +348,41 @@ class S2G2Method(TrainMethod):
         self.loss_cfg = self.cfg.loss.loss_config(pw)
         if pw is not None:
             log(f"BCE positive weights {dict(zip(self.cfg.class_names, pw))}")
+        if self.cfg.loss.feature_copies:
+            t0 = time.monotonic()
+            self._cache = {name: self._encode_all(fs) for name, fs in (("train", data.train), ("unlabeled", data.unlabeled))
+                           if fs is not None}
+            mib = sum(c.numel() * c.element_size() for c in self._cache.values()) / 2**20
+            log(f"feature cache: {self.cfg.loss.feature_copies} cop{'y' if self.cfg.loss.feature_copies == 1 else 'ies'} "
+                f"of {sum(c.shape[1] for c in self._cache.values())} frames, {mib:.0f} MiB, {time.monotonic() - t0:.1f} s")
 
+    @torch.no_grad()
+    def _encode_all(self, fs) -> torch.Tensor:
+        """The frozen encoder's features ``(copies, M, C, hf, wf)`` of every frame of ``fs`` (copy 0
+        as it is, the others augmented, each draw a function of the run seed, copy and frame).
+        """
+        self.model.encoder.eval()
+        copies = []
+        for c in range(self.cfg.loss.feature_copies):
+            feats = []
+            for start in range(0, len(fs), CACHE_BATCH):
+                batch = fs.batch(np.arange(start, min(start + CACHE_BATCH, len(fs))))
+                aug = None
+                if c > 0:
+                    gen = torch.Generator(device=self.device).manual_seed(
+                        int(np.random.SeedSequence([self.cfg.seed, c, start, 25]).generate_state(1, np.uint64)[0] >> 1))
+                    aug = Augment(AugmentConfig(), gen)
+                feats.append(self.model.encoder(self._inputs(batch, aug))[-1])  # (b, C, hf, wf)
+            copies.append(torch.cat(feats))
+        return torch.stack(copies)  # n x (M, C, hf, wf) -> (n, M, C, hf, wf)
+
+    def _cached(self, name: str, index: torch.Tensor, step: int) -> torch.Tensor:
+        """Cached features ``(B, C, hf, wf)`` of frames ``index`` of set ``name``, one copy each
+        (drawn from the run seed and the step).
+        """
+        cache = self._cache[name]
+        pick = np.random.default_rng([self.cfg.seed, step, 26]).integers(0, cache.shape[0], len(index))
+        return cache[torch.from_numpy(pick), index.cpu()]
     def _augments(self) -> bool:
         """Training images are augmented: ``augment`` on RGB input."""
         return self.cfg.loss.augment and self.cfg.model.input_kind == "rgb"
@@ -333,6 +400,10 @@ class S2G2Method(TrainMethod):
     @override
     def loss(self, batch: dict, epoch: int, step: int) -> tuple[torch.Tensor, dict[str, float]]:
         labeled, unlabeled = (batch["labeled"], batch["unlabeled"]) if "labeled" in batch else (batch, None)
+        if self.cfg.loss.frozen_encoder:
+            self.model.encoder.eval()  # the trainer sets train() each epoch: keep its BatchNorm statistics
+        if self._cache:
+            return self._cached_loss(labeled, unlabeled, step)
         aug = step_augment(self.cfg.seed, step, self.device) if self._augments() else None
         x = self._inputs(labeled, aug)  # (B_l, C_in, h, w)
         n = x.shape[0]
@@ -348,13 +419,33 @@ class S2G2Method(TrainMethod):
             out = {k: torch.cat([out[k], out_u[k]]) for k in out}  # (B_l + B_u, ...) each
         return s2g2_loss(out, n, labeled["target"], labeled["mask"], step, self.loss_cfg)
 
+    def _cached_loss(self, labeled: dict, unlabeled: dict | None, step: int) -> tuple[torch.Tensor, dict[str, float]]:
+        """:meth:`loss` on cached features: the same model and losses after the encoder."""
+        out = self._heads(self._cached("train", labeled["index"], step))
+        n = out["active_logits"].shape[0]
+        if unlabeled is not None:
+            with running_batchnorm(self.model):
+                out_u = self._heads(self._cached("unlabeled", unlabeled["index"], step))
+            out = {k: torch.cat([out[k], out_u[k]]) for k in out}  # (B_l + B_u, ...) each
+        return s2g2_loss(out, n, labeled["target"].to(self.device), labeled["mask"].to(self.device), step,
+                         self.loss_cfg)
+
+    def _heads(self, front: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The model after its encoder on features ``front``, as :meth:`_forward` computes it."""
+        return self._detached_cycle(self.model.heads(self.model.from_front(front.to(self.device))))
+
     def _forward(self, x: torch.Tensor, frozen_encoder: bool = False) -> dict[str, torch.Tensor]:
         """The model's outputs on inputs ``x``; unless ``cycle_into_encoder``, the cycle's input
         and target are the encoder's features detached (computed once more for the loss).
         """
-        out = self.model(x, frozen_encoder)
+        return self._detached_cycle(self.model(x, frozen_encoder))
+
+    def _detached_cycle(self, out: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """Unless ``cycle_into_encoder``: ``out`` with the cycle computed once more from the
+        encoder's features detached (its input and target, fixed).
+        """
         if not self.cfg.loss.cycle_into_encoder and self.loss_cfg.cycle_weight > 0:
-            front = out["front"].detach()  # (B, C, hf, wf): the cycle's input and target, fixed
+            front = out["front"].detach()  # (B, C, hf, wf)
             out = {**out, "front": front, "front_cycled": self.model.to_front(self.model.to_bev(front))}
         return out
 

@@ -41,7 +41,7 @@ def test_camvid_training_images_become_unlabeled_front_frames(tmp_path):
     np.testing.assert_array_equal(fs.rgb[0, 0], resize_rgb(crop_to_aspect(first, W, H), size))
     assert len(real_unlabeled_frameset(f"camvid:{root}", RIG, DataNeeds(image_size=size, rgb=True), limit=2)) == 2
     batch = next(TrainData(fs, fs, fs).batches(1, 0, 0))["unlabeled"]
-    assert set(batch) == {"images", "rgb"}
+    assert set(batch) == {"images", "rgb", "index"}
     joined = join_unlabeled([fs, fs])
     assert len(joined) == 6 and joined.rgb.shape == (6, 1, 18, 32, 3)
     with pytest.raises(ConfigError, match="one-camera rig"):

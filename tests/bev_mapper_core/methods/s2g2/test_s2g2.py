@@ -308,7 +308,7 @@ def test_unlabeled_batches_pair_each_labeled_batch():
     batches = list(data.batches(2, seed=1, epoch=0))
     assert len(batches) == data.steps(2) == 3
     assert [len(b["labeled"]["target"]) for b in batches] == [2, 2, 1]
-    assert all(set(b["unlabeled"]) == {"images"} for b in batches)  # inputs only: no GT
+    assert all(set(b["unlabeled"]) == {"images", "index"} for b in batches)  # inputs and ids only: no GT
     assert [len(b["unlabeled"]["images"]) for b in batches] == [2, 2, 1]
     again = list(data.batches(2, seed=1, epoch=0))
     assert all(torch.equal(a["unlabeled"]["images"], b["unlabeled"]["images"]) for a, b in zip(batches, again))
@@ -487,7 +487,7 @@ def test_unlabeled_frames_from_a_bag(tmp_path):
     size = input_size(TINY, RIG)
     fs = unlabeled_frameset([bag], RIG, DataNeeds(image_size=size, rgb=True))
     assert len(fs) >= 2 and fs.rgb.shape == (len(fs), 1, *size, 3) and fs.rgb.any()
-    assert set(next(TrainData(fs, fs, fs).batches(1, 0, 0))["unlabeled"]) == {"images", "rgb"}
+    assert set(next(TrainData(fs, fs, fs).batches(1, 0, 0))["unlabeled"]) == {"images", "rgb", "index"}
     labels = unlabeled_frameset([bag], RIG, DataNeeds(image_size=size))
     assert labels.rgb is None and labels.labels.shape == (len(labels), 1, *size) and labels.labels.any()
     with pytest.raises(ConfigError, match="differ from the run's"):
