@@ -26,6 +26,9 @@ from bench_rows import row, write_rows
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
 
+#: seconds allowed for the node's first grid (backend auto: the first start exports the model)
+FIRST_GRID_S = 300.0
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--params", default="surround6", help="config/<NAME>.yaml (default: %(default)s)")
@@ -95,7 +98,9 @@ def main() -> None:
         start = time.monotonic()
         k = 0
         warm = None
-        while time.monotonic() - start < args.seconds:
+        # the window is --seconds from the first grid: the first start with backend auto exports the
+        # model first (FIRST_GRID_S at most; a warm export cache loads it)
+        while (time.monotonic() - start < FIRST_GRID_S) if warm is None else (time.time() - warm[1] < args.seconds):
             stamp = time.time_ns()
             for cam in rig.cameras:
                 infos[cam.name].publish(make_camera_info(factory, cam.model, stamp, cam.frame_id))
