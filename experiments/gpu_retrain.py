@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
 import os
 import subprocess
 import sys
@@ -137,7 +138,9 @@ def render(jobs: list[tuple], workers: int) -> float:
     """Render (or find in the cache) every drive of ``jobs`` in ``workers`` processes; seconds."""
     t0 = time.monotonic()
     unique = {(j[2], j[3]): j for j in jobs}  # one per (spec, seed)
-    with ProcessPoolExecutor(max(1, workers)) as ex:
+    # spawned, not forked: this process has torch's thread pools (building the runs' models), which
+    # a forked child can deadlock on
+    with ProcessPoolExecutor(max(1, workers), mp_context=multiprocessing.get_context("spawn")) as ex:
         list(ex.map(_render, unique.values()))
     return time.monotonic() - t0
 
