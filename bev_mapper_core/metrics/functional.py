@@ -121,7 +121,8 @@ _TILE = 32
 
 def _near_offsets(radius: int) -> list[tuple[int, np.ndarray, np.ndarray]]:
     """``(d2, dy, dx)`` per squared distance ``d2`` up to ``radius ** 2``, increasing: the
-    offsets at exactly that distance (all of them, so the first hit is the nearest)."""
+    offsets at exactly that distance (all of them, so the first hit is the nearest).
+    """
     dy, dx = np.mgrid[-radius:radius + 1, -radius:radius + 1]
     d2 = dy ** 2 + dx ** 2
     return [(int(k), dy[d2 == k], dx[d2 == k]) for k in np.unique(d2) if 0 < k <= radius ** 2]
@@ -133,7 +134,8 @@ _NEAR_OFFSETS = _near_offsets(_NEAR)
 def _snap(d: np.ndarray) -> np.ndarray:
     """Distances between cell centres from OpenCV's float32 transform, exact: the squared
     distance is an integer, and snapping it removes the last-ulp noise of OpenCV's SIMD path
-    (which varies with buffer alignment), so scores are exactly reproducible."""
+    (which varies with buffer alignment), so scores are exactly reproducible.
+    """
     return np.sqrt(np.rint(d.astype(np.float64) ** 2))
 
 

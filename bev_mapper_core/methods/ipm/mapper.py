@@ -104,13 +104,15 @@ class LineOfSight:
 
     def hidden(self, name: str, labels: np.ndarray, ids: np.ndarray) -> np.ndarray | None:
         """Column search: ``(n,)`` bool over camera ``name``'s gathered cells, hidden from it
-        (``ids`` = its gather of ``labels``); ``None`` when none is."""
+        (``ids`` = its gather of ``labels``); ``None`` when none is.
+        """
         slack = self.grid.resolution * NEAR_EDGE_SLACK_CELLS
         return self._column_occlusion.hidden(self.column_rasters[name], labels, ids, slack)
 
     def camera_valid(self, name: str, warped: np.ndarray, labels: np.ndarray | None = None) -> np.ndarray:
         """``(H, W)`` bool: the cells camera ``name`` sees, given its warped labels ``(H, W)``
-        (the polar raster's input) or its label image ``labels`` (the column search's)."""
+        (the polar raster's input) or its label image ``labels`` (the column search's).
+        """
         valid = self.tables[name].valid
         if self.occlusion is None:
             return valid
