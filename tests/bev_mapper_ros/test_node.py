@@ -298,13 +298,15 @@ def _run_shipped_node(tmp_path, domain, kind: str, seed: int, n_frames: int, par
     extra = [] if kind == params["input_kind"] else ["-p", f"input_kind:={kind}"]
     # The node boots (torch, weights) while this process renders the drive and loads the weights.
     proc = start_process(["bev_mapper_ros.mapper_node", "--ros-args", "--params-file", str(params_file), *extra,
-                          "-p", "threads:=1", "-p", "sync_timeout_s:=5.0"], domain, log)  # no partial sets under load
+                          "-p", "threads:=1", "-p", "sync_timeout_s:=5.0", "-p", "backend:=torch"],  # no partial sets under load
+                         domain, log)
     node = None
     try:
         rig, grid = preset_rig(params["rig"]), BevGrid.from_dict(params["grid"])
         frames = list(generate_drive(rig, grid, SynthConfig(frames=n_frames, seed=seed)))
         expected = create_mapper(node_view_of_rig(rig, params_file), grid,
-                                 MapperConfig(method=params["method"], input_kind=kind, classes=classes, threads=1))
+                                 MapperConfig(method=params["method"], input_kind=kind, classes=classes, threads=1,
+                                              backend="torch"))
         rclpy.init(domain_id=domain)
         node = rclpy.create_node(f"bev_test_{kind}")
         d = Driver(node, rig, log, kind=kind, classes=classes)

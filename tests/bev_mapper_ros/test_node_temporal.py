@@ -85,13 +85,14 @@ def test_node_runs_focusbev_with_its_memory_bank_exactly_as_the_core(tmp_path, r
     classes = ("drivable", "vehicle")
     log = tmp_path / "node.log"
     proc = start_process(["bev_mapper_ros.mapper_node", "--ros-args", "--params-file", str(params),
-                          "-p", "threads:=1", "-p", f"classes:={list(classes)}".replace("'", '"')], ros_domain, log)
+                          "-p", "threads:=1", "-p", "backend:=torch",
+                          "-p", f"classes:={list(classes)}".replace("'", '"')], ros_domain, log)
     frames = list(generate_drive(rig, grid, SynthConfig(frames=5, seed=950_000_014)))
     back = 2_000_000_000  # a loop: more than the synchronizer's jump_back_ns behind
     looped = replace(frames[3], stamp_ns=frames[3].stamp_ns - back,
                      cameras={n: replace(c, stamp_ns=c.stamp_ns - back) for n, c in frames[3].cameras.items()})
     expected = create_mapper(node_view_of_rig(rig, params), grid,
-                             MapperConfig(method="focusbev", input_kind="rgb", classes=classes, threads=1))
+                             MapperConfig(method="focusbev", input_kind="rgb", classes=classes, threads=1, backend="torch"))
     node = None
     got = []  # (frame, {class: grid data}) in the order sent
     try:

@@ -250,11 +250,11 @@ def test_focusbev_memory_follows_tf_with_pose_source_auto(tmp_path, ros_domain):
     classes = ("drivable", "vehicle")
     log = tmp_path / "node.log"
     proc = start_process(["bev_mapper_ros.mapper_node", "--ros-args", "--params-file", str(params),
-                          "-p", "threads:=1", "-p", "diagnostics_period_s:=0.2",
+                          "-p", "threads:=1", "-p", "diagnostics_period_s:=0.2", "-p", "backend:=torch",
                           "-p", f"classes:={list(classes)}".replace("'", '"')], ros_domain, log)
     frames = at_now(list(generate_drive(rig, grid, SynthConfig(frames=4, seed=950_000_014))))
     expected = create_mapper(rig_with(rig, {"front": rig.cameras[0].ego_from_cam_array}), grid,
-                             MapperConfig(method="focusbev", input_kind="rgb", classes=classes, threads=1))
+                             MapperConfig(method="focusbev", input_kind="rgb", classes=classes, threads=1, backend="torch"))
     node = None
     try:
         rclpy.init(domain_id=ros_domain)
