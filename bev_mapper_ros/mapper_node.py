@@ -472,7 +472,13 @@ class MapperNode(Node):
                 self._reset_memories()
                 self._throttled_warning("temporal", verdict.note)
             pose = verdict.pose
-        pred = self.mapper.map(images, ego_pose=pose, stamp_ns=stamp)
+        with self.stats.lock:
+            self.stats.mapping_since_s = time.monotonic()
+        try:
+            pred = self.mapper.map(images, ego_pose=pose, stamp_ns=stamp)
+        finally:
+            with self.stats.lock:
+                self.stats.mapping_since_s = None
         if self.mapper.uses_ego_pose:  # the method's own memory
             self.odometry.count_memory(pred.note, pose)
             with self.stats.lock:

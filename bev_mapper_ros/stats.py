@@ -68,6 +68,7 @@ class NodeStats:
     first_input_s: float | None = None  # monotonic time of the first / last image
     last_input_s: float | None = None
     last_mapped_s: float | None = None
+    mapping_since_s: float | None = None  # monotonic time the set being mapped now was started (None: idle)
     clock_skew_s: float | None = None  # node clock - stamp of the last image
     temporal_frames: int = 0  # frames fused into the last published set (temporal fusion on)
     temporal_note: str = ""  # why the last set was mapped without its history ('' = it was not)
@@ -149,6 +150,7 @@ def diagnostic_values(stats: NodeStats, now_s: float, cfg, dropped: int) -> tupl
         waiting_for, missing = stats.waiting_for, stats.cameras_missing
         first_in, last_in, last_mapped, skew = (stats.first_input_s, stats.last_input_s, stats.last_mapped_s,
                                                 stats.clock_skew_s)
+        mapping_since = stats.mapping_since_s
         first_mapped = stats.recent[0][0] if stats.recent else None
     span = min(window, now_s - first_mapped) if first_mapped is not None else window
     values["rate_hz"] = round(len(recent) / span, 1) if span > 0 and recent else 0.0
@@ -170,7 +172,11 @@ def diagnostic_values(stats: NodeStats, now_s: float, cfg, dropped: int) -> tupl
         problems.append((ERROR, f"no camera image for {now_s - last_in:.1f} s"))
     elif first_in is not None:
         idle = now_s - (last_mapped if last_mapped is not None else first_in)
-        if idle > cfg.stale_error_s:
+        if idle > cfg.stale_error_s and last_mapped is None and mapping_since is not None:
+            # the first set is being mapped: a fast backend exports the model on first use (tens of s)
+            problems.append((WARN, f"preparing: the first set has been mapping for {now_s - mapping_since:.1f} s "
+                                   "(on first use an exported backend converts the model; see the log)"))
+        elif idle > cfg.stale_error_s:
             why = f": waiting for calibration of {', '.join(waiting_for)}" if waiting_for else ""
             problems.append((ERROR, f"nothing mapped for {idle:.1f} s although images arrive{why}"))
     if waiting_for and not any(level == ERROR for level, _ in problems):

@@ -331,6 +331,11 @@ def test_diagnostics_levels_mean_something():
     level, text, _ = diagnostic_values(_stats_at(now, (), [now - 6.0, now - 0.1], ["a: camera_info"]), now, cfg, 0)
     assert level == ERROR and text.startswith("nothing mapped for 6.0 s although images arrive: waiting for "
                                               "calibration of a: camera_info")
+    # the first set has been mapping for 6 s (a fast backend exports the model on first use): WARN
+    st = _stats_at(now, (), [now - 6.0, now - 0.1])
+    st.mapping_since_s = now - 5.9
+    level, text, _ = diagnostic_values(st, now, cfg, 0)
+    assert level == WARN and text.startswith("preparing: the first set has been mapping for 5.9 s")
     # mapped, then images stopped 7 s ago: ERROR
     level, text, v = diagnostic_values(_stats_at(now, [now - 7.0], [now - 7.0]), now, cfg, 0)
     assert level == ERROR and text.startswith("no camera image for 7.0 s") and v["rate_hz"] == 0.0
