@@ -30,6 +30,9 @@ REPEATS = 20  # 20 x 12 frames: seconds of replay with a picture per frame
 
 
 def _shifted(msg, dt_ns: int):
+    """``msg`` with its header stamp (a TFMessage: each transform's) ``dt_ns`` later."""
+    if not hasattr(msg, "header"):  # tf2_msgs/TFMessage (/tf)
+        return dataclasses.replace(msg, transforms=[_shifted(t, dt_ns) for t in msg.transforms])
     s = msg.header.stamp
     ns = s.sec * 1_000_000_000 + s.nanosec + dt_ns
     stamp = dataclasses.replace(s, sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
