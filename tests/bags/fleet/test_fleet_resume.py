@@ -24,18 +24,19 @@ def _synth(path, frames: int, seed: int) -> None:
 
 def test_resume_replays_changed_bags_and_redoes_damaged_records(tmp_path, capsys):
     bags = tmp_path / "bags"
-    for name, seed in (("a", 11), ("b", 12), ("c", 13), ("d", 14)):
-        _synth(bags / name, 3, seed)
+    names = "abcdef"
+    for k, name in enumerate(names):
+        _synth(bags / name, 3, 11 + k)
     out = tmp_path / "eval"
     argv = ["evaluate", str(bags), "--out", str(out), "--workers", "2", *FAST]
     assert main(argv) == 0
     err = capsys.readouterr().err
     assert "Token authentication" not in err and "Traceback" not in err
     first = json.loads((out / SUMMARY_FILE).read_text())
-    rec = {n: json.loads((out / "bags" / n / RECORD_FILE).read_text()) for n in "abcd"}
+    rec = {n: json.loads((out / "bags" / n / RECORD_FILE).read_text()) for n in names}
     assert rec["a"]["bag_identity"] == bag_identity(bags / "a") and isinstance(read_record(out / "bags/a" /
                                                                                            RECORD_FILE), dict)
-    stamps = {n: (out / "bags" / n / METRICS_FILE).stat().st_mtime_ns for n in "abcd"}
+    stamps = {n: (out / "bags" / n / METRICS_FILE).stat().st_mtime_ns for n in names}
 
     # a: replaced by another drive (same name, same frame count)
     shutil.rmtree(bags / "a")
@@ -48,19 +49,24 @@ def test_resume_replays_changed_bags_and_redoes_damaged_records(tmp_path, capsys
     r = {k: v for k, v in rec["c"].items() if k != "scoring"}
     (out / "bags" / "c" / RECORD_FILE).write_text(json.dumps(seal({k: v for k, v in r.items()
                                                                     if k != "record_sha256"})))
+    # d: a truncated record; e: a directory in its place
+    (out / "bags" / "d" / RECORD_FILE).write_text((out / "bags" / "d" / RECORD_FILE).read_text()[:50])
+    (out / "bags" / "e" / RECORD_FILE).unlink()
+    (out / "bags" / "e" / RECORD_FILE).mkdir()
     capsys.readouterr()
     assert main([*argv, "--resume"]) == 0
     err = capsys.readouterr().err
     assert "Traceback" not in err
     s = json.loads((out / SUMMARY_FILE).read_text())
-    assert s["bags"]["resumed"] == 1 and s["complete"]  # d only
+    assert s["bags"]["resumed"] == 1 and s["complete"]  # f only
     redone = {r["name"]: r["reason"] for r in s["redone"]}
-    assert set(redone) == {"a", "b", "c"}
+    assert set(redone) == set("abcde")
     assert "changed since" in redone["a"] and "record_sha256" in redone["b"] and "'scoring'" in redone["c"]
-    for n in "abc":
+    for n in "abcde":
         assert f"note: {n} replayed again" in err
         assert (out / "bags" / n / METRICS_FILE).stat().st_mtime_ns != stamps[n]
-    assert (out / "bags" / "d" / METRICS_FILE).stat().st_mtime_ns == stamps["d"]
+    assert (out / "bags" / "f" / METRICS_FILE).stat().st_mtime_ns == stamps["f"]
+    assert list(out.rglob("*partial*")) == []
     # the aggregate is that of a fresh evaluation of the bags as they are now
     fresh = tmp_path / "fresh"
     assert main(["evaluate", str(bags), "--out", str(fresh), "--workers", "2", *FAST]) == 0
@@ -68,13 +74,3 @@ def test_resume_replays_changed_bags_and_redoes_damaged_records(tmp_path, capsys
     got = s["aggregate"]
     assert got["miou"] == want["miou"] and got["frames"] == want["frames"]
     assert first["aggregate"]["miou"] != got["miou"]  # bag a's new drive is in it
-
-    # a truncated record and one that is a directory: redone, no traceback
-    (out / "bags" / "a" / RECORD_FILE).write_text((out / "bags" / "a" / RECORD_FILE).read_text()[:50])
-    (out / "bags" / "b" / RECORD_FILE).unlink()
-    (out / "bags" / "b" / RECORD_FILE).mkdir()
-    capsys.readouterr()
-    assert main([*argv, "--resume"]) == 0
-    err = capsys.readouterr().err
-    assert "Traceback" not in err and "note: a replayed again" in err and "note: b replayed again" in err
-    assert list(out.rglob("*partial*")) == []
