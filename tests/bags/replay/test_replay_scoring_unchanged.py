@@ -1,6 +1,7 @@
 """Issue #28: replay's faster scoring gives every output it gave before.
 
-The reference is the straightforward scoring the replay did before #28, restored here: the
+The reference is the straightforward scoring the replay did before #28 (``bench/replay_reference.py``,
+also the reference of ``bench/bench_replay_rate.py``): the
 Chamfer distances from one distance transform of the whole grid per class and side, the
 calibration counts summed cell by cell, and each frame's IoU for the captions and the report
 scored a second time by ``FrameScores.add``. The replay of a small drive with pictures must give
@@ -11,60 +12,21 @@ from __future__ import annotations
 
 import json
 import math
+import sys
+from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 from bag_helpers import replay_ipm, synth_small
 
-import bags.replay.outputs as outputs
-import bev_mapper_core.metrics.accumulator as accumulator
 import bev_mapper_core.metrics.whole_grid as whole_grid
 from bags.replay import FRAMES_DIR, METRICS_FILE
 from bev_mapper_core.metrics import functional
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[3] / "bench"))
+from replay_reference import reference_chamfer_terms, reference_scoring  # noqa: E402 - bench/ is no package
+
 pytest.importorskip("bev_mapper_core.synth")
-
-
-def reference_chamfer_terms(pred, gt, resolution, clip):
-    """The Chamfer terms as computed before #28: a whole-grid transform per side."""
-    def distance_to(cells, at):
-        d = cv2.distanceTransform(np.where(cells, 0, 1).astype(np.uint8), cv2.DIST_L2,
-                                  cv2.DIST_MASK_PRECISE)[at]
-        return np.sqrt(np.rint(d.astype(np.float64) ** 2))
-
-    n_p, n_g = int(np.count_nonzero(pred)), int(np.count_nonzero(gt))
-    d_p = np.full(n_p, clip) if n_g == 0 else np.minimum(distance_to(gt, pred) * resolution, clip)
-    d_g = np.full(n_g, clip) if n_p == 0 else np.minimum(distance_to(pred, gt) * resolution, clip)
-    return d_p, d_g
-
-
-class ReferenceFrameScores(outputs.FrameScores):
-    """Captions' IoU scored again from the layers, as before #28."""
-
-    def add_ious(self, index, stamp_ns, names, ious):
-        raise AssertionError("the reference scores frames with add()")
-
-
-def _reference_finish(self, frame, pred, index):
-    """FrameSink.finish as before #28: FrameScores.add scores the frame a second time."""
-    run, mapper, scorer = self.run, self.run.mapper, self.scorer
-    self.copier.upto(outputs._frame_time(frame))
-    outputs.write_frame_messages(self.bw, run.grid, mapper, pred, frame.stamp_ns, self.ego)
-    gt, mask = scorer.update(frame, pred)
-    score = None if gt is None else self.scores.add(
-        frame.index, frame.stamp_ns, pred.probs, pred.known, mapper.class_names, gt,
-        [c.name for c in scorer.classes], mask, frame.ground_visibility, scorer.scope_used,
-        scorer.acc.threshold)
-    options = run.options
-    if options.pictures and index % options.frames_every == 0:
-        pic = outputs.comparison_picture(
-            run.grid, pred.probs, pred.known, mapper.classes, gt, mask, scorer.classes,
-            method=options.mapper.method, caption=outputs._caption(frame, score),
-            ious=None if score is None else score.ious)
-        name = f"frame_{frame.index:04d}.png"
-        outputs.write_atomic(run.tmp_frames / name, outputs.encode_png(pic))
-        self.pictures.append(run.out / FRAMES_DIR / name)
 
 
 def _outputs(out):
@@ -77,13 +39,10 @@ def _outputs(out):
     return metrics, pictures, report[:report.index("<h2>Mapping latency</h2>")]
 
 
-def test_replay_outputs_equal_the_straightforward_scoring(tmp_path, monkeypatch):
+def test_replay_outputs_equal_the_straightforward_scoring(tmp_path):
     bag = synth_small(tmp_path / "drive", frames=5, seed=28)
     assert replay_ipm(bag, tmp_path / "fast", "--frames-every", "2") == 0
-    with monkeypatch.context() as m:
-        m.setattr(accumulator, "_chamfer_terms", reference_chamfer_terms)
-        m.setattr(whole_grid, "_EXACT_PERCENT_CELLS", 0)  # the per-cell calibration sums
-        m.setattr(outputs.FrameSink, "finish", _reference_finish)
+    with reference_scoring():  # bench/replay_reference.py: the scoring as it was, swapped in
         assert replay_ipm(bag, tmp_path / "reference", "--frames-every", "2") == 0
     fast, ref = _outputs(tmp_path / "fast"), _outputs(tmp_path / "reference")
     assert fast[0]["frames_scored"] == 5 and fast[0]["classes"]["drivable"]["cd"] is not None
