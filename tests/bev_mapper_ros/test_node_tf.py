@@ -84,6 +84,33 @@ def wait_diag(node, d: Driver, predicate, timeout: float = 10.0) -> dict:
     return d.diag_values()
 
 
+def drive_with_tf_motion(ros_domain, proc, log, rig, frames, kind, classes, grid_timeout):
+    """Send each frame's ego pose as ``odom -> base_link`` on ``/tf``, then its images; wait for its
+    grids. Stops the node process; returns the driver (its grids) and the last ``/diagnostics``
+    values with a ``pose_source``.
+    """
+    node = None
+    try:
+        rclpy.init(domain_id=ros_domain)
+        node = rclpy.create_node("bev_test_tf_motion")
+        tf = tf2_ros.TransformBroadcaster(node)
+        d = Driver(node, rig, log, kind=kind, classes=classes)
+        assert spin_until(node, lambda: tf.pub_tf.get_subscription_count() > 0, 60.0), log.read_text()
+        for f in frames:
+            assert d.calibrate(f.stamp_ns, 60.0), log.read_text()
+            tf.sendTransform(transform("odom", "base_link", f.world_from_ego, f.stamp_ns))
+            spin_until(node, lambda: False, 0.1)
+            d.send_frame(f)
+            assert d.wait_for(f.stamp_ns, grid_timeout), f"no grids for frame {f.index}:\n{log.read_text()}"
+        values = wait_diag(node, d, lambda v: v.get("pose_source"))
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+        assert stop_process(proc) in (0, -2), log.read_text()
+    return d, values
+
+
 def test_node_maps_with_the_extrinsics_of_tf_static(tmp_path, ros_domain):
     """``/tf_static`` (a StaticTransformBroadcaster, as robot_state_publisher) mounts the front
     camera 0.4 m higher and 0.5 m further forward than the preset: the node maps with TF's
@@ -132,25 +159,7 @@ def test_tf_ego_motion_drives_temporal_fusion_as_odometry_does(tmp_path, ros_dom
     log = tmp_path / "node.log"
     proc = start_process(node_args("-p", "temporal_window:=2", "-p", "pose_source:=tf"), ros_domain, log)
     frames = at_now(list(generate_drive(rig, grid, SynthConfig(frames=4, seed=950_000_013))))
-    node = None
-    try:
-        rclpy.init(domain_id=ros_domain)
-        node = rclpy.create_node("bev_test_tf_motion")
-        tf = tf2_ros.TransformBroadcaster(node)
-        d = Driver(node, rig, log, classes=CLASSES)
-        assert spin_until(node, lambda: tf.pub_tf.get_subscription_count() > 0, 30.0), log.read_text()
-        for f in frames:
-            assert d.calibrate(f.stamp_ns, 60.0), log.read_text()
-            tf.sendTransform(transform("odom", "base_link", f.world_from_ego, f.stamp_ns))
-            spin_until(node, lambda: False, 0.1)
-            d.send_frame(f)
-            assert d.wait_for(f.stamp_ns, 60.0), f"no grids for frame {f.index}:\n{log.read_text()}"
-        values = wait_diag(node, d, lambda v: v.get("pose_source"))
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-        assert stop_process(proc) in (0, -2), log.read_text()
+    d, values = drive_with_tf_motion(ros_domain, proc, log, rig, frames, "labels", CLASSES, 60.0)
     assert values["pose_source"] == "tf" and values["temporal_note"] == "", values
     assert all(values[k] == "0" for k in values if k.startswith("tf_errors_")), values
     mapper = IpmMapper(rig_with(rig, {"front": rig.cameras[0].ego_from_cam_array}), grid, MapperConfig(classes=CLASSES))
@@ -255,25 +264,7 @@ def test_focusbev_memory_follows_tf_with_pose_source_auto(tmp_path, ros_domain):
     frames = at_now(list(generate_drive(rig, grid, SynthConfig(frames=4, seed=950_000_014))))
     expected = create_mapper(rig_with(rig, {"front": rig.cameras[0].ego_from_cam_array}), grid,
                              MapperConfig(method="focusbev", input_kind="rgb", classes=classes, threads=1, backend="torch"))
-    node = None
-    try:
-        rclpy.init(domain_id=ros_domain)
-        node = rclpy.create_node("bev_test_tf_focusbev")
-        tf = tf2_ros.TransformBroadcaster(node)
-        d = Driver(node, rig, log, kind="rgb", classes=classes)
-        assert spin_until(node, lambda: tf.pub_tf.get_subscription_count() > 0, 60.0), log.read_text()
-        for f in frames:
-            assert d.calibrate(f.stamp_ns, 60.0), log.read_text()
-            tf.sendTransform(transform("odom", "base_link", f.world_from_ego, f.stamp_ns))
-            spin_until(node, lambda: False, 0.1)
-            d.send_frame(f)
-            assert d.wait_for(f.stamp_ns, 120.0), f"no grids for frame {f.index}:\n{log.read_text()}"
-        values = wait_diag(node, d, lambda v: v.get("pose_source"))
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-        assert stop_process(proc) in (0, -2), log.read_text()
+    d, values = drive_with_tf_motion(ros_domain, proc, log, rig, frames, "rgb", classes, 120.0)
     assert values["pose_source"] == "tf", values
     fused = []
     for f in frames:
