@@ -304,8 +304,9 @@ class BagReader:
             raise BagContentError(f"{self.path}: no CameraInfo message for cameras {missing}; {RIG_FLAGS_HINT}")
         cams = [self._camera(n, infos.get(n), tree) for n in names]
         rig = Rig(self.path.stem, tuple(cams))
-        name = self.hints.name or self.custom_data.get("bev_mapper.rig") or matching_preset(rig)
-        if name and not self.hints.cameras and matching_preset(rig) == name:
+        preset = matching_preset(rig)
+        name = self.hints.name or self.custom_data.get("bev_mapper.rig") or preset
+        if name and not self.hints.cameras and preset == name:
             rig = Rig(name, tuple(rig[c] for c in preset_rig(name).names))  # the preset's camera order
         self._rig = Rig(name or self.path.stem, rig.cameras)
         return self._rig

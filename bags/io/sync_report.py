@@ -76,11 +76,3 @@ class SyncReport:
             "window_ms": round(self.window_ms, 3),
             "cameras_without_images": list(self.cameras_without_images),
         }
-
-    def merge(self, other: "SyncReport") -> None:
-        """Add ``other``'s counts (several bags of one evaluation)."""
-        self.sets += other.sets
-        self.complete += other.complete
-        self.split += other.split
-        for c, n in other.missing_by_camera.items():
-            self.missing_by_camera[c] = self.missing_by_camera.get(c, 0) + n

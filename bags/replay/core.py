@@ -88,7 +88,7 @@ def replay(options: ReplayOptions, progress: Callable | None = None) -> ReplayRe
         try:
             mapper = create_mapper(rig, grid, options.mapper)
         except BevMapperError as exc:
-            if "rig" not in str(exc) or options.rig.hints() is not None:
+            if "rig" not in str(exc) or hints is not None:
                 raise
             raise type(exc)(f"{exc} (the bag's rig was taken as {rig.name!r}: {RIG_FLAGS_HINT})") from None
         out.mkdir(parents=True, exist_ok=True)
