@@ -32,8 +32,10 @@ import argparse
 import json
 import multiprocessing
 import os
+import shutil
 import subprocess
 import sys
+import tarfile
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -51,13 +53,17 @@ RUNS: dict[str, list[str]] = {
                   "--epochs", "30", "--frames-per-epoch", "800", "--batch", "8", "--lr", "1e-3",
                   "--lr-step-epoch", "22", "--optimizer", "adam", "--val-frames", "60", "--unlabeled-drives", "27",
                   "--unlabeled-style", "dusk"],
-    "focusbev": ["--method", "focusbev", "--rig", "front1", "--input", "rgb", "--grid", "ahead", "--train-drives", "40",
+    "focusbev": ["--method", "focusbev", "--rig", "front1", "--input", "rgb", "--grid", "ahead",
+                 "--backbone", "efficientnet", "--train-drives", "40",
                  "--epochs", "28", "--frames-per-epoch", "800", "--batch", "8", "--lr", "4e-4",
                  "--lr-step-epoch", "22", "--val-frames", "60"],
     "bimapper_rgb": ["--method", "bimapper", "--rig", "surround6", "--input", "rgb", "--train-drives", "40",
                      "--epochs", "20", "--frames-per-epoch", "800", "--batch", "4", "--lr", "1e-3",
                      "--lr-step-epoch", "15", "--val-frames", "40", "--ipm-skip", "--pos-weight", "none"],
 }
+#: model settings without flags of their own, per run (given with --config): the end-to-end
+#: RGB Bi-Mapper's encoders take the shipped segmenter's trunk, so they have its sizes
+RUN_CONFIG: dict[str, dict] = {"bimapper_rgb": {"width_mult": 1.0, "depth_mult": 0.5, "encoder_stages": 5}}
 #: what --tiny changes in every run's flags: one short drive, a few steps
 TINY = ["--train-drives", "1", "--val-drives", "1", "--frames-per-drive", "3", "--stride", "2", "--epochs", "1",
         "--frames-per-epoch", "2", "--batch", "1", "--val-frames", "2"]
@@ -72,16 +78,21 @@ TINY_CONFIG = {
 
 
 def run_flags(name: str, tiny: bool, camvid: str | None, out: Path) -> list[str]:
-    """The bev-train flags of run ``name`` (data and method); with ``tiny``, shrunk (the data
-    flags replaced, the model sizes in ``out/tiny_<name>.yaml`` given with ``--config``).
+    """The bev-train flags of run ``name`` (data and method; :data:`RUN_CONFIG` in
+    ``out/config_<name>.yaml`` given with ``--config``); with ``tiny``, shrunk (the data flags
+    replaced, the model sizes of :data:`TINY_CONFIG` added to that file).
     """
     flags = list(RUNS[name])
     method = flags[flags.index("--method") + 1]
+    config = dict(RUN_CONFIG.get(name, {}))
     if tiny:
         flags = _override(flags, TINY + (["--unlabeled-drives", "1"] if "--unlabeled-drives" in flags else []))
-        path = out / f"tiny_{name}.yaml"
-        path.write_text(json.dumps(TINY_CONFIG[method]) + "\n")  # JSON is YAML
-        flags = ["--config", str(path), *[f for f in flags if f not in ("--grid", "ahead")]]
+        config.update(TINY_CONFIG[method])
+        flags = [f for f in flags if f not in ("--grid", "ahead")]
+    if config:
+        path = out / f"config_{name}.yaml"
+        path.write_text(json.dumps(config) + "\n")  # JSON is YAML
+        flags = ["--config", str(path), *flags]
     if name == "s2g2_semi" and camvid:
         flags += ["--unlabeled-real", f"camvid:{camvid}"]
     return flags
@@ -145,16 +156,20 @@ def render(jobs: list[tuple], workers: int) -> float:
     return time.monotonic() - t0
 
 
-def train_all(names: list[str], flags: dict[str, list[str]], a) -> dict[str, dict]:
-    """Start every run at once (its own bev-train process), wait for all; per run its status."""
+def launch(names: list[str], flags: dict[str, list[str]], a, phase: str, budget_min: float | None,
+           extra: dict[str, list[str]] | None = None) -> dict[str, dict]:
+    """Start one ``bev-train`` process per run at once (``OUT/<phase>/<name>``, log
+    ``OUT/logs/<phase>_<name>.log``), wait for all; per run its status and ``last.json``.
+    """
     procs = {}
     for name in names:
-        out = Path(a.out) / "runs" / name
+        out = Path(a.out) / phase / name
         out.mkdir(parents=True, exist_ok=True)
-        cmd = [sys.executable, "-m", "bags.cli.train.main", *flags[name], "--out", str(out), "--cache", a.cache,
-               "--device", a.device, "--threads", str(a.threads), "--time-budget", str(a.budget_min),
-               "--no-progress", *(["--resume"] if (out / "last.json").is_file() else [])]
-        log = open(Path(a.out) / "logs" / f"{name}.log", "w")  # noqa: SIM115 - closed below
+        cmd = [sys.executable, "-m", "bags.cli.train.main", *flags[name], *(extra or {}).get(name, []),
+               "--out", str(out), "--cache", a.cache, "--device", a.device, "--threads", str(a.threads),
+               "--no-progress", *(["--time-budget", f"{budget_min:.2f}"] if budget_min else []),
+               *(["--resume"] if (out / "last.json").is_file() else [])]
+        log = open(Path(a.out) / "logs" / f"{phase}_{name}.log", "w")  # noqa: SIM115 - closed below
         log.write("$ " + " ".join(cmd) + "\n")
         log.flush()
         procs[name] = (subprocess.Popen(cmd, cwd=REPO, stdout=log, stderr=subprocess.STDOUT), log, time.monotonic())
@@ -162,13 +177,47 @@ def train_all(names: list[str], flags: dict[str, list[str]], a) -> dict[str, dic
     for name, (proc, log, t0) in procs.items():
         code = proc.wait()
         log.close()
-        out = Path(a.out) / "runs" / name
+        out = Path(a.out) / phase / name
         last = out / "last.json"
         doc = json.loads(last.read_text()) if last.is_file() else {}
         status[name] = {"returncode": code, "seconds": round(time.monotonic() - t0, 1),
-                        "best_val_miou": doc.get("best_val_miou"), "epoch": doc.get("epoch"), "step": doc.get("step"),
+                        "best_val_miou": doc.get("best_val_miou"), "best_epoch": doc.get("best_epoch"),
+                        "epoch": doc.get("epoch"), "step": doc.get("step"), "history": doc.get("history", []),
                         "weights": sorted(p.name for p in out.glob("*.safetensors"))}
     return status
+
+
+def _flag(flags: list[str], name: str, default: str | None = None) -> str | None:
+    return flags[flags.index(name) + 1] if name in flags else default
+
+
+def plan_epochs(flags: list[str], probe: dict, budget_s: float) -> list[str]:
+    """The ``--epochs``, ``--frames-per-epoch`` and ``--lr-step-epoch`` that fill ``budget_s``
+    seconds of one run at the rate its probe measured (every run at once, as in training): the
+    recipe's epochs (fewer where validation would take over 15 % of the time), their frames grown
+    or shrunk to fit (at most every training frame, at least 20 steps); more epochs where every
+    frame fits, fewer (at least 3) where 20 steps do not; the learning-rate step at the recipe's
+    fraction of them.
+    """
+    epoch = probe["history"][-1]
+    s_step = epoch["train_s"] / max(1, epoch["batches"])
+    val_s = epoch["val_s"]
+    startup_s = max(0.0, probe["seconds"] - epoch["train_s"] - val_s)
+    avail = max(60.0, budget_s - startup_s)
+    batch = int(_flag(flags, "--batch", "8"))
+    epochs = int(_flag(flags, "--epochs", "10"))
+    step_frac = int(_flag(flags, "--lr-step-epoch", str(int(epochs * 0.75)))) / epochs
+    epochs = min(epochs, max(3, int(0.15 * avail / max(val_s, 1e-3))))  # validation under 15 % of the time
+    all_steps = max(1, int(_flag(flags, "--train-drives", "40")) * int(_flag(flags, "--frames-per-drive", "20")) // batch)
+    steps = int((avail / epochs - val_s) / s_step)
+    if steps > all_steps:  # every frame each epoch: more epochs
+        steps = all_steps
+        epochs = max(epochs, int(avail / (steps * s_step + val_s)))
+    elif steps < min(20, all_steps):
+        steps = min(20, all_steps)
+        epochs = max(3, int(avail / (steps * s_step + val_s)))
+    return ["--epochs", str(epochs), "--frames-per-epoch", str(steps * batch),
+            "--lr-step-epoch", str(max(1, round(epochs * step_frac)))]
 
 
 def _cache_files(cache: str) -> set[Path]:
@@ -178,42 +227,99 @@ def _cache_files(cache: str) -> set[Path]:
 def main(argv: list[str] | None = None) -> int:
     """Command line entry (see the module docstring)."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--out", required=True, help="weights, logs and summary.json go here")
+    p.add_argument("--out", required=True, help="runs, logs and summary.json go here")
     p.add_argument("--runs", default=",".join(RUNS), help=f"comma list of {list(RUNS)}")
     p.add_argument("--device", default="cpu", help="cpu | cuda")
-    p.add_argument("--budget-min", type=float, default=8.0, help="each run's training time budget (minutes)")
+    p.add_argument("--deadline-min", type=float, default=8.5,
+                   help="the whole script's wall time: rendering, probes, training and the benchmark")
+    p.add_argument("--reserve-s", type=float, default=75.0, help="kept at the end for the benchmark and packing")
+    p.add_argument("--probe-steps", type=int, default=30, help="steps of each run's probe (its rate)")
     p.add_argument("--cache", default=None, help="drive cache (default OUT/cache)")
     p.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="rendering processes")
-    p.add_argument("--threads", type=int, default=1, help="CPU threads per run")
+    p.add_argument("--threads", type=int, default=None, help="CPU threads per run (default: CPUs / runs)")
     p.add_argument("--camvid", default=None, help="CamVid folder: its training images as unlabeled real frames")
+    p.add_argument("--bench", action="store_true", help="then time every method on the GPU (bench/bench_cuda.py)")
+    p.add_argument("--pack", default=None, help="copy the trained weights, a log archive and summary.json here")
     p.add_argument("--tiny", action="store_true", help="tiny runs: the CPU check of this script")
     a = p.parse_args(argv)
+    t0 = time.monotonic()
     names = [n for n in a.runs.split(",") if n]
     unknown = [n for n in names if n not in RUNS]
     if unknown:
         print(f"error: unknown runs {unknown}; choose from {list(RUNS)}", file=sys.stderr)
         return 2
     a.cache = a.cache or str(Path(a.out) / "cache")
+    a.threads = a.threads or max(1, (os.cpu_count() or 1) // len(names))
     (Path(a.out) / "logs").mkdir(parents=True, exist_ok=True)
-    t0 = time.monotonic()
     flags = {n: run_flags(n, a.tiny, a.camvid, Path(a.out)) for n in names}
     jobs = [j for n in names for j in drive_jobs(flags[n], a.cache)]
     render_s = render(jobs, a.workers)
     print(f"rendered {len({(j[2], j[3]) for j in jobs})} drives in {render_s:.1f} s", flush=True)
     cached = _cache_files(a.cache)
-    status = train_all(names, flags, a)
-    rendered_by_runs = len(_cache_files(a.cache) - cached)  # 0: every drive a run loaded was rendered above
-    summary = {"runs": status, "render_s": round(render_s, 1), "rendered_by_runs": rendered_by_runs,
-               "total_s": round(time.monotonic() - t0, 1),
-               "device": a.device, "budget_min": a.budget_min, "tiny": a.tiny,
-               "flags": {n: flags[n] for n in names}}
+    summary = {"render_s": round(render_s, 1), "device": a.device, "tiny": a.tiny, "flags": flags}
+    probe_extra = {n: ["--epochs", "1", "--frames-per-epoch", str(a.probe_steps * int(_flag(flags[n], "--batch", "1")))]
+                   for n in names}
+    probes = launch(names, flags, a, "probe", None, probe_extra)
+    summary["probe"] = probes
+    print("probes: " + ", ".join(f"{n} {s['returncode']} ({s['seconds']} s)" for n, s in probes.items()), flush=True)
+    ok = [n for n in names if probes[n]["returncode"] == 0 and probes[n]["history"]]
+    budget_s = a.deadline_min * 60.0 - (time.monotonic() - t0) - a.reserve_s
+    plans = {n: plan_epochs(flags[n], probes[n], budget_s) for n in ok}
+    summary["plan"] = {"budget_s": round(budget_s, 1), **plans}
+    print(f"training budget {budget_s:.0f} s: {plans}", flush=True)
+    status = launch(ok, flags, a, "runs", budget_s / 60.0, plans) if ok else {}
+    summary["runs"] = status
+    summary["rendered_by_runs"] = len(_cache_files(a.cache) - cached)  # 0: the runs rendered nothing
+    if a.bench:
+        summary["bench"] = bench(a, status)
+    summary["total_s"] = round(time.monotonic() - t0, 1)
     (Path(a.out) / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
-    print(json.dumps(status, indent=1))
-    failed = [n for n, s in status.items() if s["returncode"] != 0]
+    if a.pack:
+        pack(a, status)
+    print(json.dumps({n: {k: v for k, v in s.items() if k != "history"} for n, s in status.items()}, indent=1))
+    failed = [n for n in names if n not in status or status[n]["returncode"] != 0]
     for n in failed:
-        print(f"error: run {n} failed (status {status[n]['returncode']}): see {Path(a.out) / 'logs' / (n + '.log')}",
-              file=sys.stderr)
+        print(f"error: run {n} failed: see {Path(a.out) / 'logs'}", file=sys.stderr)
     return 1 if failed else 0
+
+
+def bench(a, status: dict) -> dict:
+    """bench/bench_cuda.py on the shipped weights and this session's (``OUT/bench_cuda.json``)."""
+    wdir = Path(a.out) / "bench_weights"
+    wdir.mkdir(exist_ok=True)
+    for name, s in status.items():
+        src = Path(a.out) / "runs" / name / "best.safetensors"
+        if s["returncode"] == 0 and src.is_file():
+            shutil.copy(src, wdir / SHIP_NAMES[name])
+    out = Path(a.out) / "bench_cuda.json"
+    cmd = [sys.executable, str(REPO / "bench" / "bench_cuda.py"), "--weights-dir", str(wdir), "--json", str(out),
+           "--device", a.device, *(["--frames", "2", "--repeat", "1"] if a.tiny else [])]
+    with open(Path(a.out) / "logs" / "bench_cuda.log", "w") as log:
+        code = subprocess.run(cmd, cwd=REPO, stdout=log, stderr=subprocess.STDOUT, timeout=max(30.0, a.reserve_s)).returncode
+    print((Path(a.out) / "logs" / "bench_cuda.log").read_text(), flush=True)
+    return {"returncode": code, **(json.loads(out.read_text()) if out.is_file() else {})}
+
+
+def pack(a, status: dict) -> None:
+    """Into ``--pack``: each run's best weights (named as shipped, prefixed ``gpu_``), and
+    ``gpu_runs.tar.gz`` with every run's json files, metrics and logs."""
+    dest = Path(a.pack)
+    dest.mkdir(parents=True, exist_ok=True)
+    for name in status:
+        src = Path(a.out) / "runs" / name / "best.safetensors"
+        if src.is_file():
+            shutil.copy(src, dest / f"gpu_{name}.safetensors")
+    with tarfile.open(dest / "gpu_runs.tar.gz", "w:gz") as tar:
+        root = Path(a.out)
+        for path in [root / "summary.json", *root.glob("logs/*"), *root.glob("*.yaml"), *root.glob("bench_cuda.json"),
+                     *root.glob("*/*/*.json"), *root.glob("*/*/*.jsonl")]:
+            if path.is_file():
+                tar.add(path, arcname=str(path.relative_to(root)))
+
+
+#: run name -> the file name its weights ship under
+SHIP_NAMES = {"s2g2": "s2g2_front1_rgb.safetensors", "s2g2_semi": "s2g2_front1_rgb_semi.safetensors",
+              "focusbev": "focusbev_front1_rgb.safetensors", "bimapper_rgb": "bimapper_surround6_rgb.safetensors"}
 
 
 if __name__ == "__main__":

@@ -29,11 +29,13 @@ from typing_extensions import override
 
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.nn.augment import Augment, step_augment
+from bev_mapper_core.nn.efficientnet import EfficientNetConfig
 from bev_mapper_core.training.class_weights import POS_WEIGHTS, class_pos_weight
 from bev_mapper_core.training.config import PAPER_EPOCHS
 from bev_mapper_core.training.method import CliFlag, TrainMethod
 from bev_mapper_core.training.sources import DataNeeds, TrainData
 
+from ..segmenter.trunk import check_encoder_init, init_encoder, trunk_config
 from .config import FUSIONS, STREAMS, BiMapperConfig
 from .losses import MUTUAL_MODES, BiMapperLossConfig, bimapper_loss
 from .model import BiMapper
@@ -75,6 +77,11 @@ class BiMapperTraining:
             segmenter's errors. Not in the paper.
         augment: photometric augmentation of every training camera image (RGB input; see the
             module docstring).
+        encoder_init: the start of both streams' EfficientNet encoders: ``auto`` (the shipped
+            segmenter's trunk on RGB input where the encoder has its sizes, i.e. width 1.0,
+            depth 0.5, 5 stages; else from scratch), ``none``, ``segmenter`` or a segmenter
+            weights path (:func:`~bev_mapper_core.methods.segmenter.trunk.encoder_source`; these
+            two need the trunk's sizes).
     """
 
     asl: bool = True
@@ -87,8 +94,10 @@ class BiMapperTraining:
     visibility_only: bool = False
     segmenter: str | None = None
     augment: bool = True
+    encoder_init: str = "auto"
 
     def __post_init__(self) -> None:
+        check_encoder_init(self.encoder_init)
         if not isinstance(self.augment, bool):
             raise ConfigError(f"augment must be true or false, got {self.augment!r}")
         if not isinstance(self.asl, bool):
@@ -159,6 +168,12 @@ def segment_frames(path: str, rgb: np.ndarray, device, batch: int = 8) -> np.nda
     return out.reshape(M, N, H, W)
 
 
+def same_trunk(a: EfficientNetConfig, b: EfficientNetConfig) -> bool:
+    """Two EfficientNet configurations have the same weights' shapes (regularization aside)."""
+    return (a.width_mult, a.depth_mult, a.num_stages, a.in_channels) == (b.width_mult, b.depth_mult, b.num_stages,
+                                                                         b.in_channels)
+
+
 class BiMapperMethod(TrainMethod):
     """Bi-Mapper (Li et al., RA-L 2023) trained as in the paper, plus the documented deviations
     (``pos_weight``, ``ipm_skip``).
@@ -188,6 +203,9 @@ class BiMapperMethod(TrainMethod):
         CliFlag("--visibility-weight", "visibility_weight", number=True, help="BCE weight of the visibility head"),
         CliFlag("--uncertainty-weight", "uncertainty_weight", number=True,
                 help="PON uncertainty loss on hidden cells (FocusBEV 0.001)"),
+        CliFlag("--encoder-init", "encoder_init",
+                help="the encoders' start: auto (the shipped segmenter's trunk on RGB where the sizes fit), none, "
+                     "segmenter, or a segmenter weights path"),
         CliFlag("--init-weights", "init_weights", help="fine-tune: start from this weights file"),
         CliFlag("--visibility-only", "visibility_only", action="store_true",
                 help="train only the visibility head; the class outputs stay the initial file's"),
@@ -205,11 +223,21 @@ class BiMapperMethod(TrainMethod):
 
     @override
     def build_model(self) -> BiMapper:
-        return BiMapper(self.cfg.model, self.rig, self.grid)
+        model = BiMapper(self.cfg.model, self.rig, self.grid)
+        self.encoder_source = None
+        spec, kind = self.cfg.loss.encoder_init, self.cfg.model.input_kind
+        if spec == "auto" and not same_trunk(self.cfg.model.encoder_config(3), trunk_config()):
+            return model  # other sizes than the segmenter's trunk: from scratch
+        encoders = [m.trunk for m in [getattr(model, "cam_encoder", None)] if m is not None]
+        encoders += [lv.unet.encoder for lv in [getattr(model, "lv", None)] if lv is not None]
+        for encoder in encoders:
+            self.encoder_source = init_encoder(encoder, spec, kind, self.rig.name)
+        return model
 
     @override
     def describe(self) -> str:
-        return f"input {self.model.input_size}, classes {list(self.cfg.class_names)}"
+        init = f", encoders from {self.encoder_source}" if self.encoder_source else ""
+        return f"input {self.model.input_size}, classes {list(self.cfg.class_names)}{init}"
 
     @override
     def schedule(self) -> str:

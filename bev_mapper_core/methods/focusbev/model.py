@@ -41,12 +41,36 @@ from bev_mapper_core.geometry.rig import Rig, scaled_camera
 from bev_mapper_core.labels.classes import BEV_CLASS_NAMES, NUM_LABELS, resolve_classes
 from bev_mapper_core.nn.config import MAX_CHANNELS, MAX_DOWNSAMPLE, MAX_WIDTH_PX, RGB_MEAN, RGB_STD, DictConfig
 from bev_mapper_core.nn.decoder import BevDecoder
-from bev_mapper_core.nn.efficientnet import downsampled_size
+from bev_mapper_core.nn.efficientnet import EfficientNet, downsampled_size
 from bev_mapper_core.nn.inputs import preprocess_one_camera
 from bev_mapper_core.nn.mono_geometry import check_same_camera, one_camera_input_size
 from bev_mapper_core.nn.resnet import FPN, RESNET_DEPTHS, ResNet
 
+from ..segmenter.trunk import trunk_config
 from .blocks import ColumnTransformer, EgoMotionFusion, depth_bins, depth_ranges, feature_grid, polar_grids, polar_to_cartesian
+
+#: the image trunks FocusBEV can use (see :class:`FocusBEVConfig`)
+BACKBONES = ("resnet", "efficientnet")
+
+
+class TrunkPyramid(nn.Module):
+    """An EfficientNet trunk as the FPN's input: its endpoints from stride 4 on, in the ResNet's
+    order (the FPN reads strides 8 and 16 of them and makes the coarser levels itself).
+
+    Attributes:
+        trunk: the EfficientNet; out_channels: the widths of the maps :meth:`forward` returns.
+    """
+
+    def __init__(self, trunk: EfficientNet) -> None:
+        super().__init__()
+        if tuple(trunk.endpoint_strides[1:3]) != (4, 8) or len(trunk.endpoint_strides) < 4:
+            raise ConfigError(f"FocusBEV's FPN needs trunk endpoints at strides 4, 8, 16; got {trunk.endpoint_strides}")
+        self.trunk = trunk
+        self.out_channels = list(trunk.endpoint_channels[1:])
+
+    def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
+        """``(B, C_in, h, w)`` -> the trunk's maps at strides 4, 8, 16 (, 32 ...)."""
+        return self.trunk(x)[1:]
 
 
 @dataclass(frozen=True)
@@ -58,6 +82,11 @@ class FocusBEVConfig(DictConfig):
         input_kind: ``rgb`` (the paper) or ``labels`` (one-hot label images).
         classes: BEV class names, in output layer order.
         input_width: model input width (px); the height follows the camera's aspect.
+        backbone: ``resnet`` (the paper's ResNet, of ``backbone_depth`` / ``backbone_width``) or
+            ``efficientnet`` (the shipped segmenter's EfficientNet trunk,
+            :func:`~bev_mapper_core.methods.segmenter.trunk.trunk_config`: training starts from
+            its weights, which have seen synthetic and real images; strides 4, 8, 16 feed the FPN,
+            whose stride-32 level is then an extra convolution).
         backbone_depth: ResNet depth (18, 34, 50, 101; paper 50).
         backbone_width: ResNet stem width (paper 64).
         fpn_levels: pyramid levels from stride 8 (paper: PON's, 5).
@@ -77,6 +106,7 @@ class FocusBEVConfig(DictConfig):
     input_kind: str = "rgb"
     classes: tuple[str, ...] = BEV_CLASS_NAMES
     input_width: int = 192
+    backbone: str = "resnet"
     backbone_depth: int = 18
     backbone_width: int = 32
     fpn_levels: int = 3
@@ -95,6 +125,8 @@ class FocusBEVConfig(DictConfig):
         if self.input_kind not in ("labels", "rgb"):
             raise ConfigError(f"input_kind must be 'labels' or 'rgb', got {self.input_kind!r}")
         resolve_classes(self.classes)
+        if self.backbone not in BACKBONES:
+            raise ConfigError(f"backbone must be one of {BACKBONES}, got {self.backbone!r}")
         if self.backbone_depth not in RESNET_DEPTHS or isinstance(self.backbone_depth, bool):
             raise ConfigError(f"backbone_depth must be one of {sorted(RESNET_DEPTHS)}, got {self.backbone_depth!r}")
         limits = {"input_width": (32, MAX_WIDTH_PX), "backbone_width": (4, 256), "fpn_levels": (1, 5),
@@ -159,7 +191,10 @@ class FocusBEV(nn.Module):
         self.input_size = input_size(config, rig)
         self.num_classes = len(config.classes)
         C = config.channels
-        self.backbone = ResNet(config.backbone_depth, config.backbone_width, config.in_channels)
+        if config.backbone == "resnet":
+            self.backbone = ResNet(config.backbone_depth, config.backbone_width, config.in_channels)
+        else:
+            self.backbone = TrunkPyramid(EfficientNet(trunk_config(config.in_channels)))
         self.fpn = FPN(self.backbone.out_channels, C, config.fpn_levels)
         self.fgrid = feature_grid(grid, config.bev_downsample)
         if max_depth(config, grid) <= config.min_depth:
@@ -241,4 +276,4 @@ class FocusBEV(nn.Module):
         return self.frustum
 
 
-__all__ = ["FocusBEV", "FocusBEVConfig", "input_size", "max_depth"]
+__all__ = ["BACKBONES", "FocusBEV", "FocusBEVConfig", "TrunkPyramid", "input_size", "max_depth"]

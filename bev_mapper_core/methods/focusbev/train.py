@@ -49,8 +49,9 @@ from bev_mapper_core.training.class_weights import POS_WEIGHTS, class_pos_weight
 from bev_mapper_core.training.method import CliFlag, TrainMethod
 from bev_mapper_core.training.sources import DataNeeds, TrainData
 
+from ..segmenter.trunk import check_encoder_init, init_encoder
 from .losses import FocusBEVLossConfig, focusbev_loss
-from .model import FocusBEV, FocusBEVConfig
+from .model import BACKBONES, FocusBEV, FocusBEVConfig
 from .weights import load_state_focusbev, save_focusbev
 
 
@@ -64,6 +65,11 @@ class FocusBEVTraining:
         weight_decay: AdamW's (PyTorch's default 0.01; the paper does not give it).
         augment: photometric augmentation of the training windows' camera images, one draw per
             window (RGB input; see the module docstring).
+        encoder_init: the start of an ``efficientnet`` backbone: ``auto`` (the shipped
+            segmenter's trunk on RGB input, none on label input), ``none`` (from scratch),
+            ``segmenter`` or a segmenter weights path
+            (:func:`~bev_mapper_core.methods.segmenter.trunk.encoder_source`). The ResNet
+            backbone has no pretrained weights: with it only ``auto`` and ``none`` apply.
     """
 
     uncertainty_weight: float = FocusBEVLossConfig.uncertainty_weight
@@ -71,8 +77,10 @@ class FocusBEVTraining:
     pos_weight: str = "auto"
     weight_decay: float = 0.01
     augment: bool = True
+    encoder_init: str = "auto"
 
     def __post_init__(self) -> None:
+        check_encoder_init(self.encoder_init)
         if not isinstance(self.augment, bool):
             raise ConfigError(f"augment must be true or false, got {self.augment!r}")
         if self.pos_weight not in POS_WEIGHTS:
@@ -111,6 +119,11 @@ class FocusBEVMethod(TrainMethod):
     loss_config_type = FocusBEVTraining
     cli_flags = (
         CliFlag("--input-width", "input_width", min_value=32),
+        CliFlag("--backbone", "backbone", choices=BACKBONES,
+                help="resnet (the paper's, from scratch) or efficientnet (the shipped segmenter's trunk)"),
+        CliFlag("--encoder-init", "encoder_init",
+                help="efficientnet backbone's start: auto (the shipped segmenter on RGB), none, segmenter, or a "
+                     "segmenter weights path"),
         CliFlag("--backbone-depth", "backbone_depth", min_value=18, help="ResNet depth: 18, 34, 50 or 101"),
         CliFlag("--backbone-width", "backbone_width", min_value=4, help="ResNet stem width (paper 64)"),
         CliFlag("--fpn-levels", "fpn_levels", min_value=1),
@@ -131,7 +144,15 @@ class FocusBEVMethod(TrainMethod):
 
     @override
     def build_model(self) -> FocusBEV:
-        return FocusBEV(self.cfg.model, self.rig, self.grid)
+        model = FocusBEV(self.cfg.model, self.rig, self.grid)
+        self.encoder_source = None
+        if self.cfg.model.backbone == "efficientnet":
+            self.encoder_source = init_encoder(model.backbone.trunk, self.cfg.loss.encoder_init,
+                                               self.cfg.model.input_kind, self.rig.name)
+        elif self.cfg.loss.encoder_init not in ("auto", "none"):
+            raise ConfigError(f"encoder_init {self.cfg.loss.encoder_init!r} initializes an efficientnet backbone; "
+                              "the resnet backbone has no pretrained weights (use --backbone efficientnet)")
+        return model
 
     @override
     def configure_optimizer(self, lr: float) -> torch.optim.Optimizer:
@@ -140,7 +161,11 @@ class FocusBEVMethod(TrainMethod):
     @override
     def describe(self) -> str:
         m, c = self.model, self.cfg.model
-        return (f"input {m.input_size}, ResNet-{c.backbone_depth} width {c.backbone_width}, FPN {m.level_hw}, "
+        if c.backbone == "resnet":
+            trunk = f"ResNet-{c.backbone_depth} width {c.backbone_width}"
+        else:
+            trunk = f"EfficientNet trunk from {self.encoder_source}" if self.encoder_source else "EfficientNet trunk"
+        return (f"input {m.input_size}, {trunk}, FPN {m.level_hw}, "
                 f"depth ranges {[f'{a:.1f}-{b:.1f}' for a, b in m.ranges]} m in {m.depths} bins, "
                 f"{c.decoder_layers} decoder layers x {c.heads} heads, cycle {'on' if c.cycle else 'off'}, "
                 f"window {c.window}, BEV features {m.fgrid.shape}, classes {list(self.cfg.class_names)}")

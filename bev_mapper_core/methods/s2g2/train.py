@@ -84,7 +84,6 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -96,8 +95,7 @@ from bev_mapper_core.training.class_weights import POS_WEIGHTS, class_pos_weight
 from bev_mapper_core.training.method import CliFlag, TrainMethod
 from bev_mapper_core.training.sources import DataNeeds, TrainData
 
-from ..segmenter.stage import shipped_segmenter
-from ..segmenter.weights import load_segmenter_trunk
+from ..segmenter.trunk import check_encoder_init, init_encoder
 from .blocks import VIEW_TRANSFORMS
 from .losses import BEV_TIES, S2G2LossConfig, ema_decay_at, ema_update, s2g2_loss
 from .model import BRANCHES, S2G2, S2G2Config
@@ -178,8 +176,7 @@ class S2G2Training:
     feature_copies: int = 0
 
     def __post_init__(self) -> None:
-        if not isinstance(self.encoder_init, str) or not self.encoder_init:
-            raise ConfigError(f"encoder_init must be auto, none, segmenter or a file path, got {self.encoder_init!r}")
+        check_encoder_init(self.encoder_init)
         v = self.ema_decay
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not 0 <= v <= 1:
             raise ConfigError(f"ema_decay must be a number in [0, 1], got {v!r}")
@@ -225,30 +222,6 @@ def running_batchnorm(model: torch.nn.Module) -> Iterator[None]:
     finally:
         for m in bns:
             m.train()
-
-
-def encoder_source(spec: str, input_kind: str, rig_name: str) -> Path | None:
-    """The segmenter file whose trunk initializes S2G2's encoder (``None``: from scratch); the
-    shipped one is the rig's (:func:`~bev_mapper_core.methods.segmenter.stage.shipped_segmenter`).
-
-    Raises:
-        ConfigError: a segmenter asked for on label input (its first layer reads RGB), no shipped
-            segmenter, or a path that is not a file.
-    """
-    if spec == "none" or (spec == "auto" and input_kind != "rgb"):
-        return None
-    if input_kind != "rgb":
-        raise ConfigError(f"encoder_init {spec!r}: a segmenter's trunk reads RGB images, the model's input is "
-                          f"{input_kind!r} (use auto or none)")
-    if spec in ("auto", "segmenter"):
-        path = shipped_segmenter(rig_name)
-        if path is None:
-            raise ConfigError("encoder_init: no segmenter ships with the package; use --encoder-init none or a path")
-        return path
-    path = Path(spec)
-    if not path.is_file():
-        raise ConfigError(f"encoder_init: segmenter weights {spec} do not exist")
-    return path
 
 
 class S2G2Method(TrainMethod):
@@ -300,9 +273,8 @@ class S2G2Method(TrainMethod):
     @override
     def build_model(self) -> S2G2:
         model = S2G2(self.cfg.model, self.rig, self.grid)
-        self.encoder_source = encoder_source(self.cfg.loss.encoder_init, self.cfg.model.input_kind, self.rig.name)
-        if self.encoder_source is not None:
-            load_segmenter_trunk(model.encoder, self.encoder_source)
+        self.encoder_source = init_encoder(model.encoder, self.cfg.loss.encoder_init, self.cfg.model.input_kind,
+                                           self.rig.name)
         if self.cfg.loss.frozen_encoder:
             model.encoder.requires_grad_(False)
         self._cache: dict[str, torch.Tensor] = {}
@@ -470,4 +442,4 @@ class S2G2Method(TrainMethod):
         load_state_s2g2(self.model, path)
 
 
-__all__ = ["OPTIMIZERS", "S2G2Method", "S2G2Training", "UNLABELED_BN", "encoder_source", "running_batchnorm"]
+__all__ = ["OPTIMIZERS", "S2G2Method", "S2G2Training", "UNLABELED_BN", "running_batchnorm"]
