@@ -4,7 +4,8 @@
   the file carries them (non-zero; the bags :class:`bags.io.writer.BagWriter` writes do). Chunk
   CRCs are verified by the readers whenever a chunk is read. The data section check reads the
   file once; its result is remembered per file (path, size, modification time) for the rest of
-  the process, since a replay opens its input twice.
+  the process, since a replay opens its input twice. A file whose data section CRC was verified
+  (:func:`data_crc_verified`) needs no chunk CRC checks on top (:mod:`bags.io.raw.mcap_index`).
 * sqlite3: messages whose ``topic_id`` is not in the ``topics`` table (their topic, hence
   their type, is unknown: rosbags skips them silently).
 
@@ -23,7 +24,7 @@ MCAP_MAGIC = b"\x89MCAP0\r\n"
 _FOOTER_LEN = 1 + 8 + 20  # opcode, record length, summary_start, summary_offset_start, crc
 _DATA_END_LEN = 1 + 8 + 4
 _BLOCK = 1 << 20
-_mcap_cache: dict[tuple, str | None] = {}
+_mcap_cache: dict[tuple, tuple[str | None, bool]] = {}
 
 
 def _crc_of_range(f, start: int, stop: int, crc: int = 0) -> int:
@@ -44,18 +45,30 @@ def check_mcap(path: Path) -> str | None:
     Returns ``None`` when they match or are absent (0), else what is wrong. A file whose
     footer cannot be read is left to the readers (they report it in their own words).
     """
+    return _checked(path)[0]
+
+
+def data_crc_verified(path: Path) -> bool:
+    """True when :func:`check_mcap` found a data section CRC in ``path`` and it matched (every
+    byte of every chunk is then as written).
+    """
+    return _checked(path)[1]
+
+
+def _checked(path: Path) -> tuple[str | None, bool]:
     path = Path(path)
     try:
         st = path.stat()
     except OSError:
-        return None
+        return None, False
     key = (str(path.resolve()), st.st_size, st.st_mtime_ns, st.st_ino)
     if key not in _mcap_cache:
-        _mcap_cache[key] = _check_mcap(path, st.st_size)
+        verified: list[bool] = []
+        _mcap_cache[key] = (_check_mcap(path, st.st_size, verified), bool(verified))
     return _mcap_cache[key]
 
 
-def _check_mcap(path: Path, size: int) -> str | None:
+def _check_mcap(path: Path, size: int, verified: list[bool]) -> str | None:
     if size < 2 * len(MCAP_MAGIC) + _FOOTER_LEN:
         return None
     with path.open("rb") as f:
@@ -88,6 +101,7 @@ def _check_mcap(path: Path, size: int) -> str | None:
             if crc != data_crc:
                 return (f"{path.name}: MCAP data section checksum mismatch (CRC-32 {crc:08x}, "
                         f"DataEnd record says {data_crc:08x})")
+            verified.append(True)
     return None
 
 

@@ -7,8 +7,11 @@
   its summary/footer is missing (a truncated or interrupted recording): it yields every
   message of the intact chunks, then raises :class:`BagCorruptError`.
 
-Both yield ``(topic, msgtype, log_ns, message)`` with messages deserialized by rosbags, and
-turn any storage failure during iteration into :class:`BagCorruptError`.
+Both yield ``(topic, msgtype, log_ns, message)`` with messages deserialized by rosbags (or by
+the caller's ``deserialize``, e.g. :func:`bags.io.raw.fast_deserializer`), and turn any storage
+failure during iteration into :class:`BagCorruptError`. A bag whose storage is one indexed MCAP
+file is read by :class:`AnyReaderSource` through the file's indexes
+(:class:`bags.io.raw.IndexedMcap`: only the wanted messages' bytes, in rosbags' order).
 
 :func:`open_source` reads ``metadata.yaml`` safely (:mod:`bags.io.metadata`) and checks the
 storage files (:mod:`bags.io.integrity`): an MCAP file whose summary or data section checksum
@@ -27,8 +30,9 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import BagCorruptError, BagFormatError
-from .integrity import check_mcap, check_sqlite
+from .integrity import check_mcap, check_sqlite, data_crc_verified
 from .metadata import MetadataError, read_metadata
+from .raw import IndexedMcap
 
 #: suffixes of bag files (a rosbag2 bag is a directory holding ``metadata.yaml`` or MCAP files)
 BAG_SUFFIXES = (".mcap", ".db3")
@@ -61,7 +65,7 @@ class AnyReaderSource:
     :class:`BagCorruptError` at the end, like a stream that reached its damage.
     """
 
-    def __init__(self, path: Path, meta: dict, damage: str | None = None) -> None:
+    def __init__(self, path: Path, meta: dict, damage: str | None = None, mcap_files: list[Path] = ()) -> None:
         from rosbags.highlevel import AnyReader
 
         self.path = path
@@ -69,6 +73,9 @@ class AnyReaderSource:
         self.custom_data = dict(meta.get("custom_data") or {})
         self._reader = AnyReader([path])
         self._reader.open()  # errors handled by open_source
+        self._indexed = None
+        if len(mcap_files) == 1 and not damage and meta.get("compression_mode", "") != "message":
+            self._indexed = IndexedMcap.open(mcap_files[0], data_crc_verified(mcap_files[0]))
         self.topics = {
             name: TopicSummary(name, info.msgtype or "", int(info.msgcount))
             for name, info in self._reader.topics.items()
@@ -80,17 +87,30 @@ class AnyReaderSource:
             if getattr(getattr(qos, "durability", None), "name", "") == "TRANSIENT_LOCAL"
         }
 
-    def messages(self, topics: set[str] | None = None) -> Iterator[tuple[str, str, int, Any]]:
-        """``(topic, msgtype, log_ns, message)`` of ``topics`` (None = all) in log-time order."""
+    def _raw(self, topics: set[str] | None) -> Iterator[tuple[str, str, int, bytes]]:
+        """``(topic, msgtype, log_ns, CDR bytes)`` of ``topics`` (None = all) in log-time order."""
         conns = [c for c in self._reader.connections if topics is None or c.topic in topics]
         if not conns:
             return
-        it = self._reader.messages(connections=conns)
+        if self._indexed is not None:
+            types = {c.topic: c.msgtype for c in conns}
+            for topic, t, raw in self._indexed.messages(set(types)):
+                yield topic, types[topic], t, raw
+            return
+        for conn, t, raw in self._reader.messages(connections=conns):
+            yield conn.topic, conn.msgtype, t, raw
+
+    def messages(self, topics: set[str] | None = None, deserialize=None) -> Iterator[tuple[str, str, int, Any]]:
+        """``(topic, msgtype, log_ns, message)`` of ``topics`` (None = all) in log-time order,
+        deserialized by ``deserialize(raw, msgtype)`` (default: rosbags').
+        """
+        deserialize = deserialize or self._reader.deserialize
+        it = self._raw(topics)
         count = 0
         while True:
             try:
-                conn, t, raw = next(it)
-                msg = self._reader.deserialize(raw, conn.msgtype)
+                topic, msgtype, t, raw = next(it)
+                msg = deserialize(raw, msgtype)
             except StopIteration:
                 if self.damage:
                     raise BagCorruptError(f"{self.path}: bag is damaged ({self.damage}); read "
@@ -103,12 +123,18 @@ class AnyReaderSource:
                 ) from exc
             if t < 0:  # sqlite3 stores any integer; a log time before 1970 is damage
                 raise BagCorruptError(f"{self.path}: bag is damaged after {count} readable "
-                                      f"messages: {conn.topic} has the negative log time {t}")
+                                      f"messages: {topic} has the negative log time {t}")
             count += 1
-            yield conn.topic, conn.msgtype, t, msg
+            yield topic, msgtype, t, msg
+
+    def deserializer(self):
+        """``deserialize(raw, msgtype)`` of this bag's types (rosbags')."""
+        return self._reader.deserialize
 
     def close(self) -> None:
         """Release the storage."""
+        if self._indexed is not None:
+            self._indexed.close()
         self._reader.close()
 
 
@@ -187,10 +213,13 @@ class McapStreamSource:
             log.debug("schema parsing failed (%s); using the Jazzy typestore", exc)
             return get_typestore(Stores.ROS2_JAZZY)
 
-    def messages(self, topics: set[str] | None = None) -> Iterator[tuple[str, str, int, Any]]:
-        """``(topic, msgtype, log_ns, message)`` of ``topics`` (None = all), CRC-checked, up to any damage."""
+    def messages(self, topics: set[str] | None = None, deserialize=None) -> Iterator[tuple[str, str, int, Any]]:
+        """``(topic, msgtype, log_ns, message)`` of ``topics`` (None = all), CRC-checked, up to any
+        damage; deserialized by ``deserialize(raw, msgtype)`` (default: rosbags').
+        """
         from mcap.records import Message
 
+        deserialize = deserialize or self._typestore.deserialize_cdr
         count = 0
         for path in self.files:
             it = self._records(path)
@@ -202,7 +231,7 @@ class McapStreamSource:
                     topic, msgtype = self._channels[(path, rec.channel_id)]
                     if topics is not None and topic not in topics:
                         continue
-                    msg = self._typestore.deserialize_cdr(rec.data, msgtype)
+                    msg = deserialize(rec.data, msgtype)
                 except StopIteration:
                     break
                 except Exception as exc:
@@ -214,6 +243,10 @@ class McapStreamSource:
                 yield topic, msgtype, int(rec.log_time), msg
         # the scan ended cleanly although rosbags refused the file (e.g. no summary section)
         raise BagCorruptError(f"{self.path}: bag is damaged ({self.damage}); read {count} messages")
+
+    def deserializer(self):
+        """``deserialize(raw, msgtype)`` of this bag's types (rosbags')."""
+        return self._typestore.deserialize_cdr
 
     def close(self) -> None:
         """Nothing to release (every read opens the file itself)."""
@@ -264,7 +297,7 @@ def open_source(path: str | Path):
         return McapStreamSource(path, files, meta, "; ".join(bad))
     damage = "; ".join(p for p in map(check_sqlite, _sqlite_files(path, meta)) if p) or None
     try:
-        return AnyReaderSource(path, meta, damage)
+        return AnyReaderSource(path, meta, damage, files)
     except Exception as exc:  # rosbags' ReaderError/AnyReaderError, sqlite3 errors, ...
         reason = f"{type(exc).__name__}: {exc}"
         if files and not isinstance(exc, FileNotFoundError):

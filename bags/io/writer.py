@@ -151,6 +151,15 @@ class BagWriter:
         self._writer.write(conn, int(log_ns), data)
         self.counts[topic] += 1
 
+    def write_raw(self, topic: str, data: bytes, log_ns: int) -> None:
+        """Write one message of the topic's type already serialized (CDR bytes)."""
+        self._writer.write(self._conns[topic], int(log_ns), data)
+        self.counts[topic] += 1
+
+    def serialize(self, topic: str, msg: Any) -> bytes:
+        """The CDR bytes :meth:`write` would write for ``msg`` on ``topic``."""
+        return bytes(self.typestore.serialize_cdr(msg, self._conns[topic].msgtype))
+
     def __exit__(self, exc_type, exc, tb) -> None:
         writer, self._writer = self._writer, None
         if exc_type is not None:

@@ -47,8 +47,12 @@ from .scoring import ReplayScorer, percentiles
 class InfoCopier:
     """Copies CameraInfo and ``/tf_static`` of the input bag into the output bag, in time order.
 
-    A second reader on the same bag streams those topics lazily; :meth:`upto` writes what was
-    logged up to a time. Damage on this stream just ends the copy (the frame stream reports it).
+    A second reader on the same bag streams those topics lazily, as CDR bytes; :meth:`upto` writes
+    what was logged up to a time. Damage on this stream just ends the copy (the frame stream
+    reports it). What is written is what deserializing and serializing each message gives (the
+    copy is rosbags' rendering of the message); a CameraInfo that equals one already found to
+    come back unchanged, but for its header stamp, is written as it is, since the stamp's two
+    32-bit integers always come back unchanged.
     """
 
     def __init__(self, bag: Path, reader: BagReader, writer: BagWriter) -> None:
@@ -65,8 +69,9 @@ class InfoCopier:
             self._reader = BagReader(bag)
         finally:
             quiet.setLevel(level)
-        self._it: Iterator | None = self._reader.messages(self.topics)
+        self._it: Iterator | None = self._reader.messages(self.topics, raw=True)
         self._next = None
+        self._same: dict[str, bytes] = {}  # per topic: bytes but the stamp of a message that came back unchanged
 
     def upto(self, log_ns: int) -> None:
         """Write every copied message logged at or before ``log_ns``."""
@@ -80,7 +85,27 @@ class InfoCopier:
             if self._next.log_ns > log_ns and self._next.topic != T.TF_STATIC:
                 return
             m, self._next = self._next, None
-            self._writer.write(m.topic, m.msg, m.log_ns)
+            data = self._copy(m)
+            if data is None:  # does not deserialize: damage, as the stream would have said
+                self._it = None
+                return
+            self._writer.write_raw(m.topic, data, m.log_ns)
+
+    def _copy(self, m) -> bytes | None:
+        """The bytes of ``m`` (raw) as written: deserialized and serialized again (see class
+        docstring); ``None`` when it does not deserialize.
+        """
+        raw = m.msg
+        rest = raw[:4] + raw[12:]  # all but the header stamp (a CameraInfo's first 8 bytes)
+        if self._same.get(m.topic) == rest:
+            return raw
+        try:
+            data = self._writer.serialize(m.topic, self._reader.deserialize(raw, m.msgtype))
+        except Exception:  # noqa: BLE001 - rosbags' SerdeError and what its generated code raises
+            return None
+        if data == raw and m.msgtype == T.CAMERA_INFO_TYPE:
+            self._same[m.topic] = rest
+        return data
 
     def close(self) -> None:
         """Release the second reader."""

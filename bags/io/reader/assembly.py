@@ -24,7 +24,6 @@ from msg_adapters import (
     header_stamp_ns,
     image_to_labels,
     image_to_rgb,
-    occupancy_grid_to_layer,
     odometry_to_state,
     tf_message_transforms,
 )
@@ -34,6 +33,7 @@ from .. import topics as T
 from ..input_checks import DECODE_ERRORS, StampDrift, stamp_problem
 from ..sync_report import SyncReport
 from .frame import BagFrame
+from .layers import LayerDecoder
 
 if TYPE_CHECKING:
     from .bag_reader import BagReader
@@ -88,12 +88,12 @@ def read_frames(reader: BagReader, *, rgb: bool, labels: bool, gt: bool, odom: b
     gt_buf = {c: deque() for c in gt_topics.values()}
     odom_buf: deque = deque()
     ready: deque[SyncedSet] = deque()
-    ctx = dict(cams=cams, kinds=kinds, classes=classes, grid=grid, gt_buf=gt_buf,
+    ctx = dict(cams=cams, kinds=kinds, classes=classes, grid=grid, gt_buf=gt_buf, layers=grid and LayerDecoder(grid),
                odom_buf=odom_buf, tol=sync.slop_ns, sizes=reader._camera_sizes(), label_map=label_map, sync=sync_)
     drift = StampDrift()
     index = 0
     try:
-        for m in reader.messages(topics):
+        for m in reader.messages(topics, fast=True):
             if m.topic == T.TF:
                 odom_buf.extend(asm.tf_poses(m.msg))
                 continue
@@ -149,16 +149,16 @@ class FrameAssembler:
         images, valid, cam_stamps = self.images(s, index, ctx)
         self.reader.sync_report.add(valid, ctx["sync"])
         mean = s.mean_stamp_ns
-        stamp, gt, known = self.gt(mean, ctx)
+        stamp, gt, known = self.gt(mean, index, ctx)
         ground = self.layer(T.GROUND_VISIBILITY, mean, index, ctx)
-        ground = None if ground is None else ground >= 0.5
         visibility = self.layer(T.ANY_VISIBILITY, mean, index, ctx)
-        visibility = None if visibility is None else visibility >= 0.5
         truth = None
         if gt is not None:
-            layers = [self.layer(T.truth_topic(c), mean, index, ctx) for c in ctx["classes"]]
-            if all(layer is not None for layer in layers):
-                truth = (np.stack(layers) >= 0.5).astype(np.float32)  # C x (H, W) -> (C, H, W)
+            truth = np.empty(gt.shape, np.float32)  # (C, H, W) 0/1: the layers >= 0.5
+            found = [self.layer(T.truth_topic(c), mean, index, ctx, out=truth[ci])
+                     for ci, c in enumerate(ctx["classes"])]
+            if any(layer is None for layer in found):
+                truth = None
         odom_state = None
         hit = _nearest(ctx["odom_buf"], mean, ctx["tol"])
         if hit is not None:
@@ -186,16 +186,17 @@ class FrameAssembler:
             truth=truth,
         )
 
-    def layer(self, topic: str, mean: int, index: int, ctx: dict) -> np.ndarray | None:
-        """``(H, W)`` float32 of the extra layer ``topic`` nearest ``mean`` (unknown cells 0), or
-        ``None`` when the bag has none there or it does not decode (counted in :attr:`issues`).
+    def layer(self, topic: str, mean: int, index: int, ctx: dict, out: np.ndarray | None = None) -> np.ndarray | None:
+        """``(H, W)`` bool: cells >= 0.5 of the extra layer ``topic`` nearest ``mean`` (or written
+        into ``out``, see :meth:`LayerDecoder.half`), or ``None`` when the bag has none there or it
+        does not decode (counted in :attr:`issues`).
         """
         buf = ctx["gt_buf"].get(topic)
         hit = None if buf is None else _nearest(buf, mean, ctx["tol"])
         if hit is None:
             return None
         try:
-            return occupancy_grid_to_layer(hit[1], ctx["grid"])[0]
+            return ctx["layers"].half(hit[1], out)
         except DECODE_ERRORS as exc:
             self.reader.issues.decode_error(topic, f"frame {index}: {exc}")
             return None
@@ -236,24 +237,25 @@ class FrameAssembler:
             valid[c] = ok
         return images, valid, cam_stamps
 
-    def gt(self, mean: int, ctx: dict):
+    def gt(self, mean: int, index: int, ctx: dict):
         """``(stamp, gt, known)`` of the GT layers nearest ``mean``; ``gt`` and ``known`` are
         ``None`` when a layer is missing or, counted in :attr:`issues`, does not fit the grid;
         ``stamp`` is that of the last layer found.
         """
-        if not ctx["classes"]:
+        classes = ctx["classes"]
+        if not classes:
             return None, None, None
-        layers, stamp = [], None
-        for c in ctx["classes"]:
+        stamp = None
+        shape = (len(classes),) + ctx["grid"].shape
+        gt, known = np.empty(shape, np.float32), np.empty(shape, bool)  # (C, H, W)
+        for ci, c in enumerate(classes):
             hit = _nearest(ctx["gt_buf"][c], mean, ctx["tol"])
             if hit is None:
                 return stamp, None, None
             stamp = hit[0]
             try:
-                layers.append(occupancy_grid_to_layer(hit[1], ctx["grid"]))
+                ctx["layers"].into(hit[1], gt[ci], known[ci])
             except DECODE_ERRORS as exc:
                 self.reader.issues.decode_error(T.gt_topic(c), f"stamp {hit[0]}: {exc}")
                 return stamp, None, None
-        gt = np.stack([p for p, _ in layers])  # C x (H, W) -> (C, H, W)
-        known = np.stack([k for _, k in layers])
         return stamp, gt, known

@@ -29,6 +29,7 @@ from msg_adapters import SyncConfig, TfTree, camera_info_to_model, grid_from_inf
 from ...errors import BagContentError, BagCorruptError
 from .. import topics as T
 from ..input_checks import DECODE_ERRORS, InputIssues, check_grid_size, check_types, type_problems
+from ..raw import fast_deserializer
 from ..rig_source import RIG_FLAGS_HINT, RigHints, matching_preset
 from ..sources import TopicSummary, open_source
 from ..sync_report import SyncReport
@@ -163,15 +164,26 @@ class BagReader:
         gt = self.gt_classes
         return tuple(c for c in gt if c in found) + tuple(sorted(found - set(gt)))
 
-    def messages(self, topics: Iterable[str] | None = None) -> Iterator[BagMessage]:
+    def messages(self, topics: Iterable[str] | None = None, *, fast: bool = False,
+                 raw: bool = False) -> Iterator[BagMessage]:
         """Deserialized messages in log-time order, optionally only of ``topics``.
+
+        ``fast``: Images and OccupancyGrids come as read-only views of their bytes
+        (:func:`bags.io.raw.fast_deserializer`: the same fields, but no rosbags message to
+        serialize again), for callers that only read them. ``raw``: every message as its CDR
+        bytes, not deserialized (see :meth:`deserialize`).
 
         Raises:
             BagCorruptError: at the point of damage, after the readable messages.
         """
         wanted = None if topics is None else set(topics)
-        for topic, msgtype, t, msg in self._src.messages(wanted):
+        decode = _as_bytes if raw else fast_deserializer(self._src.deserializer()) if fast else None
+        for topic, msgtype, t, msg in self._src.messages(wanted, decode):
             yield BagMessage(topic, msgtype, t, msg)
+
+    def deserialize(self, raw: bytes, msgtype: str) -> Any:
+        """A message of :meth:`messages` with ``raw=True`` deserialized (rosbags')."""
+        return self._src.deserializer()(raw, msgtype)
 
     # ------------------------------------------------------------ rig & grid
     def rig(self) -> Rig:
@@ -330,3 +342,9 @@ class BagReader:
         """
         yield from read_frames(self, rgb=rgb, labels=labels, gt=gt, odom=odom, sync=sync,
                                lookahead_ns=lookahead_ns, label_map=label_map)
+
+
+def _as_bytes(raw: bytes, msgtype: str) -> bytes:
+    """The "deserializer" of raw messages: the CDR bytes themselves."""
+    del msgtype
+    return bytes(raw)
