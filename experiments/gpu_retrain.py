@@ -206,7 +206,7 @@ def plan_epochs(flags: list[str], probe: dict, budget_s: float) -> list[str]:
     avail = max(60.0, budget_s - startup_s)
     batch = int(_flag(flags, "--batch", "8"))
     epochs = int(_flag(flags, "--epochs", "10"))
-    step_frac = int(_flag(flags, "--lr-step-epoch", str(int(epochs * 0.75)))) / epochs
+    step_frac = min(1.0, int(_flag(flags, "--lr-step-epoch", str(int(epochs * 0.75)))) / epochs)
     epochs = min(epochs, max(3, int(0.15 * avail / max(val_s, 1e-3))))  # validation under 15 % of the time
     all_steps = max(1, int(_flag(flags, "--train-drives", "40")) * int(_flag(flags, "--frames-per-drive", "20")) // batch)
     steps = int((avail / epochs - val_s) / s_step)
@@ -270,12 +270,13 @@ def main(argv: list[str] | None = None) -> int:
     status = launch(ok, flags, a, "runs", budget_s / 60.0, plans) if ok else {}
     summary["runs"] = status
     summary["rendered_by_runs"] = len(_cache_files(a.cache) - cached)  # 0: the runs rendered nothing
-    if a.bench:
-        summary["bench"] = bench(a, status)
-    summary["total_s"] = round(time.monotonic() - t0, 1)
-    (Path(a.out) / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
-    if a.pack:
-        pack(a, status)
+    for phase in ("train", "bench") if a.bench else ("train",):  # the weights packed before the benchmark runs
+        if phase == "bench":
+            summary["bench"] = bench(a, status)
+        summary["total_s"] = round(time.monotonic() - t0, 1)
+        (Path(a.out) / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
+        if a.pack:
+            pack(a, status)
     print(json.dumps({n: {k: v for k, v in s.items() if k != "history"} for n, s in status.items()}, indent=1))
     failed = [n for n in names if n not in status or status[n]["returncode"] != 0]
     for n in failed:
@@ -293,9 +294,13 @@ def bench(a, status: dict) -> dict:
             shutil.copy(src, wdir / SHIP_NAMES[name])
     out = Path(a.out) / "bench_cuda.json"
     cmd = [sys.executable, str(REPO / "bench" / "bench_cuda.py"), "--weights-dir", str(wdir), "--json", str(out),
-           "--device", a.device, *(["--frames", "2", "--repeat", "1"] if a.tiny else [])]
+           "--device", a.device, *(["--frames", "2", "--repeat", "1"] if a.tiny else ["--frames", "10"])]
     with open(Path(a.out) / "logs" / "bench_cuda.log", "w") as log:
-        code = subprocess.run(cmd, cwd=REPO, stdout=log, stderr=subprocess.STDOUT, timeout=max(30.0, a.reserve_s)).returncode
+        try:
+            code = subprocess.run(cmd, cwd=REPO, stdout=log, stderr=subprocess.STDOUT,
+                                  timeout=max(30.0, a.reserve_s - 15.0)).returncode
+        except subprocess.TimeoutExpired:
+            code = "timed out"
     print((Path(a.out) / "logs" / "bench_cuda.log").read_text(), flush=True)
     return {"returncode": code, **(json.loads(out.read_text()) if out.is_file() else {})}
 
