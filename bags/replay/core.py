@@ -110,11 +110,13 @@ def _run(run: ReplayRun, progress: Callable | None) -> ReplayResult:
         run.tmp_frames.mkdir()
     with BagWriter(run.out / BAG_DIR, storage=options.storage, force=options.force) as bw:
         sink = FrameSink(run, bw, scorer)
+        done = False
         try:
             tally = map_frames(run, sink.finish, bar)
+            done = True
         finally:
             bar.close()
-            sink.close()
+            sink.close(abandon=not done)
     tally.damage = _damage_note(tally.damage, run.reader)
     # the output bag is in place; now the pictures, the GIF and last the metrics
     return write_outputs(run, sink, tally)

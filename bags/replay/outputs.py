@@ -14,10 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bev_mapper_core.geometry.grid import BevGrid
-from bev_mapper_core.labels.classes import bev_picture
 from bev_mapper_core.mapper import BevPrediction
-from msg_adapters import make_image, make_occupancy_grid
 
 from ..errors import BagCorruptError
 from ..files import write_atomic
@@ -27,6 +24,7 @@ from ..io.writer import BagWriter
 from ..report.html import render_report
 from ..report.pictures import comparison_picture, encode_gif, encode_png
 from ..report.reliability import reliability_picture
+from .frame_messages import published_percent, write_frame_messages
 from .frame_scores import FrameScores
 from .mapping import MappingTally
 from .options import (
@@ -41,6 +39,7 @@ from .options import (
     ReplayResult,
     ReplayRun,
 )
+from .pipeline import InOrder
 from .scoring import ReplayScorer, percentiles
 
 
@@ -114,7 +113,9 @@ class InfoCopier:
 
 
 class FrameSink:
-    """The outputs of each mapped frame, written in frame order by :meth:`finish`.
+    """The outputs of each mapped frame, in frame order: :meth:`finish` scores it, then writes its
+    messages into the output bag and its picture (with a pipeline, the writing in a thread of its
+    own, :class:`~bags.replay.pipeline.InOrder`, while the next frame is scored).
 
     Opening it declares the output bag's topics (``/bev/<class>``, ``/bev/image``, the copied
     calibration) and its ``custom_data`` (the input's, plus ``bev_mapper.replay``: method, input,
@@ -139,20 +140,32 @@ class FrameSink:
         self.pictures: list[Path] = []
         self.gif_frames: list[np.ndarray] = []
         self.bag_counts: dict[str, int] = {}
+        self._writing = InOrder(options.pipeline) if options.pipeline else None
 
     def finish(self, frame, pred: BevPrediction, index: int) -> None:
-        """Copy the calibration up to the frame, write its grids, score it, draw it."""
-        run, mapper, scorer = self.run, self.run.mapper, self.scorer
-        self.copier.upto(_frame_time(frame))
-        write_frame_messages(self.bw, run.grid, mapper, pred, frame.stamp_ns, self.ego)
-        gt, mask = scorer.update(frame, pred)
+        """Score the frame, then copy the calibration up to it, write its grids and draw it."""
+        scorer = self.scorer
+        percent = published_percent(pred.probs)  # (C, H, W), shared by the grids and the scores
+        gt, mask = scorer.update(frame, pred, percent)
         # the frame's IoU as the scorer counted it (FrameScores.add would score it again alike)
         score = None if gt is None else self.scores.add_ious(
             frame.index, frame.stamp_ns, [c.name for c in scorer.classes], scorer.frame_iou)
+        if self._writing is None:
+            self._write(frame, pred, index, percent, gt, mask, score)
+        else:
+            self._writing.submit(self._write, frame, pred, index, percent, gt, mask, score)
+
+    def _write(self, frame, pred: BevPrediction, index: int, percent, gt, mask, score) -> None:
+        """The frame's messages in the output bag (after the calibration logged up to it) and
+        its picture.
+        """
+        run, mapper = self.run, self.run.mapper
+        self.copier.upto(_frame_time(frame))
+        write_frame_messages(self.bw, run.grid, mapper, pred, frame.stamp_ns, self.ego, percent)
         options = run.options
         if options.pictures and index % options.frames_every == 0:
             pic = comparison_picture(
-                run.grid, pred.probs, pred.known, mapper.classes, gt, mask, scorer.classes,
+                run.grid, pred.probs, pred.known, mapper.classes, gt, mask, self.scorer.classes,
                 method=options.mapper.method, caption=_caption(frame, score),
                 ious=None if score is None else score.ious)
             name = f"frame_{frame.index:04d}.png"
@@ -161,10 +174,17 @@ class FrameSink:
             if options.gif:
                 self.gif_frames.append(pic)
 
-    def close(self) -> None:
-        """Release the calibration copier; keep the output bag's message counts."""
-        self.copier.close()
-        self.bag_counts = dict(self.bw.counts)
+    def close(self, abandon: bool = False) -> None:
+        """Wait for the frames being written (``abandon``: only the one under way; a failure
+        while writing is raised unless abandoning), release the calibration copier, keep the
+        output bag's message counts.
+        """
+        try:
+            if self._writing is not None:
+                self._writing.close(abandon=abandon)
+        finally:
+            self.copier.close()
+            self.bag_counts = dict(self.bw.counts)
 
 
 def _frame_time(frame) -> int:
@@ -180,15 +200,6 @@ def _caption(frame, score) -> str:
     defined = [v for v in score.ious.values() if v is not None]
     miou = "-" if score.miou is None else f"{100 * score.miou:.1f}%"
     return text + f"  mIoU {miou} over {len(defined)} class(es)"
-
-
-def write_frame_messages(bw: BagWriter, grid: BevGrid, mapper, pred: BevPrediction, stamp: int, ego: str) -> None:
-    """``/bev/<class>`` grids and the ``/bev/image`` picture of one frame."""
-    for ci, c in enumerate(mapper.class_names):
-        bw.write(OUT_PREFIX + c, make_occupancy_grid(bw.factory, grid, pred.probs[ci], pred.known,
-                                                     stamp, ego), stamp)
-    picture = bev_picture(grid, pred.probs, mapper.classes, pred.known)
-    bw.write(IMAGE_TOPIC, make_image(bw.factory, picture, "rgb8", stamp, ego), stamp)
 
 
 def write_outputs(run: ReplayRun, sink: FrameSink, tally: MappingTally) -> ReplayResult:

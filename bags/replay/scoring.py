@@ -13,6 +13,7 @@ from bev_mapper_core.mapper import BevPrediction
 from bev_mapper_core.metrics import MetricAccumulator, WholeGridAccumulator, scope_masks
 
 from ..io import topics as T
+from .frame_messages import published_percent
 from .options import ReplayRun
 
 
@@ -54,33 +55,45 @@ class ReplayScorer:
         self._names = names
         self._pred_idx = [list(pred_names).index(c) for c in names]
         self._gt_idx = [[list(gt_names).index(g) for g in self.class_map[c]] for c in names]
+        self._single = [idx[0] for idx in self._gt_idx] if all(len(i) == 1 for i in self._gt_idx) else None
+        self._known_idx = sorted({i for idx in self._gt_idx for i in idx})  # the layers 'visible' needs
+        self._all_pred = self._pred_idx == list(range(len(pred_names)))  # every predicted class, in order
 
     @property
     def mapped(self) -> dict[str, list[str]]:
         """Predicted classes scored against GT layers of other names: ``{class: [gt layers]}``."""
         return {c: list(g) for c, g in self.class_map.items() if g != (c,)}
 
-    def update(self, frame, pred: BevPrediction):
-        """Score one frame; returns ``(gt (C', H, W) bool, visible (H, W))`` or ``(None, None)``."""
+    def update(self, frame, pred: BevPrediction, percent: np.ndarray | None = None):
+        """Score one frame; returns ``(gt (C', H, W) bool, visible (H, W))`` or ``(None, None)``.
+
+        ``percent``: the prediction's whole percent ``(C, H, W)``
+        (:func:`~bags.replay.frame_messages.published_percent`), computed here when not given.
+        """
         if self.acc is None or frame.gt is None:
             return None, None
         # a class covered by several GT layers is their union, known where all of them are
-        gt = np.stack([(frame.gt[idx] >= 0.5).any(axis=0) for idx in self._gt_idx])  # (C', H, W)
-        visible = np.stack([frame.gt_known[idx].all(axis=0) for idx in self._gt_idx]).all(axis=0)  # (H, W)
+        gt = self._union(frame.gt)  # (C', H, W)
+        visible = np.logical_and.reduce(frame.gt_known[self._known_idx], axis=0)  # (H, W)
         masks = scope_masks(self._names, visible, frame.ground_visibility, self.scope_used)
-        probs = pred.probs[self._pred_idx]
+        probs = pred.probs if self._all_pred else pred.probs[self._pred_idx]  # (C', H, W)
         #: the frame's own IoU per scored class (NaN: undefined), as FrameScores would score it
         self.frame_iou = self.acc.update(probs, gt, masks, pred.known)
-        truth = None
-        if frame.truth is not None:
-            truth = np.stack([(frame.truth[idx] >= 0.5).any(axis=0) for idx in self._gt_idx])
+        truth = None if frame.truth is None else self._union(frame.truth)
         seen = frame.visibility if frame.visibility is not None else visible
-        pct = np.rint(np.clip(probs, 0.0, 1.0) * 100.0)  # whole percent, as in the OccupancyGrids
+        # whole percent, as in the OccupancyGrids
+        pct = published_percent(probs) if percent is None else percent if self._all_pred else percent[self._pred_idx]
         published = pct / 100.0
         with np.errstate(invalid="ignore"):  # NaN only in unknown cells, which are not counted
-            percent = pct.astype(np.uint8)
-        self.whole.update(published, pred.known, seen, gt, truth, masks, percent=percent)
+            percent_u8 = pct.astype(np.uint8)
+        self.whole.update(published, pred.known, seen, gt, truth, masks, percent=percent_u8)
         return gt, visible
+
+    def _union(self, layers: np.ndarray) -> np.ndarray:
+        """``(C', H, W)`` bool: per scored class, its GT layers ``>= 0.5``, united."""
+        if self._single is not None:  # one layer per class: no union to take
+            return layers[self._single] >= 0.5
+        return np.stack([(layers[idx] >= 0.5).any(axis=0) for idx in self._gt_idx])
 
     def state(self) -> dict | None:
         """The mergeable state ``{"metrics": MetricAccumulator state, "whole":
