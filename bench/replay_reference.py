@@ -1,8 +1,15 @@
-"""The replay's scoring as it was before issue #28, for ``bench_replay_rate.py``'s reference:
-one distance transform of the whole grid per class and side for the Chamfer distances, the
-calibration counts summed cell by cell, and each frame's IoU for the captions scored a second
-time by ``FrameScores.add``. The outputs are the same (``tests/bags/replay/
-test_replay_scoring_unchanged.py``); :func:`reference_scoring` swaps it in for a block.
+"""The replay as it was before issue #28, for ``bench_replay_rate.py``'s references.
+
+:func:`reference_scoring`: the scoring before #28: one distance transform of the whole grid per
+class and side for the Chamfer distances, the calibration counts summed cell by cell, and each
+frame's IoU for the captions scored a second time by ``FrameScores.add``.
+
+:func:`reference_io`: the reading and writing before #28's second part: every message read by
+``rosbags`` (whole chunks, CRC-checked, deserialized into rosbags messages), every GT layer through
+``occupancy_grid_to_layer``, every grid and CameraInfo of the output bag serialized by rosbags.
+
+The outputs are the same (``tests/bags/replay/test_replay_scoring_unchanged.py``,
+``tests/bags/replay/test_replay_io_unchanged.py``); each swaps its path in for a block.
 """
 
 from __future__ import annotations
@@ -12,10 +19,16 @@ import contextlib
 import cv2
 import numpy as np
 
+import bags.io.reader.bag_reader as bag_reader
+import bags.io.reader.layers as layers
+import bags.io.sources as sources
 import bags.replay.outputs as outputs
 import bev_mapper_core.metrics.accumulator as accumulator
 import bev_mapper_core.metrics.whole_grid as whole_grid
-from bags.replay import FRAMES_DIR
+from bags.replay import FRAMES_DIR, IMAGE_TOPIC
+from bags.replay.options import OUT_PREFIX
+from bev_mapper_core.labels.classes import bev_picture
+from msg_adapters import make_image, make_occupancy_grid
 
 
 def reference_chamfer_terms(pred, gt, resolution, clip):
@@ -65,3 +78,39 @@ def reference_scoring():
         yield
     finally:
         accumulator._chamfer_terms, whole_grid._EXACT_PERCENT_CELLS, outputs.FrameSink.finish = saved
+
+
+def reference_write_frame_messages(bw, grid, mapper, pred, stamp, ego, percent=None):
+    """``/bev/<class>`` grids and the ``/bev/image`` picture, each message built and serialized
+    by rosbags (as before #28's second part)."""
+    del percent
+    for ci, c in enumerate(mapper.class_names):
+        bw.write(OUT_PREFIX + c, make_occupancy_grid(bw.factory, grid, pred.probs[ci], pred.known, stamp, ego),
+                 stamp)
+    picture = bev_picture(grid, pred.probs, mapper.classes, pred.known)
+    bw.write(IMAGE_TOPIC, make_image(bw.factory, picture, "rgb8", stamp, ego), stamp)
+
+
+def _reference_copy(self, m):
+    """Every copied message deserialized and serialized again by rosbags."""
+    try:
+        return self._writer.serialize(m.topic, self._reader.deserialize(m.msg, m.msgtype))
+    except Exception:  # noqa: BLE001 - as InfoCopier._copy
+        return None
+
+
+@contextlib.contextmanager
+def reference_io():
+    """Within the block, replays read and write as before #28's second part (see module docstring)."""
+    saved = (sources.IndexedMcap.__dict__["open"], bag_reader.fast_deserializer, layers.LayerDecoder.cells,
+             outputs.write_frame_messages, outputs.InfoCopier._copy)
+    sources.IndexedMcap.open = classmethod(lambda cls, path, verified: None)  # rosbags reads every file
+    bag_reader.fast_deserializer = lambda deserialize: deserialize
+    layers.LayerDecoder.cells = lambda self, msg: None
+    outputs.write_frame_messages = reference_write_frame_messages
+    outputs.InfoCopier._copy = _reference_copy
+    try:
+        yield
+    finally:
+        (sources.IndexedMcap.open, bag_reader.fast_deserializer, layers.LayerDecoder.cells,
+         outputs.write_frame_messages, outputs.InfoCopier._copy) = saved

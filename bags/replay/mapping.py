@@ -1,6 +1,6 @@
 """Mapping a replay's frames: read them (ahead, in a thread), map each (with temporal fusion when
-asked), time the mapper and hand the prediction on, in frame order, to the stage that scores and
-writes it (in a thread of its own, see :mod:`bags.replay.pipeline`).
+asked), time the mapper and hand the prediction on, in frame order, to the stage that scores it
+and has it written (in threads of their own, see :mod:`bags.replay.pipeline`).
 """
 
 from __future__ import annotations
@@ -71,7 +71,7 @@ def map_frames(run: ReplayRun, finish: Callable, bar) -> MappingTally:
             tally.latencies.append((time.perf_counter() - t0) * 1000.0)
             if stage is None:
                 finish(frame, pred, tally.mapped)
-            else:  # scored and written by the in-order thread while the next frame maps
+            else:  # scored (then written) by the in-order threads while the next frame maps
                 stage.submit(finish, frame, pred, tally.mapped)
             tally.mapped += 1
             bar.update(1)

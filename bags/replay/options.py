@@ -60,7 +60,8 @@ class ReplayOptions:
             off). Frames without odometry are mapped alone and counted.
         pipeline: frames in flight between the stages of the replay's pipeline
             (:mod:`bags.replay.pipeline`: one thread reads and decodes the next frames, this one maps,
-            one scores and writes the frames mapped before); 0 = one thread, every stage in turn.
+            one scores the frames mapped before, one writes the frames scored before); 0 = one
+            thread, every stage in turn.
             The outputs are the same either way, but the mapping latencies in ``metrics.json``
             are measured while the other stages run (0: the mapper's time alone).
         rig: what the bag lacks about its rig (``--rig``, ``--params-file``;

@@ -1,6 +1,7 @@
-"""Replay as a pipeline of three threads: :class:`Prefetch` reads the bag's next frames ahead
-(read, synchronized, decoded), the caller maps the current one, and :class:`InOrder` scores and
-writes the frame mapped before it.
+"""Replay as a pipeline of four threads: :class:`Prefetch` reads the bag's next frames ahead
+(read, synchronized, decoded), the caller maps the current one, an :class:`InOrder` scores the
+frame mapped before it and another writes the frame scored before that (its messages in the
+output bag, its picture).
 
 Reading, decoding, scoring and writing spend much of their time in C code that releases the GIL
 (MCAP chunk decompression, image conversion, numpy, OpenCV's distance transforms, PNG), so on a
