@@ -1,14 +1,21 @@
 """Benchmark: ``bev-bag replay``'s marginal rate (IPM, surround6 at 10 Hz) against real time and
-against the scoring before issue #28, measured in the same run.
+against the replay before issue #28, measured in the same run.
 
 Writes a synthetic surround6 drive (full-size 400x225 cameras, the standard 400x200 grid at
 0.15 m, 10 Hz) unless ``--bag`` is given. The marginal cost of a frame is the replay of the
 whole drive less the replay of its first third, over the frames between (the process start,
-opening the bag and the IPM tables cancel out). Each repeat replays with today's scoring and with
-the scoring before #28 (``replay_reference.py``: whole-grid distance transforms, per-cell
-calibration sums, each frame scored twice; the same outputs) in turn, interleaved, so both see
-the same machine load; the best of the repeats is reported. Every output is written: the output
-bag, the pictures (every ``--frames-every``), ``report.html`` and ``metrics.json``.
+opening the bag and the IPM tables cancel out). Each repeat replays three ways in turn,
+interleaved, so all see the same machine load (``replay_reference.py``; the same outputs):
+
+* ours;
+* ``io before``: the reading and writing before #28's second part (every message read and
+  deserialized by rosbags, every GT layer through ``occupancy_grid_to_layer``, every output
+  message serialized by rosbags), with today's scoring;
+* ``before #28``: that reading and writing and the scoring before #28 (whole-grid distance
+  transforms, per-cell calibration sums, each frame scored twice).
+
+The best of the repeats is reported. Every output is written: the output bag, the pictures
+(every ``--frames-every``), ``report.html`` and ``metrics.json``.
 
     .venv/bin/python bench/bench_replay_rate.py [--frames 60] [--repeat 3] [--bag BAG]
 """
@@ -16,6 +23,7 @@ bag, the pictures (every ``--frames-every``), ``report.html`` and ``metrics.json
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import shutil
 import tempfile
@@ -26,7 +34,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 from bench_replay import frame_rate  # noqa: E402
 from bench_rows import row, write_rows  # noqa: E402
-from replay_reference import reference_scoring  # noqa: E402
+from replay_reference import reference_io, reference_scoring  # noqa: E402
 
 from bags.cli.synth import SynthBagOptions, synth_bag  # noqa: E402
 from bags.replay import ReplayOptions, replay  # noqa: E402
@@ -41,6 +49,10 @@ def timed_replay(bag: Path, out: Path, frames: int | None, frames_every: int) ->
     result = replay(ReplayOptions(bag=bag, out=out, mapper=MapperConfig(method="ipm"), max_frames=frames,
                                   frames_every=frames_every))
     return time.perf_counter() - t0, result.metrics["frames"]
+
+
+#: the replays of each repeat, in turn: name -> the swaps of replay_reference.py it runs under
+MODES = {"ours": (), "io before": (reference_io,), "before #28": (reference_io, reference_scoring)}
 
 
 def main() -> None:
@@ -61,17 +73,16 @@ def main() -> None:
             synth_bag(SynthBagOptions(out=bag, synth=SynthConfig(frames=args.frames, seed=args.seed,
                                                                  rate_hz=args.rate_hz)))
         timed_replay(bag, tmp / "warm", 3, args.frames_every)  # imports, caches
-        best: dict[str, dict[str, float]] = {"ours": {}, "reference": {}}
+        best: dict[str, dict[str, float]] = {m: {} for m in MODES}
         n_all = n_few = 0
         for _ in range(args.repeat):
-            for mode in ("ours", "reference"):
+            for mode, swaps in MODES.items():
                 for part in ("all", "few"):
                     limit = None if part == "all" else max(1, (n_all or args.frames) // 3)
-                    if mode == "ours":
-                        wall, n = timed_replay(bag, tmp / f"{mode}_{part}", limit, args.frames_every)
-                    else:
-                        with reference_scoring():
-                            wall, n = timed_replay(bag, tmp / f"{mode}_{part}", limit, args.frames_every)
+                    with contextlib.ExitStack() as stack:
+                        for swap in swaps:
+                            stack.enter_context(swap())
+                        wall, n = timed_replay(bag, tmp / f"{part}", limit, args.frames_every)
                     if part == "all":
                         n_all = n
                     else:
@@ -81,16 +92,18 @@ def main() -> None:
         ms = {m: 1000.0 * (b["all"] - b["few"]) / (n_all - n_few) for m, b in best.items()}
         print(f"drive: {n_all} frames at {rate:.1f} Hz; marginal = (replay of all - replay of the first "
               f"{n_few}) / {n_all - n_few} frames, best of {args.repeat}, interleaved")
-        for m, label in (("ours", "ours"), ("reference", "scoring before #28")):
+        for m in MODES:
             x = f" = {1000.0 / ms[m] / rate:.1f}x real time"
-            print(f"{label:20s}: {ms[m]:6.1f} ms/frame marginal = {1000.0 / ms[m]:6.1f} frames/s{x}; "
+            print(f"{m:12s}: {ms[m]:6.1f} ms/frame marginal = {1000.0 / ms[m]:6.1f} frames/s{x}; "
                   f"whole replay {best[m]['all']:.2f} s")
-        write_rows(args.json, "bench_replay_rate.py", [row(
-            f"bev-bag replay, IPM, surround6 drive at {rate:.0f} Hz, marginal rate",
-            f"{1000.0 / ms['ours'] / rate:.1f}x real time ({ms['ours']:.1f} ms/frame)",
-            f"{1000.0 / ms['reference'] / rate:.1f}x real time (scoring before #28, same outputs)",
-            ms["reference"] / ms["ours"],
-            f"{n_all - n_few} frames past the first {n_few}; all outputs, pictures every {args.frames_every}")])
+        note = f"{n_all - n_few} frames past the first {n_few}; all outputs, pictures every {args.frames_every}"
+        path = f"bev-bag replay, IPM, surround6 drive at {rate:.0f} Hz, marginal rate"
+        ours = f"{1000.0 / ms['ours'] / rate:.1f}x real time ({ms['ours']:.1f} ms/frame)"
+        write_rows(args.json, "bench_replay_rate.py", [
+            row(path, ours, f"{1000.0 / ms['io before'] / rate:.1f}x real time (reading and writing before #28's "
+                "second part, same outputs)", ms["io before"] / ms["ours"], note),
+            row(path, ours, f"{1000.0 / ms['before #28'] / rate:.1f}x real time (reading, writing and scoring "
+                "before #28, same outputs)", ms["before #28"] / ms["ours"], note)])
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 

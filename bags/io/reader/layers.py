@@ -4,7 +4,8 @@ lookup table instead of :func:`msg_adapters.occupancy_grid_to_layer`'s arithmeti
 :func:`~msg_adapters.occupancy_grid_to_layer` checks the message's info against the grid, refuses
 cells outside -1..100 and converts the int8 cells to ``(probs float32, known bool)``. A frame
 holds 16 such layers; :class:`LayerDecoder` gives the same values by indexing tables of the 256
-possible bytes (built by the same arithmetic; OpenCV's ``LUT``), checks an info it has checked before by comparing
+possible bytes (built by the same arithmetic; OpenCV's ``LUT``; the known and ``>= 0.5`` cells by
+comparisons giving the tables' values), checks an info it has checked before by comparing
 its fields, and writes straight into the frame's ``(C, H, W)`` arrays. Any layer it is not sure of
 (a message not decoded by :mod:`bags.io.raw.cdr`, cells outside -1..100, a size that differs)
 goes through :func:`~msg_adapters.occupancy_grid_to_layer` itself, so errors read as before.
@@ -29,13 +30,17 @@ PROBS = np.zeros(256, np.float32)
 PROBS[_VALUES.view(np.uint8)] = np.where(_KNOWN, _VALUES.astype(np.float32) / 100.0, 0.0).astype(np.float32)
 KNOWN = np.zeros(256, bool)
 KNOWN[_VALUES.view(np.uint8)] = _KNOWN
-#: per byte: probability >= 0.5 (the visibility and truth layers' test), as bool and float32
+#: per byte: probability >= 0.5 (the visibility and truth layers' test)
 HALF = PROBS >= 0.5
-HALF_F32 = HALF.astype(np.float32)
-# the tables as cv2.LUT takes them: (1, 256), bool as uint8 0/1
-_LUT = {"probs": PROBS[None], "known": KNOWN.view(np.uint8)[None], "half": HALF.view(np.uint8)[None],
-        "half_f32": HALF_F32[None]}
-_UNKNOWN = np.uint8(255)  # -1 read as uint8
+# the probability table as cv2.LUT takes it: (1, 256)
+_PROBS_LUT = PROBS[None]
+_UNKNOWN = 255  # -1 read as uint8
+#: the cells >= 0.5 are those from this byte to 100: the same as HALF, by comparisons (faster)
+HALF_FROM = int(np.argmax(HALF))
+_BYTES = np.arange(256)
+if not (np.array_equal(HALF, (_BYTES >= HALF_FROM) & (_BYTES <= 100))
+        and np.array_equal(KNOWN[:101], _KNOWN[1:]) and not KNOWN[255]):
+    raise AssertionError("the comparisons of LayerDecoder no longer give the tables' values")
 
 
 def _info_key(info: Any) -> tuple:
@@ -69,7 +74,7 @@ class LayerDecoder:
                 return None
             self._checked.add(key)
         cells = data.view(np.uint8)
-        if np.count_nonzero(cells > 100) != np.count_nonzero(cells == _UNKNOWN):  # not all in -1..100
+        if np.add(cells, 1, dtype=np.uint8).max() > 101:  # some cell outside -1..100 (-1 + 1 wraps to 0)
             return None
         return cells.reshape(self.grid.shape)  # (H*W,) -> (H, W)
 
@@ -83,8 +88,8 @@ class LayerDecoder:
         if cells is None:
             probs[...], known[...] = occupancy_grid_to_layer(msg, self.grid)
             return
-        _lut(cells, "probs", probs)
-        _lut(cells, "known", known.view(np.uint8))
+        _lut(cells, probs)
+        np.not_equal(cells, _UNKNOWN, out=known)  # KNOWN's values
 
     def half(self, msg: Any, out: np.ndarray | None = None) -> np.ndarray:
         """``probs >= 0.5`` of ``msg`` ``(H, W)``: bool, or into ``out`` (bool or float32 0/1).
@@ -99,14 +104,15 @@ class LayerDecoder:
                 return half
             out[...] = half
             return out
+        half = np.subtract(cells, HALF_FROM, dtype=np.uint8) <= 100 - HALF_FROM  # HALF's values
         if out is None:
-            return cv2.LUT(cells, _LUT["half"]).view(bool)
-        _lut(cells, "half_f32" if out.dtype == np.float32 else "half", out if out.dtype == np.float32 else out.view(np.uint8))
+            return half
+        out[...] = half
         return out
 
 
-def _lut(cells: np.ndarray, table: str, out: np.ndarray) -> None:
-    """``out[...] = table[cells]`` through cv2.LUT, written in place."""
-    got = cv2.LUT(cells, _LUT[table], dst=out)
+def _lut(cells: np.ndarray, out: np.ndarray) -> None:
+    """``out[...] = PROBS[cells]`` through cv2.LUT, written in place."""
+    got = cv2.LUT(cells, _PROBS_LUT, dst=out)
     if got is not out and not np.shares_memory(got, out):  # OpenCV allocated anew: copy over
         out[...] = got
