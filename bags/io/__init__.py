@@ -12,8 +12,9 @@ Public names:
 
 Also here, imported on their own: :mod:`~bags.io.train_data` (bags as training data for
 ``bev-train``; it imports the core's training package), :mod:`~bags.io.input_checks`,
-:mod:`~bags.io.integrity`, :mod:`~bags.io.metadata`, :mod:`~bags.io.mcap_storage` and
-:mod:`~bags.io.sources` (the readers' storage back ends).
+:mod:`~bags.io.integrity`, :mod:`~bags.io.metadata`, :mod:`~bags.io.mcap_storage`,
+:mod:`~bags.io.sources` (the readers' storage back ends) and :mod:`~bags.io.raw` (messages read
+through an MCAP file's indexes, Images and OccupancyGrids decoded as views of their bytes).
 """
 
 from . import topics
