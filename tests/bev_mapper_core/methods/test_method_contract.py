@@ -14,6 +14,7 @@ import pathlib
 import numpy as np
 import pytest
 import yaml
+from augment_helpers import RUNS as TINY_RUNS
 
 from bev_mapper_core.geometry.grid import BevGrid
 from bev_mapper_core.geometry.rig import preset_rig
@@ -30,6 +31,10 @@ RIGS = {"bimapper": "cam2bev4", "segmenter": "front1", "s2g2": "front1", "focusb
 #: the mapper that runs a trainer's weights, and the MapperConfig field that names the file
 RUNS_AS = {"segmenter": ("segipm", "segmenter")}
 BACKENDS = [b for b in ("onnxruntime", "openvino") if importlib.util.find_spec(b) is not None]
+#: small sizes of the stand-in models (the exporter's time grows with the layers; the shipped sizes
+#: go through every backend in tests/bev_mapper_core/nn/test_backends.py)
+SIZES = {name: {k: v for k, v in keys.items() if k not in ("method", "rig", "input", "input_width")}
+         for name, (keys, _, _) in TINY_RUNS.items()}
 
 
 def test_the_table_is_both_registries_and_names_every_shipped_file():
@@ -67,7 +72,8 @@ def test_each_trainable_method_builds_round_trips_its_weights_and_maps(name, tmp
     monkeypatch.setenv(backends.CACHE_ENV, str(tmp_path / "cache"))
     rig = preset_rig(RIGS[name])
     cfg = TrainConfig.from_dict(dict(method=name, rig=rig.name, out=str(tmp_path / "run"), threads=1, progress=False, input_width=64,
-                                     cache=None, grid=(GRID.x_min, GRID.x_max, GRID.y_min, GRID.y_max, GRID.resolution)))
+                                     cache=None, grid=(GRID.x_min, GRID.x_max, GRID.y_min, GRID.y_max, GRID.resolution),
+                                     **SIZES.get(name, {})))
     torch.manual_seed(0)
     trained = method_class(name)(cfg, rig, cfg.grid)
     path = trained.save(tmp_path / "w.safetensors") or tmp_path / "w.safetensors"
