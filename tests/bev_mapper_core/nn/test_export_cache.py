@@ -1,7 +1,8 @@
-"""The ONNX export cache is verified before use (issue #29): per runtime, a damaged file (truncated,
+"""The ONNX export cache is verified before use (issue #29): a damaged file (truncated,
 emptied, text, bit-flipped, a directory in its place) and a stale one (another model's file under
 this key, a record of other weights) are exported again, said once in the log; the outputs are
-this module's, never the stale model's; a mapper started on a damaged cache maps."""
+this module's, never the stale model's; a file the runtime refuses, per runtime; a mapper started on a damaged
+cache maps."""
 
 from __future__ import annotations
 
@@ -81,6 +82,11 @@ def _damage(path, how: str, other=None) -> None:
 
 CASES = ["truncated", "empty", "text", "bitflip", "directory", "other_model", "record_of_other_weights",
          "record_missing", "record_damaged", "refused"]
+#: The file and record checks come before any runtime reads the file (export_cache.check_cached), so
+#: each runtime takes half of them (each export costs seconds); both take "refused", where the
+#: runtime itself is the check.
+CASES_OF = {"onnxruntime": CASES[0:9:2] + ["refused"], "openvino": CASES[1:9:2] + ["refused"]}
+assert sorted(set(sum(CASES_OF.values(), []))) == sorted(CASES)
 
 
 @pytest.mark.parametrize("backend", RUNTIMES)
@@ -101,7 +107,7 @@ def test_damaged_and_stale_cache_files_are_exported_again(backend, tmp_path, mon
     assert record["runtimes"][backend] == export_cache.runtime_version(backend)
     _, other_model = _run(other, x, backend)
     assert other_model.path != path
-    for how in CASES:
+    for how in CASES_OF[backend]:
         _damage(path, how, other_model.path)
         caplog.clear()
         with caplog.at_level(logging.WARNING, logger="bev_mapper.export_cache"):
@@ -120,8 +126,9 @@ def test_damaged_and_stale_cache_files_are_exported_again(backend, tmp_path, mon
     assert not caplog.records
 
 
-@pytest.mark.parametrize("backend", RUNTIMES)
-def test_calibration_and_input_size_change_the_cache_entry(backend, tmp_path, monkeypatch):
+def test_calibration_and_input_size_change_the_cache_entry(tmp_path, monkeypatch):
+    """The key is made from the module and inputs alone (export_cache.made_from): one runtime tells."""
+    backend = next((b for b in RUNTIMES if importlib.util.find_spec(b) is not None), RUNTIMES[0])
     _need(backend)
     monkeypatch.setenv(backends.CACHE_ENV, str(tmp_path))
     mine = Tiny(1)
