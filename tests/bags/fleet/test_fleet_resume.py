@@ -8,6 +8,7 @@ import json
 import shutil
 
 from bag_damage import GRID_ARGS
+from test_fleet_evaluate import _one_scorer
 
 from bags.cli.main import main
 from bags.fleet.evaluate import RECORD_FILE, SUMMARY_FILE
@@ -67,10 +68,9 @@ def test_resume_replays_changed_bags_and_redoes_damaged_records(tmp_path, capsys
         assert (out / "bags" / n / METRICS_FILE).stat().st_mtime_ns != stamps[n]
     assert (out / "bags" / "f" / METRICS_FILE).stat().st_mtime_ns == stamps["f"]
     assert list(out.rglob("*partial*")) == []
-    # the aggregate is that of a fresh evaluation of the bags as they are now
-    fresh = tmp_path / "fresh"
-    assert main(["evaluate", str(bags), "--out", str(fresh), "--workers", "2", *FAST]) == 0
-    want = json.loads((fresh / SUMMARY_FILE).read_text())["aggregate"]
+    # the aggregate is that of the bags as they are now (every frame through one scorer, as
+    # test_fleet_evaluate checks a fresh evaluation against)
+    want = _one_scorer([bags / n for n in names])
     got = s["aggregate"]
-    assert got["miou"] == want["miou"] and got["frames"] == want["frames"]
+    assert abs(got["miou"] - want["miou"]) <= 1e-9 and got["frames_scored"] == want["frames"] == 3 * len(names)
     assert first["aggregate"]["miou"] != got["miou"]  # bag a's new drive is in it
