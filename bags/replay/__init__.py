@@ -8,7 +8,8 @@ latencies), and the output names :data:`BAG_DIR`, :data:`FRAMES_DIR`, :data:`MET
 
 Modules: :mod:`~bags.replay.core` (:func:`replay`, see its docstring for the outputs),
 :mod:`~bags.replay.options`, :mod:`~bags.replay.mapping`, :mod:`~bags.replay.scoring`,
-:mod:`~bags.replay.outputs`, :mod:`~bags.replay.frame_scores` and :mod:`~bags.replay.pipeline`.
+:mod:`~bags.replay.outputs`, :mod:`~bags.replay.frame_messages` (a frame's messages in the output
+bag), :mod:`~bags.replay.frame_scores` and :mod:`~bags.replay.pipeline`.
 """
 
 from .core import replay

@@ -26,7 +26,8 @@ own CameraInfo and ``/tf_static`` and the grid from its GT layers (``options.gri
 The stages live beside this module: :mod:`~bags.replay.options` (options, result, output names,
 the run's state), :mod:`~bags.replay.mapping` (reading and mapping the frames),
 :mod:`~bags.replay.scoring` (the scorer), :mod:`~bags.replay.outputs` (writing each frame, then
-the rest) and :mod:`~bags.replay.pipeline` (the threads between them).
+the rest; the frame's messages in :mod:`~bags.replay.frame_messages`) and
+:mod:`~bags.replay.pipeline` (the threads between them).
 
 Every file appears under its final name only when complete. A damaged bag is replayed up to
 the damage: the outputs of the frames before it are completed and :attr:`ReplayResult.damage`
