@@ -61,6 +61,19 @@ RUNS: dict[str, list[str]] = {
                      "--epochs", "20", "--frames-per-epoch", "800", "--batch", "4", "--lr", "1e-3",
                      "--lr-step-epoch", "15", "--val-frames", "40", "--ipm-skip", "--pos-weight", "none"],
 }
+# The second GPU session's rows (issue #26's ablations), on fixed recipes (``--no-plan``): the
+# S2G2 rows with the same steps as each other and a gradient clip (run 1's semi-supervised run
+# diverged at epoch 12), the FocusBEV rows with the steps of run 1's full FocusBEV (18 epochs).
+_S2G2_FIXED = ["--epochs", "28", "--lr-step-epoch", "21", "--grad-clip", "5"]
+_FB_FIXED = ["--epochs", "18", "--lr-step-epoch", "14"]
+RUNS.update({
+    "s2g2_clip": RUNS["s2g2"] + _S2G2_FIXED,
+    "s2g2_semi_clip": RUNS["s2g2_semi"] + _S2G2_FIXED,  # + CamVid's frames with --camvid
+    "s2g2_semi_synth_clip": RUNS["s2g2_semi"] + _S2G2_FIXED,  # unlabeled synthetic frames only
+    "s2g2_384_clip": RUNS["s2g2"] + _S2G2_FIXED + ["--input-width", "384"],
+    "focusbev_mlp": RUNS["focusbev"] + _FB_FIXED + ["--decoder-layers", "0", "--no-cycle", "--window", "1"],
+    "focusbev_w1": RUNS["focusbev"] + _FB_FIXED + ["--window", "1"],
+})
 #: model settings without flags of their own, per run (given with --config): the end-to-end
 #: RGB Bi-Mapper's encoders take the shipped segmenter's trunk, so they have its sizes
 RUN_CONFIG: dict[str, dict] = {"bimapper_rgb": {"width_mult": 1.0, "depth_mult": 0.5, "encoder_stages": 5}}
@@ -93,7 +106,7 @@ def run_flags(name: str, tiny: bool, camvid: str | None, out: Path) -> list[str]
         path = out / f"config_{name}.yaml"
         path.write_text(json.dumps(config) + "\n")  # JSON is YAML
         flags = ["--config", str(path), *flags]
-    if name == "s2g2_semi" and camvid:
+    if name in ("s2g2_semi", "s2g2_semi_clip") and camvid:
         flags += ["--unlabeled-real", f"camvid:{camvid}"]
     return flags
 
@@ -199,10 +212,10 @@ def plan_epochs(flags: list[str], probe: dict, budget_s: float) -> list[str]:
     frame fits, fewer (at least 3) where 20 steps do not; the learning-rate step at the recipe's
     fraction of them.
     """
-    epoch = probe["history"][-1]
+    epoch = probe["history"][-1]  # the last probe epoch: warm (the first one pays for compiling and tuning)
     s_step = epoch["train_s"] / max(1, epoch["batches"])
     val_s = epoch["val_s"]
-    startup_s = max(0.0, probe["seconds"] - epoch["train_s"] - val_s)
+    startup_s = max(0.0, probe["seconds"] - sum(h["train_s"] + h["val_s"] for h in probe["history"]))
     avail = max(60.0, budget_s - startup_s)
     batch = int(_flag(flags, "--batch", "8"))
     epochs = int(_flag(flags, "--epochs", "10"))
@@ -240,6 +253,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--camvid", default=None, help="CamVid folder: its training images as unlabeled real frames")
     p.add_argument("--bench", action="store_true", help="then time every method on the GPU (bench/bench_cuda.py)")
     p.add_argument("--pack", default=None, help="copy the trained weights, a log archive and summary.json here")
+    p.add_argument("--no-plan", action="store_true",
+                   help="no probes: train each recipe's epochs as written (ablation rows of equal steps)")
+    p.add_argument("--extra", default="", help="bev-train flags added to every run (e.g. '--input-width 384')")
     p.add_argument("--tiny", action="store_true", help="tiny runs: the CPU check of this script")
     a = p.parse_args(argv)
     t0 = time.monotonic()
@@ -251,20 +267,24 @@ def main(argv: list[str] | None = None) -> int:
     a.cache = a.cache or str(Path(a.out) / "cache")
     a.threads = a.threads or max(1, (os.cpu_count() or 1) // len(names))
     (Path(a.out) / "logs").mkdir(parents=True, exist_ok=True)
-    flags = {n: run_flags(n, a.tiny, a.camvid, Path(a.out)) for n in names}
+    flags = {n: run_flags(n, a.tiny, a.camvid, Path(a.out)) + a.extra.split() for n in names}
     jobs = [j for n in names for j in drive_jobs(flags[n], a.cache)]
     render_s = render(jobs, a.workers)
     print(f"rendered {len({(j[2], j[3]) for j in jobs})} drives in {render_s:.1f} s", flush=True)
     cached = _cache_files(a.cache)
     summary = {"render_s": round(render_s, 1), "device": a.device, "tiny": a.tiny, "flags": flags}
-    probe_extra = {n: ["--epochs", "1", "--frames-per-epoch", str(a.probe_steps * int(_flag(flags[n], "--batch", "1")))]
-                   for n in names}
-    probes = launch(names, flags, a, "probe", None, probe_extra)
-    summary["probe"] = probes
-    print("probes: " + ", ".join(f"{n} {s['returncode']} ({s['seconds']} s)" for n, s in probes.items()), flush=True)
-    ok = [n for n in names if probes[n]["returncode"] == 0 and probes[n]["history"]]
+    probe_extra = {n: ["--epochs", "2", "--frames-per-epoch", str(a.probe_steps * int(_flag(flags[n], "--batch", "1")))]
+                   for n in names}  # two epochs: the second one's rate is the warm one
+    if a.no_plan:  # the recipes as they are; the deadline still stops them
+        ok, plans = names, {}
+    else:
+        probes = launch(names, flags, a, "probe", None, probe_extra)
+        summary["probe"] = probes
+        print("probes: " + ", ".join(f"{n} {s['returncode']} ({s['seconds']} s)" for n, s in probes.items()),
+              flush=True)
+        ok = [n for n in names if probes[n]["returncode"] == 0 and probes[n]["history"]]
     budget_s = a.deadline_min * 60.0 - (time.monotonic() - t0) - a.reserve_s
-    plans = {n: plan_epochs(flags[n], probes[n], budget_s) for n in ok}
+    plans = plans if a.no_plan else {n: plan_epochs(flags[n], probes[n], budget_s) for n in ok}
     summary["plan"] = {"budget_s": round(budget_s, 1), **plans}
     print(f"training budget {budget_s:.0f} s: {plans}", flush=True)
     status = launch(ok, flags, a, "runs", budget_s / 60.0, plans) if ok else {}
@@ -325,6 +345,7 @@ def pack(a, status: dict) -> None:
 #: run name -> the file name its weights ship under
 SHIP_NAMES = {"s2g2": "s2g2_front1_rgb.safetensors", "s2g2_semi": "s2g2_front1_rgb_semi.safetensors",
               "focusbev": "focusbev_front1_rgb.safetensors", "bimapper_rgb": "bimapper_surround6_rgb.safetensors"}
+SHIP_NAMES.update({n: f"{RUNS[n][1]}_{RUNS[n][3]}_rgb_{n}.safetensors" for n in RUNS if n not in SHIP_NAMES})
 
 
 if __name__ == "__main__":

@@ -103,6 +103,9 @@ class TrainConfig:
         epochs, frames_per_epoch (None = every training frame), batch, lr, seed.
         lr_step_epoch: 0-based epoch from which lr is multiplied by ``lr_gamma``; None = the
             paper's epoch 10 of 30 scaled to ``epochs``.
+        grad_clip: clip the gradients' global L2 norm to this before each step (None = off):
+            guards against a loss spike throwing a run off (one S2G2 run's BEV loss jumped
+            2000-fold in one epoch at Adam lr 1e-3 and never recovered).
         train_drives, val_drives, frames_per_drive, stride: synthetic data (see ``data.py``).
         val_seeds: explicit held-out drive seeds (default: ``val_seeds(val_drives)``).
         val_frames: frames of the held-out set scored after each epoch (None = all).
@@ -155,6 +158,7 @@ class TrainConfig:
     lr: float = 1e-3
     lr_gamma: float = 0.1
     lr_step_epoch: int | None = None
+    grad_clip: float | None = None
     seed: int = 0
     train_drives: int = 40
     val_drives: int = 6
@@ -221,6 +225,9 @@ class TrainConfig:
             raise ConfigError(f"seed must be an integer >= 0, got {self.seed!r}")
         if self.device.split(":")[0] not in ("cpu", "cuda"):
             raise ConfigError(f"device must be cpu or cuda[:N], got {self.device!r}")
+        if self.grad_clip is not None and (isinstance(self.grad_clip, bool) or not isinstance(self.grad_clip, (int, float))
+                                           or not math.isfinite(self.grad_clip) or self.grad_clip <= 0):
+            raise ConfigError(f"grad_clip must be a finite number > 0 (or absent), got {self.grad_clip!r}")
         if self.time_budget_min is not None and not self.time_budget_min > 0:
             raise ConfigError(f"time_budget_min must be > 0, got {self.time_budget_min}")
         if self.val_seeds is not None and not self.val_seeds:

@@ -236,6 +236,8 @@ def _train(cfg: TrainConfig, log: Callable[[str], None], data: DataSource | tupl
                                     f"at step {state.step}")
             opt.zero_grad(set_to_none=True)
             loss.backward()
+            if cfg.grad_clip is not None:
+                torch.nn.utils.clip_grad_norm_(method.model.parameters(), cfg.grad_clip)
             opt.step()
             state.step += 1
             method.after_step(state.step)

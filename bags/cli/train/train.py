@@ -78,6 +78,8 @@ def configure(p: argparse.ArgumentParser, argv: list[str]) -> None:
     p.add_argument("--batch", type=pos_int)
     p.add_argument("--lr", type=pos_float)
     p.add_argument("--lr-step-epoch", dest="lr_step_epoch", type=nonneg_int, help="0-based; default paper 10/30 scaled")
+    p.add_argument("--grad-clip", dest="grad_clip", type=pos_float,
+                   help="clip the gradients' global norm to this before each step (default off)")
     p.add_argument("--seed", type=nonneg_int)
     p.add_argument("--train-drives", dest="train_drives", type=pos_int)
     p.add_argument("--val-drives", dest="val_drives", type=pos_int)

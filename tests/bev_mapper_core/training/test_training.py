@@ -119,6 +119,25 @@ def test_short_training_lowers_the_loss(tmp_path, tiny_data):
     assert json.loads((out / "last.json").read_text())["config"]["epochs"] == 6
 
 
+def test_grad_clip_bites_only_when_the_gradient_is_larger(tmp_path, tiny_data):
+    """A clip far above the gradients' norm changes nothing (bit-identical weights); a tiny one
+    changes the run; a bad value is a config error."""
+    tr, va, _ = tiny_data
+
+    def weights(name, **kw):
+        train(tiny_cfg(tmp_path / name, epochs=1, out=str(tmp_path / name), **kw), log=lambda s: None, data=(tr, va))
+        from safetensors.torch import load_file
+
+        return load_file(str(tmp_path / name / "last.safetensors"))
+
+    plain, loose, tight = weights("plain"), weights("loose", grad_clip=1e9), weights("tight", grad_clip=1e-4)
+    assert all(torch.equal(plain[k], loose[k]) for k in plain)
+    assert any(not torch.equal(plain[k], tight[k]) for k in plain if plain[k].is_floating_point())
+    for bad in (0, -1.0, float("nan"), True):
+        with pytest.raises(ConfigError, match="grad_clip"):
+            tiny_cfg(tmp_path, grad_clip=bad)
+
+
 def test_resume_continues_from_the_saved_epoch(tmp_path, tiny_data):
     tr, va, _ = tiny_data
     full = train(tiny_cfg(tmp_path / "a", epochs=3, out=str(tmp_path / "a")), log=lambda s: None, data=(tr, va))
