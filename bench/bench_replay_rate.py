@@ -17,13 +17,17 @@ interleaved, so all see the same machine load (``replay_reference.py``; the same
 The best of the repeats is reported. Every output is written: the output bag, the pictures
 (every ``--frames-every``), ``report.html`` and ``metrics.json``.
 
-    .venv/bin/python bench/bench_replay_rate.py [--frames 60] [--repeat 3] [--bag BAG]
+``--stages`` also replays ours on one thread (``--pipeline 0``) with each stage timed, and prints
+each stage's marginal cost per frame: where the time of a frame goes.
+
+    .venv/bin/python bench/bench_replay_rate.py [--frames 60] [--repeat 3] [--bag BAG] [--stages]
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import os
 import shutil
 import tempfile
@@ -42,13 +46,65 @@ from bev_mapper_core.mapper import MapperConfig  # noqa: E402
 from bev_mapper_core.synth.config import SynthConfig  # noqa: E402
 
 
-def timed_replay(bag: Path, out: Path, frames: int | None, frames_every: int) -> tuple[float, int]:
+def timed_replay(bag: Path, out: Path, frames: int | None, frames_every: int, pipeline: int = 4) -> tuple[float, int]:
     """Wall seconds of one replay (IPM, all outputs) and the frames it mapped."""
     shutil.rmtree(out, ignore_errors=True)
     t0 = time.perf_counter()
     result = replay(ReplayOptions(bag=bag, out=out, mapper=MapperConfig(method="ipm"), max_frames=frames,
-                                  frames_every=frames_every))
+                                  frames_every=frames_every, pipeline=pipeline))
     return time.perf_counter() - t0, result.metrics["frames"]
+
+
+def _stages() -> list[tuple[str, object, str]]:
+    """``(label, owner, attribute)`` of each timed stage, outermost first."""
+    import bags.io.reader.assembly as assembly  # noqa: PLC0415
+    import bags.replay.mapping as mapping  # noqa: PLC0415
+    import bags.replay.outputs as outputs  # noqa: PLC0415
+    import bags.replay.scoring as scoring  # noqa: PLC0415
+    from bev_mapper_core.metrics import MetricAccumulator, WholeGridAccumulator, accumulator  # noqa: PLC0415
+
+    return [("read: frames built (layers, images, odometry)", assembly.FrameAssembler, "build"),
+            ("map: IPM", mapping, "_map_frame"),
+            ("score: ReplayScorer.update", scoring.ReplayScorer, "update"),
+            ("  MetricAccumulator.update", MetricAccumulator, "update"),
+            ("    of which Chamfer distances", accumulator, "_chamfer_terms"),
+            ("  WholeGridAccumulator.update", WholeGridAccumulator, "update"),
+            ("write: grids and /bev/image", outputs, "write_frame_messages"),
+            ("write: CameraInfo copied", outputs.InfoCopier, "upto"),
+            ("pictures: drawn and PNG", outputs, "comparison_picture"),
+            ("", outputs, "encode_png")]
+
+
+def stage_times(bag: Path, frames: int, frames_every: int) -> tuple[float, dict[str, float]]:
+    """One-thread replays of ``bag`` and of its first third, each stage timed: the marginal
+    ms/frame of the whole and of each stage (the frames' reading is the rest)."""
+    spent: dict[str, float] = {}
+    saved = []
+    for label, owner, name in _stages():
+        fn = getattr(owner, name)
+        saved.append((owner, name, fn))
+        key = label or "pictures: drawn and PNG"
+
+        @functools.wraps(fn)
+        def timed(*a, _fn=fn, _key=key, **k):
+            t0 = time.perf_counter()
+            try:
+                return _fn(*a, **k)
+            finally:
+                spent[_key] = spent.get(_key, 0.0) + time.perf_counter() - t0
+        setattr(owner, name, timed)
+    try:
+        runs = []
+        for limit in (None, max(1, frames // 3)):
+            spent.clear()
+            wall, n = timed_replay(bag, bag.parent / "stages", limit, frames_every, pipeline=0)
+            runs.append((wall, n, dict(spent)))
+    finally:
+        for owner, name, fn in saved:
+            setattr(owner, name, fn)
+    (wa, na, sa), (wf, nf, sf) = runs
+    per = {k: 1000.0 * (sa[k] - sf.get(k, 0.0)) / (na - nf) for k in sa}
+    return 1000.0 * (wa - wf) / (na - nf), per
 
 
 #: the replays of each repeat, in turn: name -> the swaps of replay_reference.py it runs under
@@ -64,6 +120,7 @@ def main() -> None:
     ap.add_argument("--frames-every", type=int, default=ReplayOptions.frames_every)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--json", default=None, help="also write the rows for bench/bench_table.py here")
+    ap.add_argument("--stages", action="store_true", help="also time each stage on one thread")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench_replay_rate_"))
     try:
@@ -96,6 +153,13 @@ def main() -> None:
             x = f" = {1000.0 / ms[m] / rate:.1f}x real time"
             print(f"{m:12s}: {ms[m]:6.1f} ms/frame marginal = {1000.0 / ms[m]:6.1f} frames/s{x}; "
                   f"whole replay {best[m]['all']:.2f} s")
+        if args.stages:
+            total, per = stage_times(bag, n_all, args.frames_every)
+            print(f"one thread (--pipeline 0), marginal: {total:.1f} ms/frame, of which")
+            for label, ms_ in per.items():
+                print(f"  {label:48s} {ms_:6.2f} ms")
+            timed_stages = sum(v for k, v in per.items() if not k.startswith(" "))
+            print(f"  {'the rest (reading the bag, synchronizing, ...)':48s} {total - timed_stages:6.2f} ms")
         note = f"{n_all - n_few} frames past the first {n_few}; all outputs, pictures every {args.frames_every}"
         path = f"bev-bag replay, IPM, surround6 drive at {rate:.0f} Hz, marginal rate"
         ours = f"{1000.0 / ms['ours'] / rate:.1f}x real time ({ms['ours']:.1f} ms/frame)"
