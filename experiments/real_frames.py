@@ -1,8 +1,11 @@
 r"""Pictures of real frames for the README: CamVid test image | the shipped segmenter's labels |
-the BEV map ``segipm`` makes of that one image.
+the BEV map ``segipm`` makes of that one image; with ``--methods``, CamVid test image | the BEV
+map of each method named (``segipm``, the learned monocular ``s2g2`` and ``focusbev``).
 
     .venv/bin/python experiments/real_frames.py --camvid /work/data/camvid \
         [--frames Seq05VD_f04350 Seq05VD_f01800] [--segmenter FILE] [--out docs/images/real_camvid.png]
+    .venv/bin/python experiments/real_frames.py --camvid /work/data/camvid --methods segipm,s2g2,focusbev \
+        [--s2g2-weights FILE] [--focusbev-weights FILE] [--out docs/images/real_camvid_methods.png]
 
 Each frame is one row: the 480x360 RGB image, the labels of the shipped segmenter
 (``bev_mapper_core/weights/segmenter.safetensors``, or ``--segmenter``) blended over it
@@ -24,6 +27,19 @@ test annotation) and ``Seq05VD_f01800`` (the most pavement of the test annotatio
 sequence (``0001TP_*``) segments well too, but its frames have cars and pedestrians close
 ahead, so occlusion reasoning leaves most of their BEV unknown beyond 5-10 m.
 
+**The methods picture** (``--methods``, :func:`compose_methods`, caption :data:`METHODS_CAPTION`).
+S2G2 and FocusBEV are trained for the ``front1`` rig (one 400x225, 16:9 camera) and load only
+for it, so every method there maps the frame as a ``front1`` frame (:func:`front1_frame`): the
+centred 16:9 crop of the 480x360 CamVid frame (480x270, the middle rows: the crop of
+``training/real_unlabeled.crop_to_aspect``) resized to 400x225 with the models' resize. The
+assumed mounting is then ``front1``'s camera itself (1.51 m high, level, 64.6 degrees across),
+the same for all columns: ``segipm`` runs on the same 400x225 frame and camera there (not on
+the full frame of :func:`assumed_rig`), so the columns differ only by method. FocusBEV maps
+each frame alone (no stamp, no pose: its memory holds nothing). The learned methods run on
+torch (``backend="torch"``, the reference runtime) with ``--s2g2-weights`` /
+``--focusbev-weights`` or the shipped files. One BEV legend for all the columns (the methods
+share the class colours) and a band naming the assumption.
+
 The picture is an 8-bit palette PNG (:func:`palette_png`: the flat colours exact, 256 colours
 in all; about 340 kB instead of 1 MB). CamVid (Brostow et al.) is CC BY-NC 4.0; only the derived
 picture is committed, never dataset files (``docs/images/ATTRIBUTION.md``).
@@ -32,6 +48,7 @@ picture is committed, never dataset files (``docs/images/ATTRIBUTION.md``).
 from __future__ import annotations
 
 import argparse
+import hashlib
 import struct
 import zlib
 from dataclasses import replace
@@ -54,8 +71,11 @@ from bev_mapper_core.labels.classes import (
     overlay_labels,
     resolve_classes,
 )
-from bev_mapper_core.mapper import MapperConfig
+from bev_mapper_core.errors import BevMapperError
+from bev_mapper_core.mapper import Mapper, MapperConfig, create_mapper
 from bev_mapper_core.methods.segipm.mapper import SegIpmMapper
+from bev_mapper_core.training.data import resize_rgb
+from bev_mapper_core.training.real_unlabeled import crop_to_aspect
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_FRAMES = ("Seq05VD_f04350", "Seq05VD_f01800")
@@ -66,6 +86,20 @@ CAPTION = (
     "this version, so the BEV uses an assumed front-camera mounting (the `front1` preset's camera, "
     "1.51 m high, scaled to 480 px wide) and is qualitative. Two frames picked for their content "
     "(cars and pedestrians; a wide pavement); written by `experiments/real_frames.py`."
+)
+#: the methods ``--methods`` can draw, in column order, and their column titles
+METHODS = {"segipm": "BEV: segipm (segmenter + IPM)", "s2g2": "BEV: S2G2", "focusbev": "BEV: FocusBEV"}
+#: the rig the methods picture maps every frame with (the learned methods' rig)
+METHODS_RIG = "front1"
+METHODS_CAPTION = (
+    "Real frames from the CamVid test split (Cambridge; not trained on) mapped by each method: the "
+    "image, then the BEV map `segipm` (the shipped segmenter + IPM), the learned monocular S2G2 and "
+    "FocusBEV make of that one image on the `ahead` grid (32 m x 32 m, forward up). S2G2 and FocusBEV "
+    "are trained for the `front1` camera (400x225, 16:9) on the synthetic town, so each 480x360 "
+    "frame is centre-cropped to 16:9 (480x270, shown) and resized to 400x225, and all three methods "
+    "map it as a `front1` frame: the assumed mounting is `front1`'s camera (1.51 m high, level, 64.6 "
+    "degrees across), not CamVid's (uncalibrated here), so the maps are qualitative. FocusBEV maps "
+    "each frame alone (no pose, empty memory). Written by `experiments/real_frames.py --methods`."
 )
 _BAND = 20  # height of the column titles and of the label legend rows (px)
 
@@ -149,6 +183,82 @@ def compose(images: list[np.ndarray], mapper: SegIpmMapper) -> np.ndarray:
     return np.vstack(parts)
 
 
+def front1_frame(image: np.ndarray, rig: Rig) -> tuple[np.ndarray, np.ndarray]:
+    """``(crop, frame)``: the centred crop of ``image`` ``(H, W, 3)`` to the aspect ratio of
+    ``rig``'s one camera, and that crop resized to the camera's size (the models' resize): the
+    frame the methods picture maps, as ``real_unlabeled`` makes real frames of a rig.
+    """
+    w, h = rig.cameras[0].model.image_size
+    crop = np.ascontiguousarray(crop_to_aspect(image, w, h))
+    return crop, resize_rgb(crop, (h, w))
+
+
+def method_mappers(methods: list[str], weights: dict[str, str | None], segmenter: str = "auto",
+                   threads: int = 2) -> dict[str, Mapper]:
+    """Method name -> its mapper for the ``front1`` rig and the ``ahead`` grid, RGB input, torch;
+    ``weights`` names the learned methods' files (None: the shipped one).
+
+    Raises:
+        BevMapperError: an unknown method, or weights that do not fit (the mapper's message).
+    """
+    rig, grid = preset_rig(METHODS_RIG), grid_preset("ahead")
+    out = {}
+    for m in methods:
+        config = MapperConfig(method=m, input_kind="rgb", weights=weights.get(m), segmenter=segmenter,
+                              threads=threads, backend="torch")
+        out[m] = create_mapper(rig, grid, config)
+    return out
+
+
+def compose_methods(images: list[np.ndarray], mappers: dict[str, Mapper], bev_scale: int = 2) -> np.ndarray:
+    """The methods picture: column titles; per image one row, its :func:`front1_frame` crop and
+    each mapper's BEV map of that frame alone (no pose); one BEV legend at the right; a band naming
+    the assumed camera.
+    """
+    first = next(iter(mappers.values()))
+    rig, grid = first.rig, first.grid
+    cam = rig.cameras[0].name
+    classes = tuple(resolve_classes(first.class_names))
+    paint = painter(grid, classes, bev_scale)
+    sep = 4
+    rows, w_img = [], 0
+    for image in images:
+        crop, frame = front1_frame(image, rig)
+        panels = []
+        for mapper in mappers.values():
+            mapper.reset()  # FocusBEV: each frame alone
+            pred = mapper.map({cam: frame})
+            panels.append(painter(grid, tuple(resolve_classes(pred.classes)), bev_scale).paint(pred.probs, pred.known))
+        h = max(crop.shape[0], *(p.shape[0] for p in panels))
+        parts = []
+        for p in [crop, *panels]:
+            cell = np.full((h, p.shape[1], 3), STRIP_BG, np.uint8)
+            top = (h - p.shape[0]) // 2
+            cell[top:top + p.shape[0]] = p
+            parts += [cell, np.full((h, sep, 3), STRIP_BG, np.uint8)]
+        rows.append(np.hstack(parts))
+        w_img = crop.shape[1]
+    gap = np.full((sep, rows[0].shape[1], 3), STRIP_BG, np.uint8)
+    body = np.vstack([part for r in rows for part in (r, gap)])
+    legend = paint.legend(body.shape[0])
+    body = np.vstack([body, np.full((legend.shape[0] - body.shape[0], body.shape[1], 3), STRIP_BG, np.uint8)])
+    body = np.hstack([body, legend])
+    width = body.shape[1]
+    titles = _title(width, "")
+    x = 6
+    for title, step in [("CamVid test image, centre 16:9 crop", w_img), *((METHODS.get(m, m), paint.width)
+                                                                       for m in mappers)]:
+        put_text(titles, title, x, 14)
+        x += step + sep
+    camera = rig.cameras[0]
+    (w, h), m = camera.model.image_size, camera.model
+    fov = np.degrees(2 * np.arctan(m.width / 2 / m.K_array[0, 0]))
+    band = _title(width, f"assumed mounting: the {rig.name} camera ({camera.ego_from_cam_array[2, 3]:.2f} m high, "
+                         f"{fov:.1f} deg across); each crop resized to {w}x{h} and mapped alone by every "
+                         "method; qualitative")
+    return np.vstack([titles, body, band])
+
+
 def fixed_colors() -> np.ndarray:
     """``(n, 3)`` uint8: the flat colours of the picture (label, BEV class, legend and band colours),
     kept exactly by :func:`palette_png`.
@@ -196,9 +306,21 @@ def main(argv=None) -> int:
     ap.add_argument("--camvid", type=Path, required=True, help="the CamVid folder (test/ inside)")
     ap.add_argument("--frames", nargs="+", default=list(DEFAULT_FRAMES), help="test image stems, one row each")
     ap.add_argument("--segmenter", default="auto", help="segmenter file (auto: the shipped one)")
-    ap.add_argument("--out", type=Path, default=ROOT / "docs" / "images" / "real_camvid.png")
+    ap.add_argument("--methods", default="",
+                    help=f"comma-separated methods of the methods picture ({','.join(METHODS)}); "
+                         "none: the labels picture")
+    ap.add_argument("--s2g2-weights", default=None, help="S2G2 weights file (default: the shipped one)")
+    ap.add_argument("--focusbev-weights", default=None, help="FocusBEV weights file (default: the shipped one)")
+    ap.add_argument("--out", type=Path, default=None,
+                    help="the picture (default: docs/images/real_camvid.png, with --methods real_camvid_methods.png)")
     ap.add_argument("--threads", type=int, default=2)
     a = ap.parse_args(argv)
+    methods = [m.strip() for m in a.methods.split(",") if m.strip()]
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        raise SystemExit(f"error: --methods: unknown {unknown}; choose from {list(METHODS)}")
+    if a.out is None:
+        a.out = ROOT / "docs" / "images" / ("real_camvid_methods.png" if methods else "real_camvid.png")
     torch.set_num_threads(a.threads)
     images = []
     for stem in a.frames:
@@ -209,14 +331,29 @@ def main(argv=None) -> int:
     h, w = images[0].shape[:2]
     if any(img.shape[:2] != (h, w) for img in images):
         raise SystemExit("error: the frames differ in size")
-    config = MapperConfig(method="segipm", input_kind="rgb", segmenter=a.segmenter, threads=a.threads)
-    mapper = SegIpmMapper(assumed_rig(w, h), grid_preset("ahead"), config)
-    picture = compose(images, mapper)
+    if methods:
+        weights = {"s2g2": a.s2g2_weights, "focusbev": a.focusbev_weights}
+        try:
+            mappers = method_mappers(methods, weights, a.segmenter, a.threads)
+            picture = compose_methods(images, mappers)
+        except (BevMapperError, OSError) as e:
+            raise SystemExit(f"error: {e}") from None
+        caption = METHODS_CAPTION
+        for m, mapper in mappers.items():
+            path = getattr(mapper, "weights_file", None)
+            if path is not None:
+                digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
+                print(f"{m}: weights {path} (sha256 {digest}...)")
+    else:
+        config = MapperConfig(method="segipm", input_kind="rgb", segmenter=a.segmenter, threads=a.threads)
+        mapper = SegIpmMapper(assumed_rig(w, h), grid_preset("ahead"), config)
+        picture = compose(images, mapper)
+        caption = CAPTION
     a.out.parent.mkdir(parents=True, exist_ok=True)
     buf = palette_png(picture)
     a.out.write_bytes(buf)
     print(f"wrote {a.out} ({picture.shape[1]}x{picture.shape[0]}, {len(buf) / 1024:.0f} kB)")
-    print(f"caption: {CAPTION}")
+    print(f"caption: {caption}")
     return 0
 
 
