@@ -59,6 +59,7 @@ import numpy as np
 import torch
 
 from bev_mapper_core.display import STRIP_BG, STRIP_FG, painter, put_text, text_size
+from bev_mapper_core.errors import BevMapperError
 from bev_mapper_core.geometry.camera import CameraModel
 from bev_mapper_core.geometry.grid import grid_preset
 from bev_mapper_core.geometry.rig import Rig, preset_rig
@@ -71,7 +72,6 @@ from bev_mapper_core.labels.classes import (
     overlay_labels,
     resolve_classes,
 )
-from bev_mapper_core.errors import BevMapperError
 from bev_mapper_core.mapper import Mapper, MapperConfig, create_mapper
 from bev_mapper_core.methods.segipm.mapper import SegIpmMapper
 from bev_mapper_core.training.data import resize_rgb
