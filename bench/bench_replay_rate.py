@@ -167,10 +167,10 @@ def main() -> None:
         path = f"bev-bag replay, IPM, surround6 drive at {rate:.0f} Hz, marginal rate"
         ours = f"{1000.0 / ms['ours'] / rate:.1f}x real time ({ms['ours']:.1f} ms/frame)"
         write_rows(args.json, "bench_replay_rate.py", [
-            row(path, ours, f"{1000.0 / ms['io before'] / rate:.1f}x real time (reading and writing before #28's "
-                "second part, same outputs)", ms["io before"] / ms["ours"], note),
-            row(path, ours, f"{1000.0 / ms['before #28'] / rate:.1f}x real time (reading, writing and scoring "
-                "before #28, same outputs)", ms["before #28"] / ms["ours"], note)])
+            row(path, ours, f"{1000.0 / ms['io before'] / rate:.1f}x real time ({ms['io before']:.1f} ms/frame; "
+                "reading and writing before #28's second part, same outputs)", ms["io before"] / ms["ours"], note),
+            row(path, ours, f"{1000.0 / ms['before #28'] / rate:.1f}x real time ({ms['before #28']:.1f} ms/frame; "
+                "reading, writing and scoring before #28, same outputs)", ms["before #28"] / ms["ours"], note)])
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
