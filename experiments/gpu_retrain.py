@@ -1,29 +1,35 @@
 """Retrain every shipped RGB model in one go on a lent GPU machine (issue #26), within minutes.
 
 One prepared command for a device session (an H100 / H200 with 16 CPU cores, about ten
-minutes of work): it renders the drives every run needs in parallel on the machine's cores,
-trains all runs at once on the GPU, each stopping (resumable) at the time budget, and writes
-the weights, logs and a summary under ``--out`` for the trip home. Weights trained on a GPU are
-scored again on CPU before they ship (``bev-train eval``, the commands in ``docs/RESULTS.md``).
+minutes of work). It renders the drives every run needs in parallel on the machine's cores,
+probes each run's rate (all at once, two short epochs) and plans each run's epochs to fill the
+time left before ``--deadline-min`` (``--no-plan``: the recipes' epochs as written), trains all
+runs at once on the GPU, each also stopped (resumably) by that budget, optionally times every
+method on the GPU (``--bench``: ``bench/bench_cuda.py``), and writes the weights, logs and a
+summary under ``--out`` (``--pack DIR``: the best weights and a log archive, for the trip home).
+Weights trained on a GPU are scored again on CPU before they ship
+(``experiments/score_rgb26.sh``, ``experiments/cards_rgb26.py``).
 
-Runs (``--runs``, default all; each a ``bev-train`` command of :data:`RUNS`, every one from the
-shipped backbone where the method has one, with the photometric augmentation on):
+Runs (``--runs``, default the first four; each a ``bev-train`` command of :data:`RUNS`, every
+one from the shipped segmenter's trunk, with the photometric augmentation on):
 
-* ``s2g2``: supervised-only S2G2, front1, ``ahead`` grid, its encoder the shipped segmenter's trunk;
+* ``s2g2``: supervised-only S2G2, front1, ``ahead`` grid;
 * ``s2g2_semi``: the same with unlabeled frames: synthetic drives in the held-out ``dusk`` style
   and, with ``--camvid DIR``, CamVid's training images (``--unlabeled-real``);
-* ``focusbev``: FocusBEV, front1, ``ahead`` grid (its ResNet has no shipped weights yet);
-* ``bimapper_rgb``: end-to-end RGB Bi-Mapper, surround6.
+* ``focusbev``: FocusBEV on the trunk (``--backbone efficientnet``), front1, ``ahead`` grid;
+* ``bimapper_rgb``: end-to-end RGB Bi-Mapper, surround6, its encoders of the trunk's sizes;
+* the second session's ablation rows on fixed recipes (``*_clip``, ``focusbev_mlp``,
+  ``focusbev_w1``: see :data:`RUNS`).
 
 The drives are rendered with the cache specs the runs themselves compute (the method's input
 size, classes, grid, frames, stride, style), so ``bev-train --cache`` finds every drive and
 renders none. Phases resume: rendered drives stay in the cache, runs continue with ``--resume``.
 
-    python experiments/gpu_retrain.py --out $OUT --device cuda --budget-min 8 [--camvid camvid]
-    .venv/bin/python experiments/gpu_retrain.py --out /tmp/gr --tiny        # the CPU check (seconds)
+    python experiments/gpu_retrain.py --out /tmp/gr --device cuda --deadline-min 9 --camvid camvid --bench --pack $OUT
+    .venv/bin/python experiments/gpu_retrain.py --out /tmp/gr --tiny        # the CPU check
 
 ``--tiny`` shrinks every run (one short drive, a few steps, small models) so that the whole
-script runs on a laptop CPU in about a minute: ``tests/experiments/test_gpu_retrain.py``.
+script runs on a CPU in about two minutes: ``tests/experiments/test_gpu_retrain.py``.
 """
 
 from __future__ import annotations
@@ -241,7 +247,7 @@ def main(argv: list[str] | None = None) -> int:
     """Command line entry (see the module docstring)."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", required=True, help="runs, logs and summary.json go here")
-    p.add_argument("--runs", default=",".join(RUNS), help=f"comma list of {list(RUNS)}")
+    p.add_argument("--runs", default=",".join(list(RUNS)[:4]), help=f"comma list of {list(RUNS)}")
     p.add_argument("--device", default="cpu", help="cpu | cuda")
     p.add_argument("--deadline-min", type=float, default=8.5,
                    help="the whole script's wall time: rendering, probes, training and the benchmark")

@@ -1,0 +1,73 @@
+"""Every RGB method can start from the shipped segmenter's trunk (issue #26): FocusBEV's
+``efficientnet`` backbone and Bi-Mapper's two encoders take it tensor for tensor; sizes that do
+not fit fall back (``auto``) or fail clearly (``segmenter``); the ResNet refuses a trunk."""
+
+from __future__ import annotations
+
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from bags.cli.train.train import train_parser  # noqa: E402
+from bev_mapper_core.errors import ConfigError  # noqa: E402
+from bev_mapper_core.geometry.rig import preset_rig  # noqa: E402
+from bev_mapper_core.methods.segmenter.model import Segmenter, SegmenterConfig  # noqa: E402
+from bev_mapper_core.methods.segmenter.stage import shipped_segmenter  # noqa: E402
+from bev_mapper_core.methods.segmenter.trunk import trunk_config  # noqa: E402
+from bev_mapper_core.methods.segmenter.weights import load_segmenter  # noqa: E402
+from bev_mapper_core.nn.weights import WeightsError  # noqa: E402
+from bev_mapper_core.training.config import TrainConfig  # noqa: E402
+from bev_mapper_core.training.method import method_class  # noqa: E402
+
+TINY_F1 = dict(method="focusbev", rig="front1", input="rgb", grid=[0.0, 8.0, -4.0, 4.0, 0.5], input_width=64,
+               channels=16, decoder_channels=8, backbone="efficientnet")
+TINY_S6 = dict(method="bimapper", rig="surround6", input="rgb", grid=[-4.0, 4.0, -2.0, 2.0, 0.5], input_width=64,
+               gv_hidden=8, decoder_min_channels=4, width_mult=1.0, depth_mult=0.5, encoder_stages=5)
+
+
+def build(keys: dict, **over):
+    """The training plug-in of ``keys`` (its model built, the trunk copied where asked)."""
+    cfg = TrainConfig.from_dict({**keys, **over})
+    torch.manual_seed(0)
+    return method_class(cfg.method)(cfg, preset_rig(cfg.rig), cfg.grid)
+
+
+def same(module: torch.nn.Module, trunk: dict) -> bool:
+    return all(torch.equal(v, trunk["encoder." + k]) for k, v in module.state_dict().items())
+
+
+def test_trunk_config_is_the_segmenters_encoder():
+    seg = Segmenter(SegmenterConfig())
+    from bev_mapper_core.nn.efficientnet import EfficientNet
+
+    built = EfficientNet(trunk_config()).state_dict()
+    assert {k: v.shape for k, v in built.items()} == {k: v.shape for k, v in seg.encoder.state_dict().items()}
+
+
+def test_focusbev_efficientnet_backbone_starts_from_the_shipped_trunk():
+    trunk = load_segmenter(shipped_segmenter("front1")).state_dict()
+    m = build(TINY_F1)
+    assert m.encoder_source is not None and same(m.model.backbone.trunk, trunk)
+    assert "EfficientNet trunk from" in m.describe()
+    scratch = build(TINY_F1, encoder_init="none")
+    assert scratch.encoder_source is None and not same(scratch.model.backbone.trunk, trunk)
+    x = torch.rand(1, 3, *m.model.input_size)
+    assert m.model(x)["logits"].shape[-2:] == m.grid.shape  # the pyramid feeds the column transformers
+    with pytest.raises(ConfigError, match="no pretrained weights"):
+        build({**TINY_F1, "backbone": "resnet", "backbone_width": 8}, encoder_init="segmenter")
+    with pytest.raises(ConfigError, match="backbone must be one of"):
+        build(TINY_F1, backbone="vgg")
+    assert train_parser("focusbev").parse_args(["--backbone", "efficientnet"]).backbone == "efficientnet"
+
+
+def test_bimapper_encoders_start_from_the_trunk_where_the_sizes_fit():
+    trunk = load_segmenter(shipped_segmenter("surround6")).state_dict()
+    m = build(TINY_S6)
+    assert same(m.model.cam_encoder.trunk, trunk) and same(m.model.lv.unet.encoder, trunk)
+    assert "encoders from" in m.describe()
+    other = build(TINY_S6, width_mult=0.5)  # auto: other sizes than the trunk's -> from scratch
+    assert other.encoder_source is None
+    with pytest.raises(WeightsError, match="does not fit this encoder"):
+        build(TINY_S6, width_mult=0.5, encoder_init="segmenter")
+    labels = build(TINY_S6, input="labels")  # auto on label input: nothing to copy
+    assert labels.encoder_source is None
