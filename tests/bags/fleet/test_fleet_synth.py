@@ -1,5 +1,5 @@
 """``bev-bag synth-many``: drives rendered as Ray tasks on a real local Ray runtime, output
-byte-identical with 1 and 2 workers, reruns skip, bev-train's data loading reads the cache."""
+byte-identical with 1 and 2 workers (and to ``bev-bag synth``'s), reruns skip, bev-train's data loading reads the cache."""
 
 from __future__ import annotations
 
@@ -108,15 +108,14 @@ def test_cache_identical_with_1_and_2_workers_and_bev_train_reads_it(tmp_path, c
 
 
 @pytest.mark.slow
-def test_bags_identical_with_1_and_2_workers_and_failures_listed(tmp_path, capsys):
+def test_bags_identical_to_bev_bag_synth_with_2_workers_and_failures_listed(tmp_path, capsys):
+    """The drives of 2 workers, finishing in any order, are byte for byte the bags ``bev-bag
+    synth`` writes for those seeds one after the other (1 worker against 2: the cache test)."""
     one, two = tmp_path / "w1", tmp_path / "w2"
-    assert main(["synth-many", str(one), "--seeds", "5..7", "--workers", "1", *BAG_ARGS]) == 0
+    for s in (5, 6, 7):
+        assert main(["synth", str(one / f"drive_{s}"), "--seed", str(s), *BAG_ARGS[:-1]]) == 0
     a = files(one)
     assert sorted(a) == [f"drive_{s}/{f}" for s in (5, 6, 7) for f in (f"drive_{s}.mcap", "metadata.yaml")]
-    # the bag `bev-bag synth` writes for that seed: the same code path
-    assert main(["synth", str(tmp_path / "single" / "drive_7"), "--seed", "7", *BAG_ARGS[:-1]]) == 0
-    assert files(tmp_path / "single" / "drive_7") == {k[len("drive_7/"):]: v for k, v in a.items()
-                                                      if k.startswith("drive_7/")}
     capsys.readouterr()
 
     # 2 workers; one drive cannot be placed (--force never replaces what is not a bag): the others complete
@@ -165,7 +164,7 @@ def test_sigterm_cancels_the_tasks_and_stops_ray(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[3])}
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        deadline = time.monotonic() + 40
+        deadline = time.monotonic() + 120  # Ray's start on a busy machine
         while not list(out.glob("*/drive_*.npz")) and time.monotonic() < deadline and proc.poll() is None:
             time.sleep(0.1)
         assert list(out.glob("*/drive_*.npz")), "no drive written"
