@@ -26,7 +26,7 @@ from bev_mapper_core.methods.bimapper.weights import load_state  # noqa: E402
 from bev_mapper_core.training import method as method_mod  # noqa: E402
 from bev_mapper_core.training.config import TrainConfig  # noqa: E402
 from bev_mapper_core.training.data import FrameSet, shard_slice  # noqa: E402
-from bev_mapper_core.training.distributed import DistributedError  # noqa: E402
+from bev_mapper_core.training.distributed import COLLECTIVE_TIMEOUT_S, DistributedError  # noqa: E402
 from bev_mapper_core.training.method import TrainMethod, register_train_method  # noqa: E402
 from bev_mapper_core.training.sources import TrainData  # noqa: E402
 from bev_mapper_core.training.trainer import TrainingError, train  # noqa: E402
@@ -203,7 +203,7 @@ def test_two_processes_give_the_loss_curve_and_weights_of_one(tmp_path, toy):
     assert len((out / "metrics.jsonl").read_text().splitlines()) == 3
     assert sorted(p.name for p in out.iterdir()) == sorted(p.name for p in (tmp_path / "one").iterdir())
     assert json.loads((out / "last.json").read_text())["config"]["nproc"] == 2
-    assert spawn_s < 40
+    assert spawn_s < COLLECTIVE_TIMEOUT_S / 10  # no rank waited for the collective timeout (no speed claim)
     # a run of 2 processes resumes in 1 (nproc may change on resume) and ends where 1 process does
     train(run_cfg(tmp_path, "part", nproc=2, epochs=2), log=lambda m: None, data=data)
     resumed = train(run_cfg(tmp_path, "part", epochs=3, resume=True), log=lambda m: None, data=data)
@@ -254,4 +254,4 @@ def test_a_failing_rank_ends_the_run_with_its_error(tmp_path, toy):
     t0 = time.time()
     with pytest.raises(DistributedError, match="rank 1: toy failure on purpose"):
         train(run_cfg(tmp_path, "fail", nproc=2, fail_rank=1), log=lambda m: None, data=data)
-    assert time.time() - t0 < 40  # not the collective timeout
+    assert time.time() - t0 < COLLECTIVE_TIMEOUT_S / 10  # not the collective timeout (no speed claim)
