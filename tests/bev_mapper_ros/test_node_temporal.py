@@ -1,8 +1,10 @@
 """The node's temporal fusion over real DDS: odometry on /odom aligns the frames, and the
-published grids equal the core's fusion (bev_mapper_core.temporal) of the core mapper's maps."""
+published grids equal the core's fusion (bev_mapper_core.temporal) of the core mapper's maps;
+abused odometry is counted and every frame still mapped (issue #29); FocusBEV's memory bank."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -32,15 +34,58 @@ def odometry(stamp_ns: int, T: np.ndarray) -> Odometry:
     return msg
 
 
-def test_node_fuses_frames_by_odometry_exactly_as_the_core(tmp_path, ros_domain):
+S = 1_000_000_000
+#: clean frames first (their grids are compared with the core's fusion), then the abused ones
+CLEAN, ABUSED = 4, 12
+
+
+def _abused(k: int, f) -> list:
+    """The odometry messages sent before abused frame ``k`` (the abuse of that frame)."""
+    T = f.world_from_ego.copy()
+    good = odometry(f.stamp_ns, T)
+    if k == 2:  # NaN position: refused by the adapter (bad_input), frame mapped without pose
+        msg = odometry(f.stamp_ns, T)
+        msg.pose.pose.position.x = math.nan
+        return [msg]
+    if k == 3:  # a non-unit quaternion: refused too
+        msg = odometry(f.stamp_ns, T)
+        msg.pose.pose.orientation.w *= 1.7
+        return [msg]
+    if k == 5:  # a 4 m spike (under the 5 m reset): a jump no vehicle makes
+        spike = T.copy()
+        spike[0, 3] += 4.0
+        return [odometry(f.stamp_ns, spike)]
+    if k == 6:  # ... and back; plus a NaN covariance on a good pose
+        good.pose.covariance[0] = math.nan
+        return [good]
+    if k == 7:  # a kilometre jump
+        far = T.copy()
+        far[0, 3] += 1000.0
+        return [odometry(f.stamp_ns, far)]
+    if k == 9:  # time going back, then the same stamp twice
+        return [odometry(f.stamp_ns - 5 * S, T), good, odometry(f.stamp_ns, T)]
+    if k == 10:  # a pose an hour in the future, then the right one
+        return [odometry(f.stamp_ns + 3600 * S, T), good]
+    return [good]
+
+
+def test_node_fuses_frames_by_odometry_exactly_as_the_core_and_counts_abused_odometry(tmp_path, ros_domain):
+    """One IPM node with temporal fusion, odometry on /odom. First 4 clean frames: the grids equal
+    the core's fusion of the core mapper's maps. Then 12 frames under abused odometry (issue #29):
+    NaN poses, a non-unit quaternion, a 4 m spike, a kilometre jump, a stamp going back, a
+    duplicated stamp, a NaN covariance and a pose far in the future. Every frame is still mapped
+    (finite grids, none withheld waiting for rejected odometry), each abuse is counted in
+    ``/diagnostics`` (``odometry_<kind>``, ``bad_input``) with the memory resets
+    (``temporal_resets``), and the node keeps running."""
     grid, rig = grid_preset("ahead"), preset_rig("front1")
     g = grid.to_dict()
     log = tmp_path / "node.log"
     proc = start_process(["bev_mapper_ros.mapper_node", "--ros-args", "--params-file", str(PARAMS),
                           "-p", "method:=ipm", "-p", "temporal_window:=2", "-p", "threads:=1",
+                          "-p", "diagnostics_period_s:=0.2",
                           "-p", f"classes:={list(CLASSES)}".replace("'", '"'),
                           *[a for k, v in g.items() for a in ("-p", f"grid.{k}:={float(v)}")]], ros_domain, log)
-    frames = list(generate_drive(rig, grid, SynthConfig(frames=4, seed=950_000_013)))
+    frames = list(generate_drive(rig, grid, SynthConfig(frames=CLEAN + ABUSED, seed=950_000_013)))
     node = None
     try:
         rclpy.init(domain_id=ros_domain)
@@ -48,12 +93,18 @@ def test_node_fuses_frames_by_odometry_exactly_as_the_core(tmp_path, ros_domain)
         odom = node.create_publisher(Odometry, "/odom", 50)
         d = Driver(node, rig, log, classes=CLASSES)
         assert spin_until(node, lambda: odom.get_subscription_count() > 0, 30.0), log.read_text()
-        for f in frames:
+        for i, f in enumerate(frames):
             assert d.calibrate(f.stamp_ns, 60.0), log.read_text()
-            odom.publish(odometry(f.stamp_ns, f.world_from_ego))
+            for msg in [odometry(f.stamp_ns, f.world_from_ego)] if i < CLEAN else _abused(i - CLEAN, f):
+                odom.publish(msg)
+                spin_until(node, lambda: False, 0.03)
             spin_until(node, lambda: False, 0.1)  # the pose is there before the image
             d.send_frame(f)
             assert d.wait_for(f.stamp_ns, 60.0), f"no grids for frame {f.index}:\n{log.read_text()}"
+        n = len(d.diags)
+        assert spin_until(node, lambda: len(d.diags) > n + 1, 10.0)
+        v = d.diag_values()
+        assert proc.poll() is None, log.read_text()
         assert loaded_torch(proc.pid) == []  # IPM with temporal fusion runs without torch
     finally:
         if node is not None:
@@ -63,7 +114,7 @@ def test_node_fuses_frames_by_odometry_exactly_as_the_core(tmp_path, ros_domain)
     mapper = IpmMapper(node_view_of_rig(rig, PARAMS), grid, MapperConfig(classes=CLASSES))
     fusion = TemporalFusion(grid, TemporalConfig(window=2))
     changed = 0
-    for f in frames:
+    for f in frames[:CLEAN]:
         alone = mapper.map({n: c.labels for n, c in f.cameras.items()})
         res = fusion.update(alone, f.stamp_ns, f.world_from_ego)
         assert res.note == "" and res.frames == (1 if f is frames[0] else 2)
@@ -73,6 +124,22 @@ def test_node_fuses_frames_by_odometry_exactly_as_the_core(tmp_path, ros_domain)
             assert np.abs(got - want).max() <= 1 and (got == want).mean() > 0.999, (c, f.index)
             changed += int((want != grid.to_occupancy(alone.probs[ci], alone.known)).any())
     assert changed > 0  # the fusion did something the single frames would not
+    for c in CLASSES:  # every frame mapped, grids within the occupancy range
+        assert len(d.grids[c]) == len(frames)
+        for msg in d.grids[c].values():
+            data = np.asarray(msg.data)
+            assert ((data >= 0) & (data <= 100) | (data == -1)).all()
+    counts = {k: int(v[k]) for k in v if k.startswith("odometry_") or k in ("temporal_resets", "bad_input",
+                                                                           "frames_without_pose")}
+    assert int(v["bad_input"]) >= 2, counts  # NaN position, non-unit quaternion
+    assert counts["odometry_jump"] >= 2, counts  # the spike (and back), the km jump (and back)
+    assert counts["odometry_bad_covariance"] >= 1, counts
+    assert counts["odometry_stamp_back"] >= 1 and counts["odometry_duplicate_stamp"] >= 1, counts
+    assert counts["odometry_far_stamp"] >= 1, counts
+    assert counts["temporal_resets"] >= 3, counts
+    assert int(v["clock_jumps_back"]) == 0
+    text = log.read_text()
+    assert "mapped without temporal fusion" in text and "Traceback" not in text  # said (throttled)
 
 
 def test_node_runs_focusbev_with_its_memory_bank_exactly_as_the_core(tmp_path, ros_domain):
