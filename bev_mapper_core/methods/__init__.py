@@ -16,7 +16,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
 
-#: The shipped weights files (``package_data``), named ``<method>_<rig>_<input>.safetensors``.
+#: The shipped weights files (``package_data``), named ``<method>_<rig>_<input>.safetensors``
+#: (the default of that method, rig and input); a further ``_<variant>`` names a file that is
+#: shipped but only used when passed as ``weights``.
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
 
 
@@ -62,13 +64,13 @@ METHODS: MappingProxyType[str, MethodSpec] = MappingProxyType({
     "bimapper": MethodSpec(
         mapper=f"{_PKG}.bimapper.mapper:BiMapperMapper", trainer=f"{_PKG}.bimapper.train:BiMapperMethod",
         weights=("bimapper_surround6_labels.safetensors", "bimapper_cam2bev4_labels.safetensors",
-                 "bimapper_front1_labels.safetensors"),
+                 "bimapper_front1_labels.safetensors", "bimapper_surround6_rgb_e2e.safetensors"),
         summary="Bi-Mapper (RA-L 2023): global-cross and local-self view streams, any rig",
     ),
     "s2g2": MethodSpec(
         mapper=f"{_PKG}.s2g2.mapper:S2G2Mapper", trainer=f"{_PKG}.s2g2.train:S2G2Method",
         presets={"front1_s2g2": {"rig": "front1", "input_kind": "rgb", "grid": "ahead"}},
-        weights=("s2g2_front1_rgb.safetensors",),
+        weights=("s2g2_front1_rgb.safetensors", "s2g2_front1_rgb_semi.safetensors"),
         summary="S2G2 (RA-L 2022): semi-supervised monocular BEV from one front camera",
     ),
     "focusbev": MethodSpec(
