@@ -228,8 +228,11 @@ class BiMapperMethod(TrainMethod):
         spec, kind = self.cfg.loss.encoder_init, self.cfg.model.input_kind
         if spec == "auto" and not same_trunk(self.cfg.model.encoder_config(3), trunk_config()):
             return model  # other sizes than the segmenter's trunk: from scratch
-        encoders = [m.trunk for m in [getattr(model, "cam_encoder", None)] if m is not None]
-        encoders += [lv.unet.encoder for lv in [getattr(model, "lv", None)] if lv is not None]
+        encoders = []  # the streams the configuration has: GV's camera encoder, LV's U-Net encoder
+        if getattr(model, "cam_encoder", None) is not None:
+            encoders.append(model.cam_encoder.trunk)
+        if getattr(model, "lv", None) is not None:
+            encoders.append(model.lv.unet.encoder)
         for encoder in encoders:
             self.encoder_source = init_encoder(encoder, spec, kind, self.rig.name)
         return model
