@@ -368,8 +368,9 @@ def test_diagnostics_error_when_nothing_is_mapped_or_images_stop(session, front_
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_signal_while_mapping_exits_0_quietly(tmp_path, front_frames, sig):
     """Bi-Mapper (the slow default) on one thread, fed at 20 Hz: the worker is mapping when
-    the signal comes. Exit 0, no [ERROR], no traceback."""
-    s = Session(tmp_path, ["-p", "rig:=front1", "-p", "threads:=1"], salt=23)
+    the signal comes. Exit 0, no [ERROR], no traceback. Backend torch: no ONNX export at the
+    first start (tens of seconds on a fresh machine; test_ros2_cli runs the README's commands on the default)."""
+    s = Session(tmp_path, ["-p", "rig:=front1", "-p", "threads:=1", "-p", "backend:=torch"], salt=23)
     try:
         d = Front1(s, front_frames)
         d.map_one(timeout=60.0)
