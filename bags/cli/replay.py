@@ -122,7 +122,7 @@ def add_replay_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gif", action="store_true", help="also write an animated replay.gif")
     p.add_argument("--no-report", action="store_true", help="write no report.html")
     p.add_argument("--pipeline", type=int, default=ReplayOptions.pipeline, metavar="N",
-                   help="frames in flight between the threads that read, map, and score and write (0 = one "
+                   help="frames in flight between the threads that read, map, score and write (0 = one "
                         "thread, every stage in turn; the outputs are the same; default: %(default)s)")
     p.add_argument("--storage", choices=STORAGES, default=ReplayOptions.storage, help="storage of bev_bag/")
     p.add_argument("--force", action="store_true", help="replace existing outputs in DIR")
