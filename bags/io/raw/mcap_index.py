@@ -71,7 +71,10 @@ class IndexedMcap:
             return None
         if any(c.compression not in DECOMPRESSORS for c in summary.chunk_indexes):
             return None
-        return cls(path, summary, verified)
+        try:
+            return cls(path, summary, verified)
+        except (OSError, ValueError):  # e.g. a file that cannot be memory-mapped
+            return None
 
     def close(self) -> None:
         """Release the memory map and the file."""
