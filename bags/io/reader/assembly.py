@@ -30,7 +30,7 @@ from msg_adapters import (
 
 from ...errors import BagContentError, BagCorruptError
 from .. import topics as T
-from ..input_checks import DECODE_ERRORS, StampDrift, stamp_problem
+from ..input_checks import DECODE_ERRORS, StampDrift
 from ..sync_report import SyncReport
 from .frame import BagFrame
 from .layers import LayerDecoder
@@ -97,8 +97,10 @@ def read_frames(reader: BagReader, *, rgb: bool, labels: bool, gt: bool, odom: b
             if m.topic == T.TF:
                 odom_buf.extend(asm.tf_poses(m.msg))
                 continue
-            bad = stamp_problem(m.msg)
-            stamp = header_stamp_ns(m.msg) if bad is None else 0
+            try:  # stamp_problem's rule, the stamp read once
+                stamp, bad = header_stamp_ns(m.msg), None
+            except AdapterError as exc:
+                stamp, bad = 0, str(exc)
             bad = bad or drift.problem(m.topic, stamp, m.log_ns)
             if bad is not None:
                 reader.issues.bad_stamp(m.topic, bad)
