@@ -39,7 +39,6 @@ from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from bev_mapper_core.errors import BevMapperError
-from bev_mapper_core.geometry.pose_buffer import PoseBuffer
 from bev_mapper_core.labels.classes import bev_picture
 from bev_mapper_core.labels.label_maps import label_map
 from bev_mapper_core.mapper import create_mapper, mapper_class, output_classes, preflight
@@ -56,17 +55,17 @@ from msg_adapters import (
     image_to_rgb,
     make_image,
     make_occupancy_grid,
-    odometry_to_state,
 )
 
 from .calibration import LiveCalibration
 from .command_line import CommandLineError, check_command_line, rcl_message, wants_help
 from .config import RUNTIME_PARAMETERS, NodeConfigError, node_config_from_params, with_runtime_parameters
+from .ego_pose import EgoPoses
 from .input_qos import RECHECK_S, CameraSubscription
-from .odometry import ClockWatch, OdometryWatch
+from .odometry import ClockWatch
 from .params import declare_parameters, parameter_help, read_parameters
 from .stats import WARN, NodeStats, clock_mismatch_text, diagnostic_values
-from .tf_source import TF_ERROR_KINDS, TfLookupError, make_tf_source
+from .tf_source import TF_ERROR_KINDS, make_tf_source
 from .worker import LatestSlot, Worker
 
 THROTTLE_S = 5.0
@@ -78,10 +77,6 @@ OUTPUT_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=Re
 
 class _ShuttingDown(Exception):
     """The node stops: the worker abandons its frame without a word."""
-
-
-#: How long a frame waits for the odometry (or TF) of its stamp (temporal fusion only).
-POSE_WAIT_S = 0.2
 
 
 class MapperNode(Node):
@@ -119,8 +114,6 @@ class MapperNode(Node):
             max_jump_m=cfg.tf_extrinsic_jump_m, on_problem=self._tf_problem,
         )
         self._sources_logged: dict[str, str] = {}
-        self._odom_seen = False
-        self.pose_used = ""  # where the last frame's pose came from: odom / tf / '' (none)
         self.sync = FrameSynchronizer(cfg.cameras, cfg.sync_config(), callback=self._on_set)
         self.slot: LatestSlot = LatestSlot()
         self.worker = Worker(self.slot, self._process, self._on_worker_error)
@@ -143,17 +136,16 @@ class MapperNode(Node):
             self.create_timer(RECHECK_S, self._contained("qos", self._recheck_qos))
         # the ego pose at each image stamp from odometry, for the temporal fusion (window > 1)
         # and for methods with their own memory (FocusBEV); neither: no odometry subscription
-        self.poses = PoseBuffer()
-        self._poses_lock = threading.Lock()
         self.fusion = TemporalFusion(cfg.grid, cfg.temporal) if cfg.temporal.window > 1 else None
         self.needs_pose = self.fusion is not None or mapper_class(cfg.mapper.method).uses_ego_pose
         # odometry vetted and counted before the memories see it; latency kept honest (issue #29)
-        self.odometry = OdometryWatch(cfg.temporal) if self.needs_pose else None
+        self.ego = EgoPoses(cfg, self.tf, self._stopping, self._data_now_ns, self._tf_problem,
+                            self._throttled_warning, self._bad_input) if self.needs_pose else None
+        self.odometry = self.ego.watch if self.ego is not None else None
         self.clock_watch = ClockWatch()
-        self._last_odom_mono: float | None = None
         if self.needs_pose and cfg.pose_source != "tf":
             self._subs.append(self.create_subscription(
-                Odometry, cfg.odom_topic, self._contained("odometry", self._odom_cb), 50))
+                Odometry, cfg.odom_topic, self._contained("odometry", self.ego.on_odometry), 50))
         self._grid_pubs = {c: self.create_publisher(OccupancyGrid, f"{cfg.output_prefix}/{c}", OUTPUT_QOS)
                            for c in self.class_names}
         self._image_pub = self.create_publisher(Image, f"{cfg.output_prefix}/image", OUTPUT_QOS)
@@ -246,80 +238,10 @@ class MapperNode(Node):
     def _on_set(self, synced) -> None:
         self.slot.put(synced)
 
-    def _pose_at(self, stamp_ns: int):
-        """The ego pose at ``stamp_ns`` from odometry or TF, as ``pose_source`` says (``auto``:
-        odometry once some arrived, else TF, else odometry that arrives within POSE_WAIT_S);
-        None when there is none (the fusion then maps the frame without its history and says
-        why). A TF failure is counted unless ``auto`` found the pose in odometry.
-        """
-        src = self.cfg.pose_source
-        if src == "odom" or self.tf is None or (src == "auto" and self._odom_seen):
-            self.pose_used = "odom"
-            return self._odom_pose_at(stamp_ns)
-        try:
-            pose = self._tf_pose_at(stamp_ns)
-        except TfLookupError as exc:
-            if src == "auto":
-                pose = self._odom_pose_at(stamp_ns)
-                if pose is not None:
-                    self.pose_used = "odom"
-                    return pose
-            self.pose_used = "tf"
-            self._tf_problem(exc.kind, f"ego pose: {exc}")
-            return None
-        self.pose_used = "tf"
-        return pose
-
-    def _tf_pose_at(self, stamp_ns: int):
-        """``odom_frame <- base_frame`` at ``stamp_ns`` (tf2 interpolates); waits up to
-        POSE_WAIT_S for TF to reach the stamp (the transform of the same instant often arrives
-        just after the images).
-
-        Raises:
-            TfLookupError: no transform at the stamp.
-        """
-        deadline = time.monotonic() + POSE_WAIT_S
-        while True:
-            try:
-                return self.tf.lookup(self.cfg.odom_frame, self.cfg.base_frame, stamp_ns)
-            except TfLookupError as exc:
-                ahead = exc.kind == "extrapolation" and "past" not in str(exc)
-                if not ahead or time.monotonic() > deadline or self._stopping.is_set():
-                    raise
-                time.sleep(0.005)
-
-    def _odom_pose_at(self, stamp_ns: int):
-        """The odometry pose at ``stamp_ns``; waits up to POSE_WAIT_S for odometry at or after the
-        stamp (odometry of the same instant often arrives just after the images), else None.
-        """
-        deadline = time.monotonic() + POSE_WAIT_S
-        flowing = self._last_odom_mono is not None and time.monotonic() - self._last_odom_mono < 1.0
-        while True:
-            with self._poses_lock:
-                pose, latest = self.poses.at(stamp_ns), self.poses.latest_stamp_ns
-            if not flowing:  # no odometry kept in the last second: no use waiting for it
-                return pose
-            if pose is not None or (latest is not None and latest >= stamp_ns) or time.monotonic() > deadline \
-                    or self._stopping.is_set():
-                return pose
-            time.sleep(0.005)
-
-    def _odom_cb(self, msg) -> None:
-        """Keep the ego pose of an odometry message (a bad one is counted and skipped)."""
-        try:
-            state = odometry_to_state(msg)
-            skew = self.stats.clock_skew_s  # node clock - newest image stamp
-            data_now = self._now_ns() - (0 if skew is None else int(skew * 1e9))
-            if self.odometry.received(state.stamp_ns, getattr(msg.pose, "covariance", None), data_now):
-                self._throttled_warning("odometry", f"odometry stamped {(state.stamp_ns - data_now) / 1e9:.1f} s "
-                                                    "ahead of the newest image skipped (odometry_far_stamp)")
-                return
-            with self._poses_lock:
-                self.poses.add(state.stamp_ns, state.world_from_ego)
-            self._odom_seen = True
-            self._last_odom_mono = time.monotonic()
-        except BevMapperError as exc:
-            self._bad_input(f"odometry: {exc}", "odometry")
+    def _data_now_ns(self) -> int:
+        """The node's clock moved onto the images' clock (the measured skew taken out)."""
+        skew = self.stats.clock_skew_s  # node clock - newest image stamp
+        return self._now_ns() - (0 if skew is None else int(skew * 1e9))
 
     def _reset_memories(self) -> None:
         """Drop the temporal fusion's and the method's memory (a pose they cannot align with)."""
@@ -465,7 +387,7 @@ class MapperNode(Node):
         if missing:
             self._throttled_warning("missing", f"mapping a set without cameras {missing} ({synced.reason}); "
                                                "/diagnostics counts them per camera (missing_by_camera)")
-        pose = self._pose_at(stamp) if self.needs_pose else None
+        pose = self.ego.at(stamp) if self.ego is not None else None
         if self.odometry is not None:  # vetted: a pose the memories cannot align with resets them
             verdict = self.odometry.vet(stamp, pose)
             if verdict.reset and verdict.pose is not None:
@@ -539,7 +461,7 @@ class MapperNode(Node):
         """
         values["tf"] = "off" if not self.cfg.use_tf else ("tf2_ros" if self.tf is not None else "not importable")
         values["extrinsics_source"] = ",".join(f"{c}:{s}" for c, s in self.calibration.sources().items())
-        values["pose_source"] = self.pose_used if self.needs_pose else ""
+        values["pose_source"] = self.ego.used if self.ego is not None else ""
         with self.stats.lock:
             for kind, n in self.tf_errors.items():
                 values[f"tf_errors_{kind}"] = n
