@@ -27,7 +27,7 @@ def _message(cells: np.ndarray, grid: BevGrid = GRID):
 def test_layers_equal_occupancy_grid_to_layer():
     rng = np.random.default_rng(5)
     dec = LayerDecoder(GRID)
-    for trial in range(20):
+    for _ in range(20):
         cells = rng.integers(-1, 101, GRID.width * GRID.height)
         cells[rng.random(cells.size) < 0.3] = rng.choice([-1, 0, 49, 50, 100])
         fast, slow = _message(cells)
