@@ -24,8 +24,8 @@ def test_gpu_script_runs_end_to_end_on_cpu_with_a_tiny_budget(tmp_path):
     out = tmp_path / "out"
     runs = ["s2g2_semi", "focusbev", "bimapper_rgb"]  # "s2g2" is s2g2_semi's code path without unlabeled frames
     cmd = [sys.executable, str(REPO / "experiments" / "gpu_retrain.py"), "--out", str(out), "--tiny",
-           "--workers", "2", "--deadline-min", "3", "--reserve-s", "10", "--probe-steps", "1", "--camvid", str(camvid),
-           "--runs", ",".join(runs), "--pack", str(tmp_path / "pack")]
+           "--workers", "2", "--no-plan", "--deadline-min", "3", "--reserve-s", "10", "--camvid", str(camvid),
+           "--runs", ",".join(runs), "--pack", str(tmp_path / "pack")]  # --no-plan: the probes' plan has its own test
     proc = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr + proc.stdout
     summary = json.loads((out / "summary.json").read_text())
@@ -35,7 +35,6 @@ def test_gpu_script_runs_end_to_end_on_cpu_with_a_tiny_budget(tmp_path):
         assert run["returncode"] == 0 and run["step"] >= 1 and "best.safetensors" in run["weights"], name
         assert (out / "runs" / name / "best.safetensors").stat().st_size > 0
         assert "--resume" not in (out / "logs" / f"runs_{name}.log").read_text().splitlines()[0]  # a fresh run
-        assert summary["probe"][name]["returncode"] == 0 and summary["plan"][name][0] == "--epochs"
         assert (tmp_path / "pack" / f"gpu_{name}.safetensors").stat().st_size > 0
     with tarfile.open(tmp_path / "pack" / "gpu_runs.tar.gz") as tar:
         assert {"summary.json", "runs/focusbev/best.json", "logs/runs_focusbev.log"} <= set(tar.getnames())
