@@ -123,9 +123,9 @@ def main(argv=None) -> int:
             continue
         row = {"row": name, "rig": rig_name, "ms_best": round(best, 2), "ms_median": round(med, 2),
                "fps": round(1000.0 / best, 1)}
-        fit = " (6 cameras at 20 Hz: fits)" if rig_name == "surround6" and best < 50.0 else ""
-        if rig_name == "surround6" and best >= 50.0:
-            fit = " (6 cameras at 20 Hz: does not fit)"
+        fit = ""
+        if rig_name == "surround6":  # a synchronized set every 50 ms
+            fit = f" (6 cameras at 20 Hz: {'fits' if best < 50.0 else 'does not fit'})"
         print(f"{name:40s} {best:7.2f} ms/frame (median {med:.2f}) = {1000.0 / best:7.1f} FPS{fit}")
         out.append(row)
     if a.json:

@@ -141,7 +141,6 @@ class MapperNode(Node):
         # odometry vetted and counted before the memories see it; latency kept honest (issue #29)
         self.ego = EgoPoses(cfg, self.tf, self._stopping, self._data_now_ns, self._tf_problem,
                             self._throttled_warning, self._bad_input) if self.needs_pose else None
-        self.odometry = self.ego.watch if self.ego is not None else None
         self.clock_watch = ClockWatch()
         if self.needs_pose and cfg.pose_source != "tf":
             self._subs.append(self.create_subscription(
@@ -388,8 +387,8 @@ class MapperNode(Node):
             self._throttled_warning("missing", f"mapping a set without cameras {missing} ({synced.reason}); "
                                                "/diagnostics counts them per camera (missing_by_camera)")
         pose = self.ego.at(stamp) if self.ego is not None else None
-        if self.odometry is not None:  # vetted: a pose the memories cannot align with resets them
-            verdict = self.odometry.vet(stamp, pose)
+        if self.ego is not None:  # vetted: a pose the memories cannot align with resets them
+            verdict = self.ego.watch.vet(stamp, pose)
             if verdict.reset and verdict.pose is not None:
                 self._reset_memories()
                 self._throttled_warning("temporal", verdict.note)
@@ -402,7 +401,7 @@ class MapperNode(Node):
             with self.stats.lock:
                 self.stats.mapping_since_s = None
         if self.mapper.uses_ego_pose:  # the method's own memory
-            self.odometry.count_memory(pred.note, pose)
+            self.ego.watch.count_memory(pred.note, pose)
             with self.stats.lock:
                 self.stats.temporal_frames, self.stats.temporal_note = pred.frames, pred.note
             if pred.note:
@@ -410,12 +409,12 @@ class MapperNode(Node):
         if self.fusion is not None:
             fused = self.fusion.update(pred, stamp, pose)
             pred = fused.prediction
-            self.odometry.count_memory(fused.note, pose)
+            self.ego.watch.count_memory(fused.note, pose)
             with self.stats.lock:
                 self.stats.temporal_frames, self.stats.temporal_note = fused.frames, fused.note
             if fused.note:
                 self._throttled_warning("temporal", fused.note)
-        if self.odometry is not None and verdict.note and verdict.pose is not None:  # the reset it asked for
+        if self.ego is not None and verdict.note and verdict.pose is not None:  # the reset it asked for
             with self.stats.lock:
                 self.stats.temporal_note = self.stats.temporal_note or verdict.note
         for ci, name in enumerate(self.class_names):
@@ -445,8 +444,8 @@ class MapperNode(Node):
         level, text, values = diagnostic_values(self.stats, time.monotonic(), self.cfg, dropped)
         values["use_sim_time"] = str(self._use_sim_time()).lower()
         values["clock_jumps_back"] = self.clock_watch.jumps_back
-        if self.odometry is not None:
-            values.update(self.odometry.values())
+        if self.ego is not None:
+            values.update(self.ego.watch.values())
         level, text = self._tf_diagnostics(values, level, text)
         status = DiagnosticStatus(level=bytes([level]), name=f"{self.get_name()}: bev mapper",
                                   message=text, hardware_id=self.calibration.rig_name)

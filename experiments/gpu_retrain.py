@@ -67,18 +67,29 @@ RUNS: dict[str, list[str]] = {
                      "--epochs", "20", "--frames-per-epoch", "800", "--batch", "4", "--lr", "1e-3",
                      "--lr-step-epoch", "15", "--val-frames", "40", "--ipm-skip", "--pos-weight", "none"],
 }
+def _override(flags: list[str], pairs: list[str]) -> list[str]:
+    """``flags`` with each ``--name value`` pair of ``pairs`` replacing its own (or added)."""
+    out = list(flags)
+    for name, value in zip(pairs[::2], pairs[1::2]):
+        if name in out:
+            out[out.index(name) + 1] = value
+        else:
+            out += [name, value]
+    return out
+
+
 # The second GPU session's rows (issue #26's ablations), on fixed recipes (``--no-plan``): the
 # S2G2 rows with the same steps as each other and a gradient clip (run 1's semi-supervised run
 # diverged at epoch 12), the FocusBEV rows with the steps of run 1's full FocusBEV (18 epochs).
 _S2G2_FIXED = ["--epochs", "28", "--lr-step-epoch", "21", "--grad-clip", "5"]
 _FB_FIXED = ["--epochs", "18", "--lr-step-epoch", "14"]
 RUNS.update({
-    "s2g2_clip": RUNS["s2g2"] + _S2G2_FIXED,
-    "s2g2_semi_clip": RUNS["s2g2_semi"] + _S2G2_FIXED,  # + CamVid's frames with --camvid
-    "s2g2_semi_synth_clip": RUNS["s2g2_semi"] + _S2G2_FIXED,  # unlabeled synthetic frames only
-    "s2g2_384_clip": RUNS["s2g2"] + _S2G2_FIXED + ["--input-width", "384"],
-    "focusbev_mlp": RUNS["focusbev"] + _FB_FIXED + ["--decoder-layers", "0", "--no-cycle", "--window", "1"],
-    "focusbev_w1": RUNS["focusbev"] + _FB_FIXED + ["--window", "1"],
+    "s2g2_clip": _override(RUNS["s2g2"], _S2G2_FIXED),
+    "s2g2_semi_clip": _override(RUNS["s2g2_semi"], _S2G2_FIXED),  # + CamVid's frames with --camvid
+    "s2g2_semi_synth_clip": _override(RUNS["s2g2_semi"], _S2G2_FIXED),  # unlabeled synthetic frames only
+    "s2g2_384_clip": _override(RUNS["s2g2"], _S2G2_FIXED + ["--input-width", "384"]),
+    "focusbev_mlp": _override(RUNS["focusbev"], _FB_FIXED + ["--decoder-layers", "0", "--window", "1"]) + ["--no-cycle"],
+    "focusbev_w1": _override(RUNS["focusbev"], _FB_FIXED + ["--window", "1"]),
 })
 #: model settings without flags of their own, per run (given with --config): the end-to-end
 #: RGB Bi-Mapper's encoders take the shipped segmenter's trunk, so they have its sizes
@@ -115,17 +126,6 @@ def run_flags(name: str, tiny: bool, camvid: str | None, out: Path) -> list[str]
     if name in ("s2g2_semi", "s2g2_semi_clip") and camvid:
         flags += ["--unlabeled-real", f"camvid:{camvid}"]
     return flags
-
-
-def _override(flags: list[str], pairs: list[str]) -> list[str]:
-    """``flags`` with each ``--name value`` pair of ``pairs`` replacing its own (or added)."""
-    out = list(flags)
-    for name, value in zip(pairs[::2], pairs[1::2]):
-        if name in out:
-            out[out.index(name) + 1] = value
-        else:
-            out += [name, value]
-    return out
 
 
 def drive_jobs(flags: list[str], cache: str) -> list[tuple]:

@@ -100,18 +100,18 @@ def _array(raw: bytes, pos: int, dtype) -> tuple[np.ndarray, int]:
     return np.frombuffer(raw, dtype, n, pos + 4), end
 
 
-def _body(raw: bytes) -> bytes | None:
-    """The CDR body after the encapsulation header, when little-endian."""
+def _body(raw: bytes) -> memoryview | None:
+    """The CDR body after the 4-byte encapsulation header, when little-endian (else ``None``)."""
     if len(raw) < 4 or bytes(raw[:2]) not in _CDR_LE:
         return None
-    return raw
+    return memoryview(raw)[4:]
 
 
 def decode_image(raw: bytes) -> Image | None:
     """A ``sensor_msgs/Image`` from its CDR bytes, or ``None`` (see module docstring)."""
-    if _body(raw) is None:
+    body = _body(raw)
+    if body is None:
         return None
-    body = memoryview(raw)[4:]
     try:
         header, pos = _header(body, 0)
         pos = _align(pos, 4)
@@ -131,9 +131,9 @@ def decode_image(raw: bytes) -> Image | None:
 
 def decode_occupancy_grid(raw: bytes) -> OccupancyGrid | None:
     """A ``nav_msgs/OccupancyGrid`` from its CDR bytes, or ``None`` (see module docstring)."""
-    if _body(raw) is None:
+    body = _body(raw)
+    if body is None:
         return None
-    body = memoryview(raw)[4:]
     try:
         header, pos = _header(body, 0)
         pos = _align(pos, 4)
