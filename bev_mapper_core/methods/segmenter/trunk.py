@@ -36,7 +36,7 @@ def trunk_config(in_channels: int = 3) -> EfficientNetConfig:
 def check_encoder_init(spec) -> None:
     """Raise :class:`ConfigError` unless ``spec`` is one of :data:`ENCODER_INITS` or a non-empty path."""
     if not isinstance(spec, str) or not spec:
-        raise ConfigError(f"encoder_init must be auto, none, segmenter or a file path, got {spec!r}")
+        raise ConfigError(f"encoder_init must be one of {', '.join(ENCODER_INITS)} or a file path, got {spec!r}")
 
 
 def encoder_source(spec: str, input_kind: str, rig_name: str) -> Path | None:
