@@ -255,9 +255,14 @@ def test_runtime_parameters_are_validated_and_take_effect(session):
     assert client.wait_for_services(timeout_sec=30)
 
     def set_param(name, value):
-        fut = client.set_parameters([Parameter(name, value=value)])
-        rclpy.spin_until_future_complete(s.node, fut, timeout_sec=30)
-        return fut.result().results[0]
+        # a first service reply can be lost while the node's reply writer has not yet discovered
+        # this client's reader (wait_for_services only sees the request side): ask again then
+        for _ in range(3):
+            fut = client.set_parameters([Parameter(name, value=value)])
+            rclpy.spin_until_future_complete(s.node, fut, timeout_sec=10)
+            if fut.done():
+                return fut.result().results[0]
+        raise AssertionError(f"set_parameters({name}) got no reply in 3 tries")
 
     bad = set_param("drop_warn_ratio", 1.5)
     assert not bad.successful and "drop_warn_ratio must be in [0, 1], got 1.5" in bad.reason
