@@ -63,10 +63,12 @@ def _distance_to(cells: np.ndarray, at: np.ndarray, reach: float | None = None) 
 
     ``cells`` must contain at least one True cell. With ``reach`` (cells), distances beyond it
     are only known to be beyond it (at least ``reach``; the caller clips them). The cells of
-    ``at`` inside ``cells`` are 0; those with a cell of ``cells`` within :data:`_NEAR` cells find
-    it among the offsets around them, nearest first; for the others the transform runs on the box
-    around them widened by ``reach`` (every nearer cell of ``cells`` lies in it, so the distances
-    up to ``reach`` are the same as on the whole grid).
+    ``at`` inside ``cells`` are 0. When the others are many for the box around them widened by
+    ``reach`` (:data:`_CELL_COST`), one distance transform of that box finds them all (every
+    nearer cell of ``cells`` lies in it, so the distances up to ``reach`` are the same as on the
+    whole grid). Otherwise those with a cell of ``cells`` within :data:`_NEAR` cells find it
+    among the offsets around them, nearest first, and the transform runs on the box (or tiles)
+    around the rest, widened alike.
     """
     if reach is None:
         # distanceTransform measures the distance to the nearest *zero* pixel.
@@ -74,26 +76,30 @@ def _distance_to(cells: np.ndarray, at: np.ndarray, reach: float | None = None) 
                                            cv2.DIST_MASK_PRECISE)[at])
     query = at & ~cells
     out = np.zeros(int(np.count_nonzero(at)), np.float64)
-    if not query.any():
+    q = np.flatnonzero(query)  # (n,) the cells asked for outside ``cells``, row-major
+    if not len(q):
         return out
     H, W = cells.shape
-    q = np.flatnonzero(query)  # (n,) the cells asked for outside ``cells``, row-major
+    r = int(math.ceil(reach)) + 1
+    rows, cols = q // W, q % W
+    r0, r1 = max(int(rows[0]) - r, 0), min(int(rows[-1]) + r + 1, H)
+    c0, c1 = max(int(cols.min()) - r, 0), min(int(cols.max()) + r + 1, W)
+    if len(q) * _CELL_COST >= (r1 - r0) * (c1 - c0):  # many cells: one transform around them all
+        out[~cells[at]] = np.sqrt(_box_d2(cells, r0, r1, c0, c1, rows, cols))
+        return out
     d2 = np.full(len(q), np.nan)  # squared distance in cells, found so far
-    todo = np.arange(len(q))
-    # nearby: look at the offsets of each squared distance in turn, nearest first
+    # nearby: every offset up to _NEAR cells around each cell at once, nearest first
     padded = np.zeros((H + 2 * _NEAR, W + 2 * _NEAR), bool)  # no cell outside the grid
     padded[_NEAR:_NEAR + H, _NEAR:_NEAR + W] = cells
-    flat, wp = padded.ravel(), W + 2 * _NEAR
-    base = (q // W + _NEAR) * wp + (q % W + _NEAR)  # (n,) flat index into padded
-    for k, dy, dx in _NEAR_OFFSETS:
-        hit = flat[base[todo, None] + (dy * wp + dx)[None, :]].any(axis=1)  # (m, offsets) -> (m,)
-        d2[todo[hit]] = k
-        todo = todo[~hit]
-        if not len(todo):
-            break
+    wp = W + 2 * _NEAR
+    base = (rows + _NEAR) * wp + (cols + _NEAR)  # (n,) flat index into padded
+    hit = padded.ravel()[base[:, None] + (_OFFSETS_DY * wp + _OFFSETS_DX)[None, :]]  # (n, K)
+    first = hit.argmax(axis=1)  # (n,) the nearest offset holding a cell (0 when none does)
+    found = hit[np.arange(len(q)), first]
+    d2[found] = _OFFSETS_D2[first[found]]
+    todo = np.flatnonzero(~found)
     if len(todo):  # farther: the transform around those cells, widened by reach
-        r = int(math.ceil(reach)) + 1
-        rows, cols = q[todo] // W, q[todo] % W
+        rows, cols = rows[todo], cols[todo]
         # one box around them all, or one per tile of _TILE cells holding some when that is less
         tile = (rows // _TILE) * (W // _TILE + 1) + cols // _TILE
         tiles, which = np.unique(tile, return_inverse=True)
@@ -103,13 +109,21 @@ def _distance_to(cells: np.ndarray, at: np.ndarray, reach: float | None = None) 
             [np.flatnonzero(which == i) for i in range(len(tiles))]
         for g in groups:
             gr, gc = rows[g], cols[g]
-            r0, r1 = max(int(gr.min()) - r, 0), min(int(gr.max()) + r + 1, H)
-            c0, c1 = max(int(gc.min()) - r, 0), min(int(gc.max()) + r + 1, W)
-            src = (~cells[r0:r1, c0:c1]).view(np.uint8)  # (h, w) 1 = not a cell; the transform finds 0s
-            d = cv2.distanceTransform(np.ascontiguousarray(src), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-            d2[todo[g]] = np.rint(d[gr - r0, gc - c0].astype(np.float64) ** 2)
+            d2[todo[g]] = _box_d2(cells, max(int(gr.min()) - r, 0), min(int(gr.max()) + r + 1, H),
+                                  max(int(gc.min()) - r, 0), min(int(gc.max()) + r + 1, W), gr, gc)
     out[~cells[at]] = np.sqrt(d2)  # at's order: q is row-major, as at's cells
     return out
+
+
+def _box_d2(cells: np.ndarray, r0: int, r1: int, c0: int, c1: int, rows: np.ndarray,
+            cols: np.ndarray) -> np.ndarray:
+    """Squared distances (cells, float64 integers) from the cells ``(rows, cols)`` to the
+    nearest True cell of ``cells`` inside the box ``[r0, r1) x [c0, c1)``, by one distance
+    transform of the box (snapped as :func:`_snap`).
+    """
+    src = (~cells[r0:r1, c0:c1]).view(np.uint8)  # (h, w) 1 = not a cell; the transform finds 0s
+    d = cv2.distanceTransform(np.ascontiguousarray(src), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    return np.rint(d[rows - r0, cols - c0].astype(np.float64) ** 2)
 
 
 #: :func:`_distance_to` looks for the nearest cell among the offsets up to this many cells away
@@ -129,6 +143,13 @@ def _near_offsets(radius: int) -> list[tuple[int, np.ndarray, np.ndarray]]:
 
 
 _NEAR_OFFSETS = _near_offsets(_NEAR)
+#: the same offsets one by one, nearest first: ``(K,)`` squared distance, rows and columns
+_OFFSETS_D2 = np.concatenate([np.full(len(dy), k, np.float64) for k, dy, _ in _NEAR_OFFSETS])
+_OFFSETS_DY = np.concatenate([dy for _, dy, _ in _NEAR_OFFSETS])
+_OFFSETS_DX = np.concatenate([dx for _, _, dx in _NEAR_OFFSETS])
+#: a distance transform costs about this many cells' near search per cell of its box: with more
+#: cells asked than its box's area over this, one transform of the box finds them all
+_CELL_COST = 24
 
 
 def _snap(d: np.ndarray) -> np.ndarray:
