@@ -12,7 +12,7 @@ import numpy as np
 from ..errors import ConfigError, InputError
 from ..geometry.grid import BevGrid
 from ..labels.classes import resolve_classes
-from ._checks import _check_bool, _check_mask, _nan_to_none, _safe_div
+from ._checks import _check_bool, _check_mask, _nan_to_none, _row_counts, _safe_div
 from ._state import Mergeable, _from_json_number, _json_number
 from .functional import DEFAULT_CLIP_M, _chamfer_terms, mean_iou
 
@@ -151,11 +151,11 @@ class MetricAccumulator(Mergeable):
         self.clip = float(clip)
         self.use_visibility = bool(use_visibility)
         self.chamfer_reduction = chamfer_reduction
-        # (B, H*W) float32 band membership; used as a matrix so that per-band counts of all
-        # classes come out of one product (exact: counts per frame are far below 2**24).
-        self._band_matrix = np.stack(
+        # (B, H*W) bool band membership: the per-band counts of every class are the row counts
+        # of one (C, B, H*W) product
+        self._band_masks = np.stack(
             [((ranges >= lo) & (ranges < hi)).ravel() for lo, hi in bands]
-        ).astype(np.float32) if bands else np.zeros((0, ranges.size), np.float32)
+        ) if bands else np.zeros((0, ranges.size), bool)
         self.reset()
 
     # -------------------------------------------------------------------------- state
@@ -250,17 +250,16 @@ class MetricAccumulator(Mergeable):
 
         inter = (pred & gt).reshape(C, -1)  # (C, H*W)
         union = (pred | gt).reshape(C, -1)
-        n_inter = np.count_nonzero(inter, axis=1)
-        n_union = np.count_nonzero(union, axis=1)
-        n_pred = np.count_nonzero(pred.reshape(C, -1), axis=1)
+        n_inter = _row_counts(inter)
+        n_union = _row_counts(union)
+        n_pred = _row_counts(pred.reshape(C, -1))
         self._inter += n_inter
         self._union += n_union
         self._tp += n_inter
         self._fp += n_pred - n_inter
         if self.range_bands:
-            # (C, H*W) @ (H*W, B) -> (C, B) counts per band
-            self._band_inter += np.rint(inter.astype(np.float32) @ self._band_matrix.T).astype(np.int64)
-            self._band_union += np.rint(union.astype(np.float32) @ self._band_matrix.T).astype(np.int64)
+            self._band_inter += self._band_counts(inter)
+            self._band_union += self._band_counts(union)
 
         for c in range(C):
             d_p, d_g = _chamfer_terms(pred[c], gt[c], self.grid.resolution, self.clip)
@@ -279,6 +278,12 @@ class MetricAccumulator(Mergeable):
 
         self.frames += 1
         return _safe_div(n_inter, n_union)
+
+    def _band_counts(self, cells: np.ndarray) -> np.ndarray:
+        """``(C, B)`` int64 True cells of ``cells`` ``(C, H*W)`` bool in each range band."""
+        B = len(self.range_bands)
+        both = cells[:, None, :] & self._band_masks[None]  # (C, 1, H*W) & (1, B, H*W) -> (C, B, H*W)
+        return _row_counts(both.reshape(-1, both.shape[-1])).reshape(-1, B)  # (C*B,) -> (C, B)
 
     # ------------------------------------------------------------------------- result
     def class_iou(self) -> np.ndarray:

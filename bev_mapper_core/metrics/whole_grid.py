@@ -9,7 +9,7 @@ import numpy as np
 
 from ..errors import ConfigError, InputError
 from ..geometry.grid import BevGrid
-from ._checks import _check_bool, _check_mask, _nan_to_none, _safe_div
+from ._checks import _check_bool, _check_mask, _nan_to_none, _row_counts, _safe_div
 from ._state import Mergeable
 from .functional import mean_iou
 
@@ -203,11 +203,11 @@ class WholeGridAccumulator(Mergeable):
         self._known_visible += int(np.count_nonzero(known & visible))
         self._unknown_hidden += int(np.count_nonzero(hidden & ~known))
         claims = (probs >= self.threshold) & (hidden & known)  # (C, H, W)
-        n_claims = np.count_nonzero(claims.reshape(C, -1), axis=1)
+        n_claims = _row_counts(claims.reshape(C, -1))
         self._claims += n_claims
         if truth is not None:
             self._claims_t += n_claims
-            self._false += np.count_nonzero((claims & ~truth).reshape(C, -1), axis=1)
+            self._false += _row_counts((claims & ~truth).reshape(C, -1))
             self.frames_with_truth += 1
         if percent is not None and probs[0].size <= _EXACT_PERCENT_CELLS:
             values = np.arange(101, dtype=probs.dtype) / 100.0

@@ -209,6 +209,35 @@ def test_range_bands_half_open():
     assert res["classes"]["a"]["iou"] == pytest.approx(0.5)
 
 
+def test_counts_per_band_and_class_equal_a_loop_over_cells():
+    """Overlapping bands, cells beyond every band, several classes and frames: the counts kept
+    per class and band are those of a plain loop over the cells."""
+    grid = BevGrid(x_min=-12.0, x_max=12.0, y_min=-8.0, y_max=8.0, resolution=0.5)
+    bands = ((0, 6), (4, 9), (9, math.inf))
+    rng = np.random.default_rng(28)
+    acc = MetricAccumulator(grid, ["a", "b", "c"], range_bands=((0, 6), (4, 9), (20, 30)))
+    acc2 = MetricAccumulator(grid, ["a", "b", "c"], range_bands=bands)
+    inter = np.zeros((3, 3), np.int64)
+    union = np.zeros((3, 3), np.int64)
+    n_inter = np.zeros(3, np.int64)
+    for _ in range(3):
+        pred = rng.random((3,) + grid.shape) < 0.4
+        gt = rng.random((3,) + grid.shape) < 0.3
+        acc.update(probs_of(pred), gt)
+        acc2.update(probs_of(pred), gt)
+        for c in range(3):
+            n_inter[c] += sum(pred[c][i] and gt[c][i] for i in np.ndindex(grid.shape))
+            for b, (lo, hi) in enumerate(bands):
+                inside = (grid.ranges >= lo) & (grid.ranges < hi)
+                for i in zip(*np.nonzero(inside)):
+                    inter[c, b] += pred[c][i] and gt[c][i]
+                    union[c, b] += pred[c][i] or gt[c][i]
+    np.testing.assert_array_equal(acc2._band_inter, inter)
+    np.testing.assert_array_equal(acc2._band_union, union)
+    np.testing.assert_array_equal(acc2._inter, n_inter)
+    assert (acc._band_union[:, 2] == 0).all() and (acc._band_union[:, :2] == union[:, :2]).all()
+
+
 def test_precision_and_map_hand_case():
     # class a: 4 predicted, 3 correct -> 0.75; class b: 2 predicted, 1 correct -> 0.5
     # class c: never predicted -> precision undefined, excluded from mAP
