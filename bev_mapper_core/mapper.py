@@ -210,12 +210,13 @@ class Mapper(ABC):
         Raises:
             InputError: unknown camera, wrong size, dtype or channel count, or no image at all.
         """
+        sizes = self._image_sizes()
         out = {}
         for name, img in images.items():
-            if name not in self.rig.names:
+            if name not in sizes:
                 raise InputError(f"image from unknown camera {name!r}; rig cameras: {list(self.rig.names)}")
             img = np.asarray(img)
-            w, h = self.rig[name].model.image_size
+            w, h = sizes[name]
             if self.config.input_kind == "labels":
                 if img.ndim != 2 or img.dtype != np.uint8:
                     raise InputError(
@@ -231,6 +232,15 @@ class Mapper(ABC):
         if not out:
             raise InputError("no camera image to map")
         return out
+
+    def _image_sizes(self) -> dict[str, tuple[int, int]]:
+        """Camera name -> ``(width, height)`` of its images, kept per calibration (a camera
+        model's ``image_size`` builds its effective model each time).
+        """
+        cached = getattr(self, "_sizes", None)
+        if cached is None or cached[0] is not self.rig:
+            cached = self._sizes = (self.rig, {c.name: c.model.image_size for c in self.rig.cameras})
+        return cached[1]
 
     def empty_prediction(self) -> BevPrediction:
         """A prediction with every cell unknown."""

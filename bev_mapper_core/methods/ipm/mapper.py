@@ -12,6 +12,7 @@ from the camera: the known flat-ground limitation of IPM. With ``MapperConfig.ip
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -28,8 +29,19 @@ from bev_mapper_core.mapper import BevPrediction, Mapper, MapperConfig
 from .columns import ColumnOcclusion, column_raster
 from .occlusion import NEAR_EDGE_SLACK_CELLS, OcclusionModel, ray_raster
 
-#: bits per class of IPM's packed per-cell class counts (up to 15 cameras, 16 classes per uint64)
-CODE_BITS = 4
+#: bits per class of IPM's packed per-cell class counts, the first that fits: 8 (up to 255
+#: cameras, 8 classes per uint64, unpacked as a byte view) or 4 (up to 15 cameras, 16 classes)
+CODE_BITS = (8, 4)
+
+
+def code_bits(n_classes: int, n_cameras: int) -> int | None:
+    """Bits per class of the packed counts (:data:`CODE_BITS`); ``None``: none fits one uint64
+    (the float path then sums class rows).
+    """
+    for bits in CODE_BITS:
+        if n_classes * bits <= 64 and n_cameras < 2 ** bits:
+            return bits
+    return None
 
 
 @dataclass(frozen=True)
@@ -157,11 +169,12 @@ class IpmMapper(Mapper):
         super().__init__(rig, grid, config)  # calls set_rig
         self._lut = label_lut(self.classes).astype(np.float32)  # (NUM_LABELS, C)
         self._lut_t = np.ascontiguousarray(self._lut.T)  # (C, NUM_LABELS): one class row per gather
-        #: label id -> its class indicators packed CODE_BITS per class (None: too many classes
+        #: label id -> its class indicators packed ``code_bits`` per class (None: too many classes
         #: or cameras for one uint64 counter per cell; the float path then sums class rows)
         self._codes = None
-        if len(self.classes) * CODE_BITS <= 64 and len(self.rig.cameras) < 2 ** CODE_BITS:
-            self._shifts = np.uint64(CODE_BITS) * np.arange(len(self.classes), dtype=np.uint64)  # (C,)
+        self._bits = code_bits(len(self.classes), len(self.rig.cameras))
+        if self._bits is not None:
+            self._shifts = np.uint64(self._bits) * np.arange(len(self.classes), dtype=np.uint64)  # (C,)
             self._codes = (label_lut(self.classes).astype(np.uint64) << self._shifts[None]).sum(1, dtype=np.uint64)
 
     @classmethod
@@ -218,12 +231,19 @@ class IpmMapper(Mapper):
             else:
                 acc[:, cells] += self._lut_t[:, ids]
             count[cells] += 1.0
-        if codes is not None:  # unpack: class c's count is bits [c*CODE_BITS, (c+1)*CODE_BITS)
-            acc = ((acc[None] >> self._shifts[:, None]) & np.uint64(2 ** CODE_BITS - 1)).astype(np.float32)  # (C, H*W)
+        if codes is not None:  # unpack: class c's count is bits [c*bits, (c+1)*bits)
+            acc = self._unpack(acc)
         known = (count > 0).reshape(H, W)
         # a sum of class indicators (0 / 1) is exact in float32 either way
         probs = (acc / np.maximum(count, 1.0)[None]).reshape(C, H, W)  # (C, H*W) -> (C, H, W)
         return BevPrediction(self.class_names, probs, known)
+
+    def _unpack(self, acc: np.ndarray) -> np.ndarray:
+        """``(C, H*W)`` float32 class counts of the packed ``(H*W,)`` uint64 counters."""
+        C = len(self.classes)
+        if self._bits == 8 and sys.byteorder == "little":  # class c's count is byte c
+            return acc.view(np.uint8).reshape(-1, 8)[:, :C].T.astype(np.float32, order="C")  # (H*W, 8) -> (C, H*W)
+        return ((acc[None] >> self._shifts[:, None]) & np.uint64(2 ** self._bits - 1)).astype(np.float32)
 
     def warp_rgb(self, images: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """BEV colour mosaic ``(H, W, 3)`` uint8 of RGB images (linear), and its known mask."""

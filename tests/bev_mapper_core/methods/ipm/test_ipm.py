@@ -13,7 +13,7 @@ from bev_mapper_core.geometry.rig import Rig, RigCamera
 from bev_mapper_core.geometry.transforms import ego_from_optical, transform_points
 from bev_mapper_core.labels.classes import BEV_CLASS_NAMES, Label
 from bev_mapper_core.mapper import MapperConfig, available_methods, create_mapper
-from bev_mapper_core.methods.ipm.mapper import IpmMapper
+from bev_mapper_core.methods.ipm.mapper import IpmMapper, code_bits
 
 GRID = BevGrid(x_min=-10, x_max=20, y_min=-6, y_max=6, resolution=0.25)
 
@@ -187,9 +187,13 @@ def test_gather_tables_give_the_whole_image_warps_cell_for_cell(occlusion):
             np.testing.assert_array_equal(pred.known, known)
             np.testing.assert_array_equal(pred.probs, probs)
             assert pred.probs.flags.c_contiguous and pred.probs.dtype == np.float32
-    assert mapper._codes is not None  # 7 classes, 6 cameras: the packed counts; and the float path:
-    codes, mapper._codes = mapper._codes, None
-    try:
-        np.testing.assert_array_equal(mapper.map(images).probs, _ipm_by_whole_image_warps(mapper, images)[0])
-    finally:
-        mapper._codes = codes
+    # 7 classes, 6 cameras: counts packed a byte per class; then 4 bits per class (more classes),
+    # then the float path (too many classes or cameras for one uint64)
+    assert mapper._codes is not None and mapper._bits == 8 == code_bits(7, 6)
+    assert code_bits(12, 6) == 4 and code_bits(12, 20) is None and code_bits(17, 2) is None
+    expected = _ipm_by_whole_image_warps(mapper, images)[0]
+    mapper._bits, mapper._shifts = 4, np.uint64(4) * mapper._shifts // np.uint64(8)
+    mapper._codes = (mapper._lut.astype(np.uint64) << mapper._shifts[None]).sum(1, dtype=np.uint64)
+    np.testing.assert_array_equal(mapper.map(images).probs, expected)
+    mapper._codes = None
+    np.testing.assert_array_equal(mapper.map(images).probs, expected)
