@@ -57,6 +57,9 @@ class ReplayScorer:
         self._gt_idx = [[list(gt_names).index(g) for g in self.class_map[c]] for c in names]
         self._single = [idx[0] for idx in self._gt_idx] if all(len(i) == 1 for i in self._gt_idx) else None
         self._known_idx = sorted({i for idx in self._gt_idx for i in idx})  # the layers 'visible' needs
+        # the GT layers read, as a slice (a view, no copy) when they are the first ones in order
+        self._gt_take = _as_slice(self._single) if self._single is not None else None
+        self._known_take = _as_slice(self._known_idx)
         self._all_pred = self._pred_idx == list(range(len(pred_names)))  # every predicted class, in order
 
     @property
@@ -74,7 +77,7 @@ class ReplayScorer:
             return None, None
         # a class covered by several GT layers is their union, known where all of them are
         gt = self._union(frame.gt)  # (C', H, W)
-        visible = np.logical_and.reduce(frame.gt_known[self._known_idx], axis=0)  # (H, W)
+        visible = np.logical_and.reduce(frame.gt_known[self._known_take], axis=0)  # (H, W)
         masks = scope_masks(self._names, visible, frame.ground_visibility, self.scope_used)
         probs = pred.probs if self._all_pred else pred.probs[self._pred_idx]  # (C', H, W)
         #: the frame's own IoU per scored class (NaN: undefined), as FrameScores would score it
@@ -92,7 +95,7 @@ class ReplayScorer:
     def _union(self, layers: np.ndarray) -> np.ndarray:
         """``(C', H, W)`` bool: per scored class, its GT layers ``>= 0.5``, united."""
         if self._single is not None:  # one layer per class: no union to take
-            return layers[self._single] >= 0.5
+            return layers[self._gt_take] >= 0.5
         return np.stack([(layers[idx] >= 0.5).any(axis=0) for idx in self._gt_idx])
 
     def state(self) -> dict | None:
@@ -120,6 +123,13 @@ class ReplayScorer:
         if self.acc is None:
             return no_scores()
         return _scorer_result(self.acc, self.whole)
+
+
+def _as_slice(idx: list[int]) -> slice | list[int]:
+    """``idx`` as the slice that reads the same layers when they are consecutive from 0 (numpy
+    then reads a view instead of copying), else ``idx`` itself.
+    """
+    return slice(0, len(idx)) if idx == list(range(len(idx))) else idx
 
 
 def _scorer_result(acc: MetricAccumulator, whole: WholeGridAccumulator) -> dict:

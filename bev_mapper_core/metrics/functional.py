@@ -164,10 +164,18 @@ def _chamfer_terms(pred: np.ndarray, gt: np.ndarray, resolution: float, clip: fl
     """Clipped per-cell distances ``(d_pred_to_gt, d_gt_to_pred)`` (1-D float64 arrays, metres).
 
     If the other set is empty every distance is ``clip`` (distance to an empty set is infinite,
-    then clipped). Distances are only computed as far as the clip (:func:`_distance_to`).
+    then clipped). Distances are only computed as far as the clip (:func:`_distance_to`), inside
+    the box around both sets (the same cells in the same row-major order, and no other cell of
+    either set to be near).
     """
     n_p = int(np.count_nonzero(pred))
     n_g = int(np.count_nonzero(gt))
+    if n_p and n_g:
+        both = pred | gt
+        rows = np.flatnonzero(both.any(axis=1))
+        cols = np.flatnonzero(both.any(axis=0))
+        box = np.s_[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
+        pred, gt = pred[box], gt[box]
     reach = clip / resolution
     if n_g == 0:
         d_p = np.full(n_p, clip)
