@@ -87,25 +87,30 @@ class AnyReaderSource:
             if getattr(getattr(qos, "durability", None), "name", "") == "TRANSIENT_LOCAL"
         }
 
-    def _raw(self, topics: set[str] | None) -> Iterator[tuple[str, str, int, bytes]]:
-        """``(topic, msgtype, log_ns, CDR bytes)`` of ``topics`` (None = all) in log-time order."""
+    def _raw(self, topics: set[str] | None, views: bool = False) -> Iterator[tuple[str, str, int, bytes]]:
+        """``(topic, msgtype, log_ns, CDR bytes)`` of ``topics`` (None = all) in log-time order
+        (``views``: memoryviews of the file where it is read through its indexes).
+        """
         conns = [c for c in self._reader.connections if topics is None or c.topic in topics]
         if not conns:
             return
         if self._indexed is not None:
             types = {c.topic: c.msgtype for c in conns}
-            for topic, t, raw in self._indexed.messages(set(types)):
+            for topic, t, raw in self._indexed.messages(set(types), views):
                 yield topic, types[topic], t, raw
             return
         for conn, t, raw in self._reader.messages(connections=conns):
             yield conn.topic, conn.msgtype, t, raw
 
-    def messages(self, topics: set[str] | None = None, deserialize=None) -> Iterator[tuple[str, str, int, Any]]:
+    def messages(self, topics: set[str] | None = None, deserialize=None,
+                 views: bool = False) -> Iterator[tuple[str, str, int, Any]]:
         """``(topic, msgtype, log_ns, message)`` of ``topics`` (None = all) in log-time order,
-        deserialized by ``deserialize(raw, msgtype)`` (default: rosbags').
+        deserialized by ``deserialize(raw, msgtype)`` (default: rosbags'). ``views``:
+        ``deserialize`` takes read-only memoryviews of the file as well as bytes (no copy of
+        each message's bytes; it copies what it keeps).
         """
+        it = self._raw(topics, views and deserialize is not None)
         deserialize = deserialize or self._reader.deserialize
-        it = self._raw(topics)
         count = 0
         while True:
             try:
@@ -213,12 +218,15 @@ class McapStreamSource:
             log.debug("schema parsing failed (%s); using the Jazzy typestore", exc)
             return get_typestore(Stores.ROS2_JAZZY)
 
-    def messages(self, topics: set[str] | None = None, deserialize=None) -> Iterator[tuple[str, str, int, Any]]:
+    def messages(self, topics: set[str] | None = None, deserialize=None,
+                 views: bool = False) -> Iterator[tuple[str, str, int, Any]]:
         """``(topic, msgtype, log_ns, message)`` of ``topics`` (None = all), CRC-checked, up to any
-        damage; deserialized by ``deserialize(raw, msgtype)`` (default: rosbags').
+        damage; deserialized by ``deserialize(raw, msgtype)`` (default: rosbags'); ``views`` as
+        :meth:`AnyReaderSource.messages` (the bytes here are always copies).
         """
         from mcap.records import Message
 
+        del views
         deserialize = deserialize or self._typestore.deserialize_cdr
         count = 0
         for path in self.files:

@@ -157,11 +157,15 @@ DECODERS: dict[str, Callable[[bytes], Any]] = {IMAGE_TYPE: decode_image, GRID_TY
 
 def fast_deserializer(deserialize: Callable[[bytes, str], Any]) -> Callable[[bytes, str], Any]:
     """``deserialize(raw, msgtype)`` with Images and OccupancyGrids decoded by this module
-    (``deserialize`` itself for every other type and whatever these decoders refuse).
+    (``deserialize`` itself for every other type and whatever these decoders refuse). ``raw``
+    may be a memoryview (e.g. of a memory-mapped file): the decoders' arrays are views of it,
+    ``deserialize`` gets a copy as bytes.
     """
-    def decode(raw: bytes, msgtype: str) -> Any:
+    def decode(raw: bytes | memoryview, msgtype: str) -> Any:
         fast = DECODERS.get(msgtype)
         msg = fast(raw) if fast is not None else None
-        return deserialize(raw, msgtype) if msg is None else msg
+        if msg is None:
+            return deserialize(raw if type(raw) is bytes else bytes(raw), msgtype)
+        return msg
 
     return decode

@@ -77,9 +77,14 @@ class IndexedMcap:
             return None
 
     def close(self) -> None:
-        """Release the memory map and the file."""
+        """Release the memory map and the file (a map that views of :meth:`messages` still
+        use is released with the last of them).
+        """
         self._cached = None
-        self._mm.close()
+        try:
+            self._mm.close()
+        except BufferError:  # views still exported: the map goes when they do
+            pass
         self._file.close()
 
     # ------------------------------------------------------------------ index
@@ -119,8 +124,11 @@ class IndexedMcap:
         return data, 0
 
     # --------------------------------------------------------------- messages
-    def messages(self, topics: set[str] | None) -> Iterator[tuple[str, int, bytes]]:
+    def messages(self, topics: set[str] | None, views: bool = False) -> Iterator[tuple[str, int, bytes | memoryview]]:
         """``(topic, log_ns, raw CDR bytes)`` of ``topics`` (None = all) in rosbags' order.
+
+        ``views``: each message as a read-only memoryview of the file's bytes (no copy), for
+        callers that decode it before it is dropped or copy it (the map stays while it lives).
 
         Raises:
             McapIndexError: an index entry that does not point at its message record.
@@ -141,4 +149,7 @@ class IndexedMcap:
             if op != _MESSAGE or channel != cid or log_time != log_ns or length < 22:
                 raise McapIndexError(f"message index entry at chunk {chunk_at} + {offset} does not "
                                      "point at its message")
-            yield self.topics[cid], log_ns, bytes(buf[at + _MSG_HEAD.size:at + 9 + length])
+            if views:
+                yield self.topics[cid], log_ns, memoryview(buf)[at + _MSG_HEAD.size:at + 9 + length]
+            else:
+                yield self.topics[cid], log_ns, bytes(buf[at + _MSG_HEAD.size:at + 9 + length])

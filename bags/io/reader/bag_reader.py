@@ -178,7 +178,7 @@ class BagReader:
         """
         wanted = None if topics is None else set(topics)
         decode = _as_bytes if raw else fast_deserializer(self._src.deserializer()) if fast else None
-        for topic, msgtype, t, msg in self._src.messages(wanted, decode):
+        for topic, msgtype, t, msg in self._src.messages(wanted, decode, views=fast):
             yield BagMessage(topic, msgtype, t, msg)
 
     def deserialize(self, raw: bytes, msgtype: str) -> Any:

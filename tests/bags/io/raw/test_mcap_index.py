@@ -77,3 +77,29 @@ def test_the_reader_reads_through_the_indexes_or_leaves_the_file_to_rosbags(tmp_
         got = [(m.topic, m.log_ns, m.msg) for m in r.messages(raw=True)]
     assert got == _rosbags(bag, set(TOPICS))
     assert IndexedMcap.open(bag / "metadata.yaml", verified=True) is None  # not an MCAP file
+
+
+@pytest.mark.parametrize("verified", [True, False])
+def test_views_are_the_same_bytes_and_outlive_the_reader(tmp_path, verified):
+    bag = _bag(tmp_path / "bag")
+    file = next(bag.glob("*.mcap"))
+    ix = IndexedMcap.open(file, verified)
+    try:
+        got = list(ix.messages(set(TOPICS), views=True))
+        assert all(isinstance(raw, memoryview) and raw.readonly for _, _, raw in got)
+        assert [(t, ns, bytes(raw)) for t, ns, raw in got] == _rosbags(bag, set(TOPICS))
+    finally:
+        ix.close()  # views still alive: the map is released with them, not under them
+    assert [(t, ns, bytes(raw)) for t, ns, raw in got] == _rosbags(bag, set(TOPICS))
+
+
+def test_fast_frames_read_views_and_the_same_messages(tmp_path):
+    bag = _bag(tmp_path / "bag")
+    with BagReader(bag) as r:
+        fast = [(m.topic, m.log_ns, m.msg) for m in r.messages(fast=True)]
+        slow = [(m.topic, m.log_ns, m.msg) for m in r.messages()]
+    assert len(fast) == len(slow) > 10
+    for (ft, fl, f), (st, sl, s) in zip(fast, slow):
+        assert (ft, fl, f.header.frame_id, f.encoding, f.height, f.width, f.step) == (
+            st, sl, s.header.frame_id, s.encoding, s.height, s.width, s.step)
+        assert np.array_equal(f.data, s.data) and not f.data.flags.writeable
