@@ -29,17 +29,18 @@ from bev_mapper_core.mapper import BevPrediction, Mapper, MapperConfig
 from .columns import ColumnOcclusion, column_raster
 from .occlusion import NEAR_EDGE_SLACK_CELLS, OcclusionModel, ray_raster
 
-#: bits per class of IPM's packed per-cell class counts, the first that fits: 8 (up to 255
-#: cameras, 8 classes per uint64, unpacked as a byte view) or 4 (up to 15 cameras, 16 classes)
+#: bits per field of IPM's packed per-cell counts (each class's, then the cameras'), the first
+#: that fits: 8 (up to 255 cameras, 8 fields per uint64, unpacked as a byte view) or 4 (up to 15
+#: cameras, 16 fields)
 CODE_BITS = (8, 4)
 
 
-def code_bits(n_classes: int, n_cameras: int) -> int | None:
-    """Bits per class of the packed counts (:data:`CODE_BITS`); ``None``: none fits one uint64
+def code_bits(n_fields: int, n_cameras: int) -> int | None:
+    """Bits per field of the packed counts (:data:`CODE_BITS`); ``None``: none fits one uint64
     (the float path then sums class rows).
     """
     for bits in CODE_BITS:
-        if n_classes * bits <= 64 and n_cameras < 2 ** bits:
+        if n_fields * bits <= 64 and n_cameras < 2 ** bits:
             return bits
     return None
 
@@ -168,14 +169,24 @@ class IpmMapper(Mapper):
         self._occlusion = OcclusionModel()
         super().__init__(rig, grid, config)  # calls set_rig
         self._lut = label_lut(self.classes).astype(np.float32)  # (NUM_LABELS, C)
-        self._lut_t = np.ascontiguousarray(self._lut.T)  # (C, NUM_LABELS): one class row per gather
-        #: label id -> its class indicators packed ``code_bits`` per class (None: too many classes
-        #: or cameras for one uint64 counter per cell; the float path then sums class rows)
-        self._codes = None
-        self._bits = code_bits(len(self.classes), len(self.rig.cameras))
-        if self._bits is not None:
-            self._shifts = np.uint64(self._bits) * np.arange(len(self.classes), dtype=np.uint64)  # (C,)
-            self._codes = (label_lut(self.classes).astype(np.uint64) << self._shifts[None]).sum(1, dtype=np.uint64)
+        ids = np.arange(256)
+        known_ids = np.where(ids < len(self._lut), ids, 0)  # label ids unknown to us -> unlabeled
+        self._lut_t = np.ascontiguousarray(self._lut[known_ids].T)  # (C, 256): one class row per gather
+        self._known_ids = known_ids
+        self._pack(code_bits(len(self.classes) + 1, len(self.rig.cameras)))
+
+    def _pack(self, bits: int | None) -> None:
+        """Pack the per-cell counts ``bits`` per field: one field per class and, last, the count
+        of cameras seeing the cell (``None``: the float path, which sums class rows).
+        """
+        #: label id (0..255) -> its class indicators and a count of 1, packed ``bits`` per field
+        self._codes, self._bits = None, bits
+        if bits is not None:
+            C = len(self.classes)
+            self._shifts = np.uint64(bits) * np.arange(C + 1, dtype=np.uint64)  # (C + 1,)
+            fields = np.concatenate([self._lut[self._known_ids].astype(np.uint64),
+                                     np.ones((256, 1), np.uint64)], axis=1)  # (256, C + 1)
+            self._codes = (fields << self._shifts[None]).sum(1, dtype=np.uint64)
 
     @classmethod
     def preflight(cls, config: MapperConfig, rig_name: str, grid: BevGrid | None = None,
@@ -208,12 +219,11 @@ class IpmMapper(Mapper):
         C = len(self.classes)
         codes = self._codes
         acc = np.zeros(H * W, np.uint64) if codes is not None else np.zeros((C, H * W), np.float32)
-        count = np.zeros(H * W, np.float32)
-        n_labels = self._lut_t.shape[1]
+        count = None if codes is not None else np.zeros(H * W, np.float32)
         occlusion = self.sight.occlusion is not None
         for name, labels in images.items():
             g = self.gathers[name]
-            ids = g.gather(labels)  # (n,) label ids of the seen cells
+            ids = g.gather(labels)  # (n,) uint8 label ids of the seen cells
             cells = g.cells
             if occlusion and self.sight.columns:  # per image column: a mask over the gather
                 hidden = self.sight.hidden(name, labels, ids)
@@ -224,25 +234,27 @@ class IpmMapper(Mapper):
                 warped[cells] = ids
                 keep = self.sight.camera_valid(name, warped.reshape(H, W)).reshape(-1)[cells]
                 cells, ids = cells[keep], ids[keep]
-            ids = np.where(ids < n_labels, ids, 0)  # ids unknown to us -> unlabeled
             # cells are unique within a camera, so fancy-indexed += adds once per cell
             if codes is not None:
-                acc[cells] += codes[ids]  # every class's count in one integer
+                acc[cells] += codes[ids]  # every class's count and the camera count in one integer
             else:
                 acc[:, cells] += self._lut_t[:, ids]
-            count[cells] += 1.0
-        if codes is not None:  # unpack: class c's count is bits [c*bits, (c+1)*bits)
-            acc = self._unpack(acc)
+                count[cells] += 1.0
+        if codes is not None:  # unpack: field f is bits [f*bits, (f+1)*bits), the count last
+            fields = self._unpack(acc)  # (C + 1, H*W)
+            acc, count = fields[:C], fields[C]
         known = (count > 0).reshape(H, W)
         # a sum of class indicators (0 / 1) is exact in float32 either way
         probs = (acc / np.maximum(count, 1.0)[None]).reshape(C, H, W)  # (C, H*W) -> (C, H, W)
         return BevPrediction(self.class_names, probs, known)
 
     def _unpack(self, acc: np.ndarray) -> np.ndarray:
-        """``(C, H*W)`` float32 class counts of the packed ``(H*W,)`` uint64 counters."""
-        C = len(self.classes)
-        if self._bits == 8 and sys.byteorder == "little":  # class c's count is byte c
-            return acc.view(np.uint8).reshape(-1, 8)[:, :C].T.astype(np.float32, order="C")  # (H*W, 8) -> (C, H*W)
+        """``(C + 1, H*W)`` float32 fields (class counts, camera count) of the packed ``(H*W,)``
+        uint64 counters.
+        """
+        n = len(self._shifts)
+        if self._bits == 8 and sys.byteorder == "little":  # field f is byte f
+            return acc.view(np.uint8).reshape(-1, 8)[:, :n].T.astype(np.float32, order="C")  # (H*W, 8) -> (n, H*W)
         return ((acc[None] >> self._shifts[:, None]) & np.uint64(2 ** self._bits - 1)).astype(np.float32)
 
     def warp_rgb(self, images: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:

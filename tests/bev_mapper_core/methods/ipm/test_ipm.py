@@ -187,13 +187,13 @@ def test_gather_tables_give_the_whole_image_warps_cell_for_cell(occlusion):
             np.testing.assert_array_equal(pred.known, known)
             np.testing.assert_array_equal(pred.probs, probs)
             assert pred.probs.flags.c_contiguous and pred.probs.dtype == np.float32
-    # 7 classes, 6 cameras: counts packed a byte per class; then 4 bits per class (more classes),
-    # then the float path (too many classes or cameras for one uint64)
-    assert mapper._codes is not None and mapper._bits == 8 == code_bits(7, 6)
+    # 7 classes and the camera count, 6 cameras: packed a byte per field; then 4 bits per field
+    # (more classes), then the float path (too many fields or cameras for one uint64)
+    assert mapper._codes is not None and mapper._bits == 8 == code_bits(7 + 1, 6)
     assert code_bits(12, 6) == 4 and code_bits(12, 20) is None and code_bits(17, 2) is None
-    expected = _ipm_by_whole_image_warps(mapper, images)[0]
-    mapper._bits, mapper._shifts = 4, np.uint64(4) * mapper._shifts // np.uint64(8)
-    mapper._codes = (mapper._lut.astype(np.uint64) << mapper._shifts[None]).sum(1, dtype=np.uint64)
-    np.testing.assert_array_equal(mapper.map(images).probs, expected)
-    mapper._codes = None
-    np.testing.assert_array_equal(mapper.map(images).probs, expected)
+    expected = _ipm_by_whole_image_warps(mapper, images)
+    for bits in (4, None):
+        mapper._pack(bits)
+        pred = mapper.map(images)
+        np.testing.assert_array_equal(pred.probs, expected[0])
+        np.testing.assert_array_equal(pred.known, expected[1])
