@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import json
 import pathlib
 
 from bags.cli.main import main
+from bags.replay import BAG_DIR, FRAMES_DIR, METRICS_FILE
 
 #: The 40 m x 20 m grid at 0.25 m of the small test drives (160 x 80 cells).
 SMALL_GRID_ARGS = ["--grid-x-min", "-20", "--grid-x-max", "20", "--grid-y-min", "-10",
@@ -25,3 +27,16 @@ def synth_small(out: pathlib.Path, *, frames: int = SMALL_DRIVE_FRAMES, storage:
 def replay_ipm(bag: pathlib.Path, out: pathlib.Path, *extra: str) -> int:
     """``bev-bag replay`` with IPM (no shipped weights fit the small grid)."""
     return main(["replay", str(bag), "--out", str(out), "--quiet", "--method", "ipm", *extra])
+
+
+def replay_outputs(out: pathlib.Path):
+    """A replay's outputs but its timings: ``(metrics.json, pictures, output bag files, the
+    report up to its latency section)``, pictures and bag files as ``{name: bytes}``.
+    """
+    metrics = json.loads((out / METRICS_FILE).read_text())
+    metrics.pop("latency_ms")
+    metrics.pop("bag")
+    pictures = {p.name: p.read_bytes() for p in sorted((out / FRAMES_DIR).glob("*.png"))}
+    bag = {p.name: p.read_bytes() for p in sorted((out / BAG_DIR).iterdir())}
+    report = (out / "report.html").read_text().replace(str(out), "OUT")
+    return metrics, pictures, bag, report[:report.index("<h2>Mapping latency</h2>")]  # then timings

@@ -21,6 +21,8 @@ from ..errors import BagError
 from ..io.rig_source import RigChoice
 from ..io.writer import STORAGES
 from ..replay import ReplayOptions, replay
+from ..replay.options import SCORE_PROCESS
+from ..replay.score_process import AUTO_MIN_FRAMES
 from .grid_args import add_grid_args, grid_from_args
 
 HELP = ("map every frame of a bag offline (no DDS), write a BEV bag, pictures, report.html and "
@@ -124,6 +126,10 @@ def add_replay_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pipeline", type=int, default=ReplayOptions.pipeline, metavar="N",
                    help="frames in flight between the threads that read, map, score and write (0 = one "
                         "thread, every stage in turn; the outputs are the same; default: %(default)s)")
+    p.add_argument("--score-process", choices=SCORE_PROCESS, default=ReplayOptions.score_process,
+                   help="score the frames in a process of their own (auto: drives of "
+                        f"{AUTO_MIN_FRAMES} frames or more on 2 cores or more; the outputs are the same; "
+                        "default: %(default)s)")
     p.add_argument("--storage", choices=STORAGES, default=ReplayOptions.storage, help="storage of bev_bag/")
     p.add_argument("--force", action="store_true", help="replace existing outputs in DIR")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -162,6 +168,7 @@ def options_from_args(args: argparse.Namespace) -> ReplayOptions:
         storage=args.storage, force=args.force,
         progress=not args.quiet and sys.stderr.isatty(),
         temporal=TemporalConfig(window=args.temporal_window), pipeline=args.pipeline,
+        score_process=args.score_process,
         rig=RigChoice(name=args.rig, params_file=args.params_file),
         sync=sync_from_args(args),
     )

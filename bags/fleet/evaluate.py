@@ -123,7 +123,9 @@ def evaluate(options: EvaluateOptions) -> EvaluateResult:
         remove_partials(bag_out)  # a killed worker's; the bag is replayed again now
         if (bag_out / RECORD_FILE).exists() and not (bag_out / RECORD_FILE).is_file():
             remove_path(bag_out / RECORD_FILE)  # a directory in its place: the new record goes there
-        jobs.append((name, replace(options.replay, bag=bag, out=bag_out, force=True, progress=False)))
+        # one process per replay: the workers keep the cores busy
+        jobs.append((name, replace(options.replay, bag=bag, out=bag_out, force=True, progress=False,
+                                   score_process="off")))
 
     def on_record(record: dict) -> None:
         bag_out = out / BAGS_DIR / record["name"]

@@ -97,11 +97,11 @@ def bag_names(bags: list[Path]) -> list[str]:
 
 def options_record(options: ReplayOptions) -> dict:
     """What defines a bag's results, as JSON: ``options`` without the bag, the output
-    directory and the run details (force, progress bar). Two runs with equal records give the
-    same metrics.
+    directory and the run details (force, progress bar, scoring process). Two runs with equal
+    records give the same metrics.
     """
     d = asdict(replace(options, bag=Path(), out=Path()))
-    for key in ("bag", "out", "force", "progress"):
+    for key in ("bag", "out", "force", "progress", "score_process"):
         d.pop(key)
     return _jsonable(d)
 

@@ -57,6 +57,7 @@ from ..io.writer import BagWriter
 from .mapping import map_frames
 from .options import BAG_DIR, FRAMES_DIR, ReplayOptions, ReplayResult, ReplayRun, check_outputs
 from .outputs import FrameSink, write_outputs
+from .score_process import ScoringProcess, use_process
 from .scoring import scorer_for
 
 
@@ -106,11 +107,19 @@ def _run(run: ReplayRun, progress: Callable | None) -> ReplayResult:
     """Map, score and write every frame into the output bag, then the other outputs."""
     options = run.options
     scorer = scorer_for(run)
-    bar = _progress_bar(run, progress)
+    total = _expected_frames(run)
+    bar = progress(total) if progress is not None else _tqdm_bar(run, total)
     if options.pictures:
         run.tmp_frames.mkdir()
     with BagWriter(run.out / BAG_DIR, storage=options.storage, force=options.force) as bw:
-        sink = FrameSink(run, bw, scorer)
+        remote = ScoringProcess(scorer, len(run.mapper.class_names), run.grid.shape) \
+            if scorer.acc is not None and use_process(options.score_process, total) else None
+        try:
+            sink = FrameSink(run, bw, scorer, remote)
+        except BaseException:
+            if remote is not None:
+                remote.close(abandon=True)
+            raise
         done = False
         try:
             tally = map_frames(run, sink.finish, bar)
@@ -123,18 +132,23 @@ def _run(run: ReplayRun, progress: Callable | None) -> ReplayResult:
     return write_outputs(run, sink, tally)
 
 
-def _progress_bar(run: ReplayRun, progress: Callable | None):
-    """The caller's ``progress(total)`` bar, else a tqdm bar (hidden unless ``options.progress``)."""
+def _expected_frames(run: ReplayRun) -> int | None:
+    """The frames the replay expects to map (``None``: unknown): the first camera's images,
+    at most ``max_frames``.
+    """
     options, reader = run.options, run.reader
     image_topic = reader.image_topic(run.rig.names[0], run.input_kind)
     total = reader.topics[image_topic].count if image_topic in reader.topics else None
     if options.max_frames is not None:
         total = min(total or options.max_frames, options.max_frames)
-    if progress is not None:
-        return progress(total)
+    return total
+
+
+def _tqdm_bar(run: ReplayRun, total: int | None):
+    """A tqdm bar of ``total`` frames (hidden unless ``options.progress``)."""
     from tqdm import tqdm  # noqa: PLC0415 - only the replay needs it
 
-    return tqdm(total=total, unit="frame", disable=not options.progress, leave=False, dynamic_ncols=True)
+    return tqdm(total=total, unit="frame", disable=not run.options.progress, leave=False, dynamic_ncols=True)
 
 
 def _damage_note(damage: str | None, reader: BagReader) -> str | None:

@@ -28,6 +28,8 @@ OUT_PREFIX = "/bev/"
 IMAGE_TOPIC = "/bev/image"
 BAG_DIR, FRAMES_DIR, METRICS_FILE, GIF_FILE = "bev_bag", "frames", "metrics.json", "replay.gif"
 REPORT_FILE, RELIABILITY_FILE = "report.html", "reliability.png"
+#: :attr:`ReplayOptions.score_process`'s choices
+SCORE_PROCESS = ("auto", "on", "off")
 #: Every output a replay writes into its directory (``--force`` replaces them).
 OUTPUT_NAMES = (BAG_DIR, FRAMES_DIR, METRICS_FILE, GIF_FILE, REPORT_FILE, RELIABILITY_FILE)
 
@@ -64,6 +66,11 @@ class ReplayOptions:
             thread, every stage in turn.
             The outputs are the same either way, but the mapping latencies in ``metrics.json``
             are measured while the other stages run (0: the mapper's time alone).
+        score_process: score the frames in a process of their own (:mod:`bags.replay.score_process`):
+            ``'on'``, ``'off'`` or ``'auto'`` (a drive of at least
+            :data:`~bags.replay.score_process.AUTO_MIN_FRAMES` frames on 2 cores or more; starting
+            the process costs about a second). The outputs are the same either way. ``bev-bag
+            evaluate`` turns it off: its workers already keep every core busy.
         rig: what the bag lacks about its rig (``--rig``, ``--params-file``;
             :mod:`bags.io.rig_source`).
         sync: how the cameras' images are grouped into sets (:meth:`SyncConfig.replay`).
@@ -84,6 +91,7 @@ class ReplayOptions:
     progress: bool = False
     temporal: TemporalConfig = field(default_factory=TemporalConfig)
     pipeline: int = 4
+    score_process: str = "auto"
     rig: RigChoice = field(default_factory=RigChoice)
     sync: SyncConfig = field(default_factory=SyncConfig.replay)
 
@@ -94,6 +102,8 @@ class ReplayOptions:
             raise BagError(f"--max-frames must be >= 1, got {self.max_frames}")
         if self.pipeline < 0:
             raise BagError(f"--pipeline must be >= 0, got {self.pipeline}")
+        if self.score_process not in SCORE_PROCESS:
+            raise BagError(f"--score-process must be one of {list(SCORE_PROCESS)}, got {self.score_process!r}")
         if self.frames_every < 1:
             raise BagError(f"--frames-every must be >= 1, got {self.frames_every}")
         if self.storage not in STORAGES:

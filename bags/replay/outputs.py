@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import logging
 import shutil
+from collections import deque
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -40,6 +41,7 @@ from .options import (
     ReplayRun,
 )
 from .pipeline import InOrder
+from .score_process import ScoringProcess
 from .scoring import ReplayScorer, percentiles
 
 
@@ -122,8 +124,11 @@ class FrameSink:
     label map, classes). It keeps the scores, picture paths and GIF frames for the result.
     """
 
-    def __init__(self, run: ReplayRun, bw: BagWriter, scorer: ReplayScorer) -> None:
+    def __init__(self, run: ReplayRun, bw: BagWriter, scorer: ReplayScorer,
+                 remote: ScoringProcess | None = None) -> None:
         self.run, self.bw, self.scorer = run, bw, scorer
+        #: the scoring process (None: the frames are scored here); the frames it scores, oldest first
+        self._remote, self._waiting = remote, deque()
         options, mapper = run.options, run.mapper
         for c in mapper.class_names:
             bw.add_topic(OUT_PREFIX + c, T.GRID_TYPE)
@@ -143,13 +148,44 @@ class FrameSink:
         self._writing = InOrder(options.pipeline) if options.pipeline else None
 
     def finish(self, frame, pred: BevPrediction, index: int) -> None:
-        """Score the frame, then copy the calibration up to it, write its grids and draw it."""
+        """Score the frame, then copy the calibration up to it, write its grids and draw it (with
+        a scoring process: once its score is back, the frames before it first).
+        """
         scorer = self.scorer
         percent = published_percent(pred.probs)  # (C, H, W), shared by the grids and the scores
-        gt, mask = scorer.update(frame, pred, percent)
-        # the frame's IoU as the scorer counted it (FrameScores.add would score it again alike)
+        if self._remote is None:
+            gt, mask = scorer.update(frame, pred, percent)
+            self._scored(frame, pred, index, percent, gt, mask, None if gt is None else scorer.frame_iou)
+            return
+        layers = scorer.frame_layers(frame)
+        if layers is not None:
+            self._release()  # waits for the oldest frame's score while every slot is in use
+            self._remote.submit(layers, pred)
+        self._waiting.append((frame, pred, index, percent, layers))
+        self._release()
+
+    def _release(self, every: bool = False) -> None:
+        """Hand the waiting frames on to be written, oldest first: a frame without GT at once, a
+        scored one with its score, waiting for it while the scoring process is full (``every``:
+        all of them).
+        """
+        while self._waiting:
+            frame, pred, index, percent, layers = self._waiting[0]
+            iou = None
+            if layers is not None:
+                if not (every or self._remote.full):
+                    return
+                iou = self._remote.take()
+            self._waiting.popleft()
+            gt, mask = (None, None) if layers is None else (layers.gt, layers.visible)
+            self._scored(frame, pred, index, percent, gt, mask, iou)
+
+    def _scored(self, frame, pred: BevPrediction, index: int, percent, gt, mask, iou) -> None:
+        """Keep a scored frame's IoU (``iou``, as the scorer counted it: FrameScores.add would
+        score it again alike) and have the frame written.
+        """
         score = None if gt is None else self.scores.add_ious(
-            frame.index, frame.stamp_ns, [c.name for c in scorer.classes], scorer.frame_iou)
+            frame.index, frame.stamp_ns, [c.name for c in self.scorer.classes], iou)
         if self._writing is None:
             self._write(frame, pred, index, percent, gt, mask, score)
         else:
@@ -175,16 +211,37 @@ class FrameSink:
                 self.gif_frames.append(pic)
 
     def close(self, abandon: bool = False) -> None:
-        """Wait for the frames being written (``abandon``: only the one under way; a failure
-        while writing is raised unless abandoning), release the calibration copier, keep the
-        output bag's message counts.
+        """Wait for the frames being scored and written (``abandon``: only the one under way; a
+        failure while scoring or writing is raised unless abandoning), stop the scoring process,
+        release the calibration copier, keep the output bag's message counts.
         """
         try:
-            if self._writing is not None:
-                self._writing.close(abandon=abandon)
+            if self._remote is not None:
+                self._finish_scoring(abandon)
         finally:
-            self.copier.close()
-            self.bag_counts = dict(self.bw.counts)
+            try:
+                if self._writing is not None:
+                    self._writing.close(abandon=abandon)
+            finally:
+                self.copier.close()
+                self.bag_counts = dict(self.bw.counts)
+
+    def _finish_scoring(self, abandon: bool) -> None:
+        """Take the scoring process's last scores and its scorer's state (``abandon``: only stop it)."""
+        remote = self._remote
+        try:
+            if abandon:
+                remote.close(abandon=True)
+                return
+            try:
+                self._release(every=True)
+                state = remote.close()
+            except BaseException:
+                remote.close(abandon=True)
+                raise
+            self.scorer.load_state(state)
+        finally:
+            self._remote = None
 
 
 def _frame_time(frame) -> int:

@@ -5,6 +5,8 @@ layers, :func:`scorer_for` builds it for a replay (with the notes on what is sco
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from bev_mapper_core.geometry.grid import BevGrid
@@ -21,6 +23,21 @@ def no_scores() -> dict:
     """:meth:`ReplayScorer.result` when no class is scored (a new dict each time)."""
     return {"frames": 0, "classes": {}, "miou": None, "map": None, "iou_by_range": {},
             "occlusion": None, "calibration": None}
+
+
+class FrameLayers(NamedTuple):
+    """What a frame's GT gives the scoring of a prediction (:meth:`ReplayScorer.frame_layers`)."""
+
+    #: ``(C', H, W)`` bool, per scored class its GT layers united
+    gt: np.ndarray
+    #: ``(H, W)`` bool, the cells whose GT is known
+    visible: np.ndarray
+    #: ``(C', H, W)`` bool full truth (``/bev/truth/<class>``), or ``None``
+    truth: np.ndarray | None
+    #: ``(H, W)`` bool, the cells some camera sees (``/bev/visibility/any``, else ``visible``)
+    seen: np.ndarray
+    #: ``(H, W)`` bool, the cells whose ground point is seen, or ``None``
+    ground: np.ndarray | None
 
 
 class ReplayScorer:
@@ -40,6 +57,8 @@ class ReplayScorer:
     """
 
     def __init__(self, grid: BevGrid, pred_names, gt_names, ground: bool) -> None:
+        #: what builds the same scorer elsewhere (:mod:`bags.replay.score_process`)
+        self.args = (grid, tuple(pred_names), tuple(gt_names or ()), ground)
         #: predicted class -> the GT layers that mean the same (see ``class_cover``)
         self.class_map = {}
         for c in pred_names:
@@ -73,24 +92,38 @@ class ReplayScorer:
         ``percent``: the prediction's whole percent ``(C, H, W)``
         (:func:`~bags.replay.frame_messages.published_percent`), computed here when not given.
         """
-        if self.acc is None or frame.gt is None:
+        layers = self.frame_layers(frame)
+        if layers is None:
             return None, None
+        self.add(layers, pred, percent)
+        return layers.gt, layers.visible
+
+    def frame_layers(self, frame) -> FrameLayers | None:
+        """The layers of ``frame`` that score a prediction (``None``: nothing to score)."""
+        if self.acc is None or frame.gt is None:
+            return None
         # a class covered by several GT layers is their union, known where all of them are
         gt = self._union(frame.gt)  # (C', H, W)
         visible = np.logical_and.reduce(frame.gt_known[self._known_take], axis=0)  # (H, W)
-        masks = scope_masks(self._names, visible, frame.ground_visibility, self.scope_used)
-        probs = pred.probs if self._all_pred else pred.probs[self._pred_idx]  # (C', H, W)
-        #: the frame's own IoU per scored class (NaN: undefined), as FrameScores would score it
-        self.frame_iou = self.acc.update(probs, gt, masks, pred.known)
         truth = None if frame.truth is None else self._union(frame.truth)
         seen = frame.visibility if frame.visibility is not None else visible
+        return FrameLayers(gt, visible, truth, seen, frame.ground_visibility)
+
+    def add(self, layers: FrameLayers, pred: BevPrediction, percent: np.ndarray | None = None) -> np.ndarray:
+        """Score ``pred`` against a frame's :meth:`frame_layers`; returns (and keeps in
+        ``frame_iou``) the frame's own IoU per scored class (NaN: undefined), as
+        :class:`~bags.replay.frame_scores.FrameScores` would score it.
+        """
+        masks = scope_masks(self._names, layers.visible, layers.ground, self.scope_used)
+        probs = pred.probs if self._all_pred else pred.probs[self._pred_idx]  # (C', H, W)
+        self.frame_iou = self.acc.update(probs, layers.gt, masks, pred.known)
         # whole percent, as in the OccupancyGrids
         pct = published_percent(probs) if percent is None else percent if self._all_pred else percent[self._pred_idx]
         published = pct / 100.0
         with np.errstate(invalid="ignore"):  # NaN only in unknown cells, which are not counted
             percent_u8 = pct.astype(np.uint8)
-        self.whole.update(published, pred.known, seen, gt, truth, masks, percent=percent_u8)
-        return gt, visible
+        self.whole.update(published, pred.known, layers.seen, layers.gt, layers.truth, masks, percent=percent_u8)
+        return self.frame_iou
 
     def _union(self, layers: np.ndarray) -> np.ndarray:
         """``(C', H, W)`` bool: per scored class, its GT layers ``>= 0.5``, united."""
@@ -106,6 +139,12 @@ class ReplayScorer:
         if self.acc is None:
             return None
         return {"metrics": self.acc.state(), "whole": self.whole.state()}
+
+    def load_state(self, state: dict | None) -> None:
+        """Take the scores of a twin scorer (its :meth:`state`) as this one's."""
+        if self.acc is not None and state is not None:
+            self.acc = MetricAccumulator.from_state(state["metrics"])
+            self.whole = WholeGridAccumulator.from_state(state["whole"])
 
     @staticmethod
     def result_of(state: dict | None) -> dict:

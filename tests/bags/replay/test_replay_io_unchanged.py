@@ -10,29 +10,16 @@ same ``metrics.json`` (all but the timings), the same pictures and the same repo
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
 import pytest
-from bag_helpers import replay_ipm, synth_small
-
-from bags.replay import BAG_DIR, FRAMES_DIR, METRICS_FILE
+from bag_helpers import replay_ipm, replay_outputs, synth_small
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[3] / "bench"))
 from replay_reference import reference_io  # noqa: E402 - bench/ is no package
 
 pytest.importorskip("bev_mapper_core.synth")
-
-
-def _outputs(out: Path):
-    metrics = json.loads((out / METRICS_FILE).read_text())
-    metrics.pop("latency_ms")
-    metrics.pop("bag")
-    pictures = {p.name: p.read_bytes() for p in sorted((out / FRAMES_DIR).glob("*.png"))}
-    bag = {p.name: p.read_bytes() for p in sorted((out / BAG_DIR).iterdir())}
-    report = (out / "report.html").read_text().replace(str(out), "OUT")
-    return metrics, pictures, bag, report[:report.index("<h2>Mapping latency</h2>")]  # then timings
 
 
 @pytest.mark.slow
@@ -42,7 +29,7 @@ def test_replay_outputs_equal_the_rosbags_reading_and_writing(tmp_path, storage)
     assert replay_ipm(bag, tmp_path / "fast", "--frames-every", "2") == 0
     with reference_io():
         assert replay_ipm(bag, tmp_path / "reference", "--frames-every", "2") == 0
-    fast, ref = _outputs(tmp_path / "fast"), _outputs(tmp_path / "reference")
+    fast, ref = replay_outputs(tmp_path / "fast"), replay_outputs(tmp_path / "reference")
     assert fast[0]["frames_scored"] == 5 and fast[0]["output_bag"]["messages"]["/bev/drivable"] == 5
     assert fast[0] == ref[0]
     assert fast[1] == ref[1] and len(fast[1]) == 3

@@ -1,0 +1,292 @@
+"""Scoring a replay in a process of its own: :class:`ScoringProcess`.
+
+The scoring of a frame (IoU, Chamfer distances, the whole-grid counts) is numpy and OpenCV work
+that holds the GIL much of the time, so in threads it hardly overlaps the reading, mapping and
+writing. A :class:`ScoringProcess` runs a twin of the replay's
+:class:`~bags.replay.scoring.ReplayScorer` in a child process (a fresh interpreter running this
+module: nothing of the parent's threads or locks is inherited, and unlike ``multiprocessing``'s
+``spawn`` the caller's main module is not run again there) and hands it each frame through a
+shared memory map (a file in ``/dev/shm``, removed once both processes have mapped it): the prediction's
+probabilities and known cells, and the frame's :class:`~bags.replay.scoring.FrameLayers` (computed
+in the replay's process, which needs them for the pictures anyway). The child scores the frames
+in the order they were submitted and answers each with the frame's IoU; the replay takes the
+answers in the same order (:meth:`ScoringProcess.take`). At the end the child's scores come back
+as its scorer's mergeable state (:meth:`~bags.replay.scoring.ReplayScorer.state`), which the
+replay's scorer loads: the same numbers as scoring in the replay's process, frame for frame
+(the same arithmetic in the same order).
+
+A failure in the child (its exception, or the child's death) is raised by the next call of the
+replay's process; :meth:`ScoringProcess.close` (``abandon=True`` after a failure elsewhere) stops
+the child and frees the shared memory in every case.
+"""
+
+from __future__ import annotations
+
+import mmap
+import os
+import pickle
+import subprocess
+import sys
+import tempfile
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from bev_mapper_core.mapper import BevPrediction
+
+from ..errors import BagError
+from .scoring import FrameLayers, ReplayScorer
+
+#: frames in flight between the replay's process and the scoring process (one shared-memory slot each)
+DEPTH = 3
+#: ``ReplayOptions.score_process`` ``"auto"`` scores in a process of its own only for drives at
+#: least this long (starting the process costs about a second) on machines with 2 cores or more
+AUTO_MIN_FRAMES = 100
+#: seconds to wait for the child to exit before it is killed
+_JOIN_S = 10.0
+
+
+class ScoringError(BagError):
+    """The scoring process failed or exited."""
+
+
+@dataclass(frozen=True)
+class _Field:
+    """One array of a slot: its name, shape, dtype and byte offset in the slot."""
+
+    name: str
+    shape: tuple[int, ...]
+    dtype: str
+    offset: int
+
+    @property
+    def nbytes(self) -> int:
+        return int(np.prod(self.shape)) * np.dtype(self.dtype).itemsize
+
+
+def _layout(n_pred: int, n_scored: int, shape: tuple[int, int]) -> tuple[tuple[_Field, ...], int]:
+    """The fields of one slot and its size in bytes (each field 64-byte aligned)."""
+    spec = [("probs", (n_pred, *shape), "float32"), ("known", shape, "bool"),
+            ("gt", (n_scored, *shape), "bool"), ("visible", shape, "bool"),
+            ("truth", (n_scored, *shape), "bool"), ("seen", shape, "bool"), ("ground", shape, "bool")]
+    fields, offset = [], 0
+    for name, fshape, dtype in spec:
+        f = _Field(name, tuple(fshape), dtype, offset)
+        fields.append(f)
+        offset += -(-f.nbytes // 64) * 64
+    return tuple(fields), offset
+
+
+def _views(buffer, fields: tuple[_Field, ...], size: int, slot: int) -> dict[str, np.ndarray]:
+    """The arrays of slot ``slot`` in ``buffer``, as numpy views."""
+    base = slot * size
+    return {f.name: np.frombuffer(buffer, f.dtype, int(np.prod(f.shape)), base + f.offset).reshape(f.shape)
+            for f in fields}
+
+
+def use_process(setting: str, frames: int | None) -> bool:
+    """Whether a replay of ``frames`` frames (``None``: unknown) scores in a process of its own
+    for ``ReplayOptions.score_process`` = ``setting`` (``"auto"``: a long drive on 2 cores or more).
+    """
+    if setting != "auto":
+        return setting == "on"
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return cores >= 2 and frames is not None and frames >= AUTO_MIN_FRAMES
+
+
+class ScoringProcess:
+    """A twin of ``scorer`` in a child process, fed through shared memory (module docstring).
+
+    Args:
+        scorer: the replay's scorer (its :attr:`~bags.replay.scoring.ReplayScorer.args` build the twin).
+        n_pred: classes of the mapper's predictions; ``shape``: the grid's ``(H, W)``.
+        depth: frames in flight (slots of shared memory).
+
+    Raises:
+        ScoringError: the child did not start.
+    """
+
+    def __init__(self, scorer: ReplayScorer, n_pred: int, shape: tuple[int, int], depth: int = DEPTH) -> None:
+        self.depth = depth
+        self._fields, self._size = _layout(n_pred, len(scorer.classes), tuple(shape))
+        fd, path = tempfile.mkstemp(prefix="bev-bag-scoring-", dir=_shared_dir())
+        try:
+            os.ftruncate(fd, self._size * depth)
+            self._map = mmap.mmap(fd, self._size * depth)
+        finally:
+            os.close(fd)
+        self._proc = None
+        try:
+            self._proc = subprocess.Popen([sys.executable, "-c", f"from {__name__} import main; main()"],
+                                          stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+            self._send((path, self._fields, self._size, depth, scorer.args))
+            self._recv()  # mapped: the file can go
+        except BaseException:
+            self.close(abandon=True)
+            raise
+        finally:
+            os.unlink(path)
+        self._free = deque(range(depth))
+        self._busy: deque[int] = deque()  # slots of the frames submitted, oldest first
+
+    def submit(self, layers: FrameLayers, pred: BevPrediction) -> None:
+        """Copy a frame into a free slot and have the child score it (the caller :meth:`take` s
+        the oldest answer first while the slots are :attr:`full`).
+        """
+        if not self._free:
+            raise RuntimeError("every slot is in use: take() the oldest answer first")
+        views = _views(self._map, self._fields, self._size, self._free[0])
+        if pred.probs.dtype != views["probs"].dtype or pred.probs.shape != views["probs"].shape:
+            raise ScoringError(f"the scoring process takes {views['probs'].shape} float32 probabilities, "
+                               f"got {pred.probs.shape} {pred.probs.dtype}")
+        slot = self._free.popleft()
+        np.copyto(views["probs"], pred.probs)
+        present = {"known": pred.known is not None, "truth": layers.truth is not None,
+                   "ground": layers.ground is not None}
+        for name, value in (("known", pred.known), ("gt", layers.gt), ("visible", layers.visible),
+                            ("truth", layers.truth), ("seen", layers.seen), ("ground", layers.ground)):
+            if value is not None:
+                np.copyto(views[name], value)
+        self._busy.append(slot)
+        self._send(("frame", slot, tuple(pred.classes), present))
+
+    @property
+    def full(self) -> bool:
+        """True when every slot holds a frame being scored."""
+        return not self._free
+
+    @property
+    def pending(self) -> int:
+        """Frames submitted whose answer was not taken yet."""
+        return len(self._busy)
+
+    def take(self) -> np.ndarray:
+        """The IoU per scored class of the oldest frame submitted (waits for it).
+
+        Raises:
+            the child's exception, re-raised; ScoringError: the child exited.
+        """
+        if not self._busy:
+            raise RuntimeError("no frame is being scored")
+        slot = self._busy.popleft()
+        try:
+            return self._recv()  # its IoU, or its error raised here: either way the slot is free again
+        finally:
+            self._free.append(slot)
+
+    def close(self, abandon: bool = False) -> dict | None:
+        """Stop the child; unless ``abandon``, first take its scores: the state of its scorer
+        (:meth:`~bags.replay.scoring.ReplayScorer.state`). Every frame's answer must have been taken.
+        """
+        try:
+            if abandon:
+                return None
+            if self._busy:
+                raise RuntimeError(f"{len(self._busy)} answers not taken")
+            self._send(("state",))
+            return self._recv()
+        finally:
+            self._stop()
+
+    def _send(self, message) -> None:
+        try:
+            pickle.dump(message, self._proc.stdin, protocol=pickle.HIGHEST_PROTOCOL)
+            self._proc.stdin.flush()
+        except (BrokenPipeError, OSError, ValueError):
+            raise self._died() from None
+
+    def _recv(self):
+        try:
+            kind, value = pickle.load(self._proc.stdout)
+        except (EOFError, OSError, ValueError, pickle.UnpicklingError):
+            raise self._died() from None
+        if kind == "error":
+            raise value
+        return value
+
+    def _died(self) -> ScoringError:
+        try:
+            code = None if self._proc is None else self._proc.wait(_JOIN_S)
+        except subprocess.TimeoutExpired:
+            code = None
+        return ScoringError(f"the scoring process exited unexpectedly (exit code {code}); "
+                            "replay with --score-process off to score in the replay's own process")
+
+    def _stop(self) -> None:
+        """Close the child's input (it exits at its end), make sure it did; release the map."""
+        proc, self._proc = self._proc, None
+        try:
+            if proc is not None:
+                for stream in (proc.stdin, proc.stdout):
+                    try:
+                        stream.close()
+                    except OSError:
+                        pass
+                try:
+                    proc.wait(_JOIN_S)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.wait()
+        finally:
+            try:
+                self._map.close()
+            except BufferError:  # a view of it still referenced (an exception's frames): freed with it
+                pass
+
+
+def _shared_dir() -> str | None:
+    """Where the shared map's file lives: ``/dev/shm`` (memory) where there is one."""
+    return "/dev/shm" if os.path.isdir("/dev/shm") and os.access("/dev/shm", os.W_OK) else None
+
+
+def _serve(inp, out) -> None:
+    """The child: map the shared file, then score each frame of the slot named in a message, in
+    order, and answer its IoU (or the exception it raised); answer ``("state",)`` with the
+    scorer's state; exit at the end of the input.
+    """
+    path, fields, size, depth, args = pickle.load(inp)
+    with open(path, "r+b") as f:
+        shared = mmap.mmap(f.fileno(), size * depth)
+    scorer = ReplayScorer(*args)
+
+    def answer(kind, value) -> None:
+        try:
+            pickle.dump((kind, value), out, protocol=pickle.HIGHEST_PROTOCOL)
+        except (pickle.PicklingError, TypeError, AttributeError):  # an exception that does not pickle
+            pickle.dump(("error", ScoringError(f"scoring failed: {value!r}")), out)
+        out.flush()
+
+    answer("ready", None)
+    while True:
+        try:
+            message = pickle.load(inp)
+        except EOFError:
+            return
+        try:
+            if message[0] == "state":
+                answer("state", scorer.state())
+                continue
+            _, slot, names, present = message
+            v = _views(shared, fields, size, slot)
+            layers = FrameLayers(v["gt"], v["visible"], v["truth"] if present["truth"] else None,
+                                 v["seen"], v["ground"] if present["ground"] else None)
+            pred = BevPrediction(names, v["probs"], v["known"] if present["known"] else None)
+            answer("iou", scorer.add(layers, pred))
+        except Exception as exc:  # noqa: BLE001 - handed to the replay, which raises it
+            answer("error", exc)
+
+
+def main() -> None:
+    """Entry point of the child: messages on stdin, answers on what was stdout (stdout itself now
+    goes to stderr, so that nothing printed can corrupt the answers).
+    """
+    out = os.fdopen(os.dup(1), "wb")
+    os.dup2(2, 1)
+    try:
+        _serve(sys.stdin.buffer, out)
+    except (BrokenPipeError, KeyboardInterrupt):
+        pass
+
+
+__all__ = ["AUTO_MIN_FRAMES", "DEPTH", "ScoringError", "ScoringProcess", "use_process"]

@@ -1,0 +1,118 @@
+"""Issue #28: scoring a replay in a process of its own (``--score-process``) gives every output of
+scoring in the replay's process; a failure there is an error of the replay, never a hang, and
+leaves no process behind."""
+
+from __future__ import annotations
+
+import os
+import signal
+from pathlib import Path
+
+import numpy as np
+import pytest
+from bag_helpers import replay_ipm, replay_outputs, synth_small
+
+from bags.replay import ReplayOptions, replay
+from bags.replay.score_process import AUTO_MIN_FRAMES, ScoringError, ScoringProcess, use_process
+from bags.replay.scoring import FrameLayers, ReplayScorer
+from bev_mapper_core.errors import InputError
+from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.mapper import BevPrediction, MapperConfig
+
+pytest.importorskip("bev_mapper_core.synth")
+
+
+def _children() -> list[int]:
+    """Pids of this process's live children (from /proc)."""
+    me, out = os.getpid(), []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+            except OSError:
+                continue
+            fields = stat[stat.rindex(")") + 2:].split()  # after "pid (comm) "
+            if int(fields[1]) == me and fields[0] != "Z":
+                out.append(int(entry.name))
+    return out
+
+
+@pytest.mark.slow
+def test_outputs_equal_scoring_in_the_replays_process(tmp_path):
+    bag = synth_small(tmp_path / "drive", frames=6, seed=33)
+    assert replay_ipm(bag, tmp_path / "here", "--frames-every", "2", "--score-process", "off") == 0
+    here = replay_outputs(tmp_path / "here")
+    assert here[0]["frames_scored"] == 6 and here[0]["classes"]["drivable"]["cd"] is not None
+    for pipeline in ("0", "4"):
+        out = tmp_path / f"process-{pipeline}"
+        assert replay_ipm(bag, out, "--frames-every", "2", "--score-process", "on", "--pipeline", pipeline) == 0
+        there = replay_outputs(out)
+        assert there[0] == here[0]
+        assert there[1] == here[1] and len(there[1]) == 3
+        assert there[2] == here[2]
+        assert there[3] == here[3]
+    assert not _children()
+
+
+def test_a_scoring_process_that_dies_is_an_error_of_the_replay(tmp_path):
+    bag = synth_small(tmp_path / "drive", frames=8, seed=34)
+    killed = []
+
+    class KillAtFrame3:
+        def __init__(self, total) -> None:
+            self.n = 0
+
+        def update(self, n: int) -> None:
+            self.n += n
+            if self.n == 3 and not killed:
+                for pid in _children():
+                    os.kill(pid, signal.SIGKILL)
+                    killed.append(pid)
+
+        def close(self) -> None:
+            pass
+
+    options = ReplayOptions(bag=bag, out=tmp_path / "out", mapper=MapperConfig(method="ipm"), score_process="on")
+    with pytest.raises(ScoringError, match="exited unexpectedly.*--score-process off"):
+        replay(options, progress=KillAtFrame3)
+    assert killed
+    assert not _children()
+    assert not (tmp_path / "out" / "metrics.json").exists()
+
+
+def test_the_scorers_error_in_the_process_is_raised_in_the_replay():
+    grid = BevGrid(x_min=-5.0, x_max=5.0, y_min=-2.5, y_max=2.5, resolution=0.25)
+    names = ("drivable", "vehicle")
+    scorer = ReplayScorer(grid, names, names, ground=False)
+    local = ReplayScorer(grid, names, names, ground=False)
+    remote = ScoringProcess(scorer, len(names), grid.shape)
+    try:
+        rng = np.random.default_rng(28)
+        for _ in range(4):  # more frames than slots: each answer taken before its slot is reused
+            gt = rng.random((2,) + grid.shape) < 0.3
+            layers = FrameLayers(gt, rng.random(grid.shape) < 0.9, None, np.ones(grid.shape, bool), None)
+            pred = BevPrediction(names, rng.random((2,) + grid.shape).astype(np.float32),
+                                 rng.random(grid.shape) < 0.8)
+            if remote.full:
+                remote.take()
+            remote.submit(layers, pred)
+            local.add(layers, pred)
+        while remote.pending:
+            remote.take()
+        probs = pred.probs.copy()
+        probs[0, 0, 0] = np.nan
+        remote.submit(layers, BevPrediction(names, probs, np.ones(grid.shape, bool)))
+        with pytest.raises(InputError, match="NaN"):
+            remote.take()
+        state = remote.close()
+    finally:
+        remote.close(abandon=True)
+    assert state == local.state()  # the frame that failed added nothing
+    assert not _children()
+
+
+def test_auto_scores_in_a_process_only_long_drives_on_two_cores():
+    cores = len(os.sched_getaffinity(0))
+    assert use_process("on", 1) and not use_process("off", 10 ** 6)
+    assert not use_process("auto", None) and not use_process("auto", AUTO_MIN_FRAMES - 1)
+    assert use_process("auto", AUTO_MIN_FRAMES) == (cores >= 2)
