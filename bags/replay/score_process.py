@@ -33,6 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bev_mapper_core.geometry.grid import BevGrid
 from bev_mapper_core.mapper import BevPrediction
 
 from ..errors import BagError
@@ -120,7 +121,8 @@ class ScoringProcess:
         try:
             self._proc = subprocess.Popen([sys.executable, "-c", f"from {__name__} import main; main()"],
                                           stdin=subprocess.PIPE, stdout=subprocess.PIPE)
-            self._send((path, self._fields, self._size, depth, scorer.args))
+            grid, *rest = scorer.args
+            self._send((path, self._fields, self._size, depth, (grid.to_dict(), *rest)))  # no cached arrays
             self._recv()  # mapped: the file can go
         except BaseException:
             self.close(abandon=True)
@@ -245,10 +247,10 @@ def _serve(inp, out) -> None:
     order, and answer its IoU (or the exception it raised); answer ``("state",)`` with the
     scorer's state; exit at the end of the input.
     """
-    path, fields, size, depth, args = pickle.load(inp)
+    path, fields, size, depth, (grid, *args) = pickle.load(inp)
     with open(path, "r+b") as f:
         shared = mmap.mmap(f.fileno(), size * depth)
-    scorer = ReplayScorer(*args)
+    scorer = ReplayScorer(BevGrid.from_dict(grid), *args)
 
     def answer(kind, value) -> None:
         try:
