@@ -26,7 +26,9 @@ import bags.replay.outputs as outputs
 import bev_mapper_core.metrics.accumulator as accumulator
 import bev_mapper_core.metrics.whole_grid as whole_grid
 from bags.replay import FRAMES_DIR, IMAGE_TOPIC
+from bags.replay.frame_scores import caption
 from bags.replay.options import OUT_PREFIX
+from bags.report.pictures import comparison_picture
 from bev_mapper_core.labels.classes import bev_picture
 from msg_adapters import make_image, make_occupancy_grid
 
@@ -56,9 +58,9 @@ def reference_finish(self, frame, pred, index):
         scorer.acc.threshold)
     options = run.options
     if options.pictures and index % options.frames_every == 0:
-        pic = outputs.comparison_picture(
+        pic = comparison_picture(
             run.grid, pred.probs, pred.known, mapper.classes, gt, mask, scorer.classes,
-            method=options.mapper.method, caption=outputs._caption(frame, score),
+            method=options.mapper.method, caption=caption(frame.index, frame.stamp_ns, score),
             ious=None if score is None else score.ious)
         name = f"frame_{frame.index:04d}.png"
         outputs.write_atomic(run.tmp_frames / name, outputs.encode_png(pic))

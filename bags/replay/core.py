@@ -57,7 +57,7 @@ from ..io.writer import BagWriter
 from .mapping import map_frames
 from .options import BAG_DIR, FRAMES_DIR, ReplayOptions, ReplayResult, ReplayRun, check_outputs
 from .outputs import FrameSink, write_outputs
-from .score_process import ScoringProcess, use_process
+from .score_process import Pictures, ScoringProcess, use_process
 from .scoring import scorer_for
 
 
@@ -112,7 +112,8 @@ def _run(run: ReplayRun, progress: Callable | None) -> ReplayResult:
     if options.pictures:
         run.tmp_frames.mkdir()
     with BagWriter(run.out / BAG_DIR, storage=options.storage, force=options.force) as bw:
-        remote = ScoringProcess(scorer, len(run.mapper.class_names), run.grid.shape) \
+        pictures = Pictures(options.mapper.method, tuple(run.mapper.classes), str(run.tmp_frames))
+        remote = ScoringProcess(scorer, len(run.mapper.class_names), run.grid.shape, pictures=pictures) \
             if scorer.acc is not None and use_process(options.score_process, total) else None
         try:
             sink = FrameSink(run, bw, scorer, remote)

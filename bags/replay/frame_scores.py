@@ -75,3 +75,15 @@ class FrameScores:
                            {n: (None if math.isnan(float(v)) else float(v)) for n, v in zip(names, ious)})
         self.frames.append(score)
         return score
+
+
+def caption(index: int, stamp_ns: int, score: FrameScore | None) -> str:
+    """A picture's footer: frame index, stamp and the frame's mIoU over the classes defined in
+    it (``score`` None: the frame was not scored).
+    """
+    text = f"frame {index}  stamp {stamp_ns / 1e9:.3f} s"
+    if score is None:
+        return text + "  (no GT: not scored)"
+    defined = [v for v in score.ious.values() if v is not None]
+    miou = "-" if score.miou is None else f"{100 * score.miou:.1f}%"
+    return text + f"  mIoU {miou} over {len(defined)} class(es)"

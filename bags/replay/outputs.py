@@ -23,10 +23,10 @@ from ..io import topics as T
 from ..io.reader import BagReader
 from ..io.writer import BagWriter
 from ..report.html import render_report
-from ..report.pictures import comparison_picture, encode_gif, encode_png
+from ..report.pictures import encode_gif, encode_png, save_comparison
 from ..report.reliability import reliability_picture
 from .frame_messages import published_percent, write_frame_messages
-from .frame_scores import FrameScores
+from .frame_scores import FrameScores, caption
 from .mapping import MappingTally
 from .options import (
     BAG_DIR,
@@ -160,7 +160,12 @@ class FrameSink:
         layers = scorer.frame_layers(frame)
         if layers is not None:
             self._release()  # waits for the oldest frame's score while every slot is in use
-            self._remote.submit(layers, pred)
+            # the scoring process draws the picture of a frame it scores (not for a GIF: its
+            # pictures are kept here)
+            options = self.run.options
+            picture = (self._picture_name(frame), frame.index, frame.stamp_ns) \
+                if options.pictures and not options.gif and index % options.frames_every == 0 else None
+            self._remote.submit(layers, pred, picture)
         self._waiting.append((frame, pred, index, percent, layers))
         self._release()
 
@@ -178,37 +183,42 @@ class FrameSink:
                 iou = self._remote.take()
             self._waiting.popleft()
             gt, mask = (None, None) if layers is None else (layers.gt, layers.visible)
-            self._scored(frame, pred, index, percent, gt, mask, iou)
+            self._scored(frame, pred, index, percent, gt, mask, iou, drawn=layers is not None)
 
-    def _scored(self, frame, pred: BevPrediction, index: int, percent, gt, mask, iou) -> None:
+    def _scored(self, frame, pred: BevPrediction, index: int, percent, gt, mask, iou, drawn: bool = False) -> None:
         """Keep a scored frame's IoU (``iou``, as the scorer counted it: FrameScores.add would
-        score it again alike) and have the frame written.
+        score it again alike) and have the frame written (``drawn``: its picture, if it has one,
+        was drawn by the scoring process).
         """
         score = None if gt is None else self.scores.add_ious(
             frame.index, frame.stamp_ns, [c.name for c in self.scorer.classes], iou)
         if self._writing is None:
-            self._write(frame, pred, index, percent, gt, mask, score)
+            self._write(frame, pred, index, percent, gt, mask, score, drawn)
         else:
-            self._writing.submit(self._write, frame, pred, index, percent, gt, mask, score)
+            self._writing.submit(self._write, frame, pred, index, percent, gt, mask, score, drawn)
 
-    def _write(self, frame, pred: BevPrediction, index: int, percent, gt, mask, score) -> None:
+    def _write(self, frame, pred: BevPrediction, index: int, percent, gt, mask, score, drawn: bool) -> None:
         """The frame's messages in the output bag (after the calibration logged up to it) and
-        its picture.
+        its picture (unless ``drawn`` by the scoring process).
         """
         run, mapper = self.run, self.run.mapper
         self.copier.upto(_frame_time(frame))
         write_frame_messages(self.bw, run.grid, mapper, pred, frame.stamp_ns, self.ego, percent)
         options = run.options
         if options.pictures and index % options.frames_every == 0:
-            pic = comparison_picture(
-                run.grid, pred.probs, pred.known, mapper.classes, gt, mask, self.scorer.classes,
-                method=options.mapper.method, caption=_caption(frame, score),
-                ious=None if score is None else score.ious)
-            name = f"frame_{frame.index:04d}.png"
-            write_atomic(run.tmp_frames / name, encode_png(pic))
+            name = self._picture_name(frame)
+            if not (drawn and not options.gif):
+                pic = save_comparison(
+                    run.tmp_frames / name, run.grid, pred.probs, pred.known, mapper.classes, gt, mask,
+                    self.scorer.classes, method=options.mapper.method,
+                    caption=caption(frame.index, frame.stamp_ns, score), ious=None if score is None else score.ious)
+                if options.gif:
+                    self.gif_frames.append(pic)
             self.pictures.append(run.out / FRAMES_DIR / name)
-            if options.gif:
-                self.gif_frames.append(pic)
+
+    @staticmethod
+    def _picture_name(frame) -> str:
+        return f"frame_{frame.index:04d}.png"
 
     def close(self, abandon: bool = False) -> None:
         """Wait for the frames being scored and written (``abandon``: only the one under way; a
@@ -247,16 +257,6 @@ class FrameSink:
 def _frame_time(frame) -> int:
     stamps = [s for s in frame.camera_stamps.values() if s is not None]
     return max(stamps + [frame.stamp_ns])
-
-
-def _caption(frame, score) -> str:
-    """Picture footer: frame index, stamp and the frame's mIoU over the classes defined in it."""
-    text = f"frame {frame.index}  stamp {frame.stamp_ns / 1e9:.3f} s"
-    if score is None:
-        return text + "  (no GT: not scored)"
-    defined = [v for v in score.ious.values() if v is not None]
-    miou = "-" if score.miou is None else f"{100 * score.miou:.1f}%"
-    return text + f"  mIoU {miou} over {len(defined)} class(es)"
 
 
 def write_outputs(run: ReplayRun, sink: FrameSink, tally: MappingTally) -> ReplayResult:

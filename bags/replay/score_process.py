@@ -10,7 +10,8 @@ shared memory map (a file in ``/dev/shm``, removed once both processes have mapp
 probabilities and known cells, and the frame's :class:`~bags.replay.scoring.FrameLayers` (computed
 in the replay's process, which needs them for the pictures anyway). The child scores the frames
 in the order they were submitted and answers each with the frame's IoU; the replay takes the
-answers in the same order (:meth:`ScoringProcess.take`). At the end the child's scores come back
+answers in the same order (:meth:`ScoringProcess.take`). The child also draws the pictures of the
+frames it scores (it holds their prediction, GT and score). At the end the child's scores come back
 as its scorer's mergeable state (:meth:`~bags.replay.scoring.ReplayScorer.state`), which the
 replay's scorer loads: the same numbers as scoring in the replay's process, frame for frame
 (the same arithmetic in the same order).
@@ -30,6 +31,7 @@ import sys
 import tempfile
 from collections import deque
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -37,6 +39,8 @@ from bev_mapper_core.geometry.grid import BevGrid
 from bev_mapper_core.mapper import BevPrediction
 
 from ..errors import BagError
+from ..report.pictures import save_comparison
+from .frame_scores import FrameScores, caption
 from .scoring import FrameLayers, ReplayScorer
 
 #: frames in flight between the replay's process and the scoring process (one shared-memory slot each)
@@ -50,6 +54,18 @@ _JOIN_S = 10.0
 
 class ScoringError(BagError):
     """The scoring process failed or exited."""
+
+
+@dataclass(frozen=True)
+class Pictures:
+    """What the scoring process needs to draw the pictures of the frames it scores."""
+
+    #: the method's name (the pictures' title)
+    method: str
+    #: the mapper's classes, in layer order
+    classes: tuple
+    #: the folder the pictures are written into
+    directory: str
 
 
 @dataclass(frozen=True)
@@ -108,7 +124,8 @@ class ScoringProcess:
         ScoringError: the child did not start.
     """
 
-    def __init__(self, scorer: ReplayScorer, n_pred: int, shape: tuple[int, int], depth: int = DEPTH) -> None:
+    def __init__(self, scorer: ReplayScorer, n_pred: int, shape: tuple[int, int], depth: int = DEPTH,
+                 pictures: Pictures | None = None) -> None:
         self.depth = depth
         self._fields, self._size = _layout(n_pred, len(scorer.classes), tuple(shape))
         fd, path = tempfile.mkstemp(prefix="bev-bag-scoring-", dir=_shared_dir())
@@ -122,7 +139,7 @@ class ScoringProcess:
             self._proc = subprocess.Popen([sys.executable, "-c", f"from {__name__} import main; main()"],
                                           stdin=subprocess.PIPE, stdout=subprocess.PIPE)
             grid, *rest = scorer.args
-            self._send((path, self._fields, self._size, depth, (grid.to_dict(), *rest)))  # no cached arrays
+            self._send((path, self._fields, self._size, depth, (grid.to_dict(), *rest), pictures))  # no cached arrays
             self._recv()  # mapped: the file can go
         except BaseException:
             self.close(abandon=True)
@@ -132,9 +149,11 @@ class ScoringProcess:
         self._free = deque(range(depth))
         self._busy: deque[int] = deque()  # slots of the frames submitted, oldest first
 
-    def submit(self, layers: FrameLayers, pred: BevPrediction) -> None:
+    def submit(self, layers: FrameLayers, pred: BevPrediction,
+               picture: tuple[str, int, int] | None = None) -> None:
         """Copy a frame into a free slot and have the child score it (the caller :meth:`take` s
-        the oldest answer first while the slots are :attr:`full`).
+        the oldest answer first while the slots are :attr:`full`); ``picture``: ``(file name,
+        frame index, stamp)``, the child also draws the frame's picture into ``pictures.directory``.
         """
         if not self._free:
             raise RuntimeError("every slot is in use: take() the oldest answer first")
@@ -151,7 +170,7 @@ class ScoringProcess:
             if value is not None:
                 np.copyto(views[name], value)
         self._busy.append(slot)
-        self._send(("frame", slot, tuple(pred.classes), present))
+        self._send(("frame", slot, tuple(pred.classes), present, picture))
 
     @property
     def full(self) -> bool:
@@ -247,10 +266,11 @@ def _serve(inp, out) -> None:
     order, and answer its IoU (or the exception it raised); answer ``("state",)`` with the
     scorer's state; exit at the end of the input.
     """
-    path, fields, size, depth, (grid, *args) = pickle.load(inp)
+    path, fields, size, depth, (grid, *args), pictures = pickle.load(inp)
     with open(path, "r+b") as f:
         shared = mmap.mmap(f.fileno(), size * depth)
-    scorer = ReplayScorer(BevGrid.from_dict(grid), *args)
+    grid = BevGrid.from_dict(grid)
+    scorer = ReplayScorer(grid, *args)
 
     def answer(kind, value) -> None:
         try:
@@ -269,14 +289,27 @@ def _serve(inp, out) -> None:
             if message[0] == "state":
                 answer("state", scorer.state())
                 continue
-            _, slot, names, present = message
+            _, slot, names, present, picture = message
             v = _views(shared, fields, size, slot)
             layers = FrameLayers(v["gt"], v["visible"], v["truth"] if present["truth"] else None,
                                  v["seen"], v["ground"] if present["ground"] else None)
             pred = BevPrediction(names, v["probs"], v["known"] if present["known"] else None)
-            answer("iou", scorer.add(layers, pred))
+            iou = scorer.add(layers, pred)
+            if picture is not None:
+                _draw(pictures, picture, grid, scorer, layers, pred, iou)
+            answer("iou", iou)
         except Exception as exc:  # noqa: BLE001 - handed to the replay, which raises it
             answer("error", exc)
+
+
+def _draw(pictures: Pictures, picture: tuple[str, int, int], grid: BevGrid, scorer: ReplayScorer,
+          layers: FrameLayers, pred: BevPrediction, iou: np.ndarray) -> None:
+    """The frame's picture, as the replay's process draws it (:class:`~bags.replay.outputs.FrameSink`)."""
+    name, index, stamp_ns = picture
+    score = FrameScores().add_ious(index, stamp_ns, [c.name for c in scorer.classes], iou)
+    save_comparison(Path(pictures.directory) / name, grid, pred.probs, pred.known, pictures.classes, layers.gt,
+                    layers.visible, scorer.classes, method=pictures.method,
+                    caption=caption(index, stamp_ns, score), ious=score.ious)
 
 
 def main() -> None:
@@ -291,4 +324,4 @@ def main() -> None:
         pass
 
 
-__all__ = ["AUTO_MIN_FRAMES", "DEPTH", "ScoringError", "ScoringProcess", "use_process"]
+__all__ = ["AUTO_MIN_FRAMES", "DEPTH", "Pictures", "ScoringError", "ScoringProcess", "use_process"]

@@ -22,6 +22,8 @@ from bev_mapper_core.display import STRIP_BG, STRIP_FG, painter
 from bev_mapper_core.geometry.grid import BevGrid
 from bev_mapper_core.labels.classes import BevClass
 
+from ..files import write_atomic
+
 #: Pictures are upscaled (nearest) until the BEV panels are at least this many pixels tall.
 MIN_PANEL_HEIGHT = 360
 _BAND = 22  # header / footer text band height (px)
@@ -115,6 +117,15 @@ def comparison_picture(
     if caption:
         _text(out, caption, 4, out.shape[0] - 7)
     return out
+
+
+def save_comparison(path, *args, **kwargs) -> np.ndarray:
+    """:func:`comparison_picture` of ``args`` and ``kwargs``, written to ``path`` as a PNG
+    (:func:`bags.files.write_atomic`); returns the picture.
+    """
+    picture = comparison_picture(*args, **kwargs)
+    write_atomic(path, encode_png(picture))
+    return picture
 
 
 def encode_png(rgb: np.ndarray) -> bytes:
