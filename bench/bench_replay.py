@@ -23,6 +23,7 @@ from bench_rows import row, write_rows  # noqa: E402
 
 from bags.cli.synth import SynthBagOptions, synth_bag  # noqa: E402
 from bags.io.reader import BagReader  # noqa: E402
+from bags.memory import keep_freed_memory  # noqa: E402
 from bags.replay import ReplayOptions, replay  # noqa: E402
 from bev_mapper_core.mapper import MapperConfig  # noqa: E402
 from bev_mapper_core.synth.config import SynthConfig  # noqa: E402
@@ -48,6 +49,7 @@ def main() -> None:
     ap.add_argument("--keep", type=Path, default=None, help="keep the outputs here")
     ap.add_argument("--json", default=None, help="also write the rows for bench/bench_table.py here")
     args = ap.parse_args()
+    keep_freed_memory()  # as bev-bag replay does (bags/memory.py)
     tmp = Path(tempfile.mkdtemp(prefix="bench_replay_"))
     try:
         bag = args.bag

@@ -20,6 +20,7 @@ from msg_adapters.sync import SyncConfig
 from ..errors import BagError
 from ..io.rig_source import RigChoice
 from ..io.writer import STORAGES
+from ..memory import keep_freed_memory
 from ..replay import ReplayOptions, replay
 from ..replay.options import SCORE_PROCESS
 from ..replay.score_process import AUTO_MIN_FRAMES
@@ -199,6 +200,7 @@ def sync_from_args(args: argparse.Namespace) -> SyncConfig:
 def run(args: argparse.Namespace) -> int:
     """Run ``bev-bag replay``: print the metrics table; 1 (after writing) on a damaged bag."""
     options = options_from_args(args)
+    keep_freed_memory()  # per-frame arrays reuse the heap (bags/memory.py)
     t0 = time.monotonic()
     result = replay(options)
     m = result.metrics

@@ -28,6 +28,7 @@ from bev_mapper_core.metrics import MetricAccumulator, WholeGridAccumulator
 
 from ..errors import BagError
 from ..io.sources import BAG_SUFFIXES
+from ..memory import keep_freed_memory
 from ..replay import ReplayOptions, ReplayScorer, percentiles, replay
 from . import ray_tasks
 
@@ -147,6 +148,7 @@ def evaluate_bag(options: ReplayOptions, name: str, board=None) -> dict:
               "metrics": None, "scoring": None, "latencies_ms": [], "seconds": None,
               "cpu_seconds": None}
     progress = None if board is None else (lambda total: _ReportedBar(board, name, total))
+    keep_freed_memory()  # a worker's per-frame arrays reuse the heap (bags/memory.py)
     t0, c0 = time.perf_counter(), time.process_time()
     try:
         result = replay(options, progress=progress)

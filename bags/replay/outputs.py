@@ -157,16 +157,16 @@ class FrameSink:
             gt, mask = scorer.update(frame, pred, percent)
             self._scored(frame, pred, index, percent, gt, mask, None if gt is None else scorer.frame_iou)
             return
-        layers = scorer.frame_layers(frame)
+        layers, picture = scorer.frame_layers(frame), None
         if layers is not None:
             self._release()  # waits for the oldest frame's score while every slot is in use
             # the scoring process draws the picture of a frame it scores (not for a GIF: its
             # pictures are kept here)
             options = self.run.options
-            picture = (self._picture_name(frame), frame.index, frame.stamp_ns) \
-                if options.pictures and not options.gif and index % options.frames_every == 0 else None
+            if options.pictures and not options.gif and index % options.frames_every == 0:
+                picture = (self._picture_name(frame), frame.index, frame.stamp_ns)
             self._remote.submit(layers, pred, picture)
-        self._waiting.append((frame, pred, index, percent, layers))
+        self._waiting.append((frame, pred, index, percent, layers, picture is not None))
         self._release()
 
     def _release(self, every: bool = False) -> None:
@@ -175,7 +175,7 @@ class FrameSink:
         all of them).
         """
         while self._waiting:
-            frame, pred, index, percent, layers = self._waiting[0]
+            frame, pred, index, percent, layers, drawn = self._waiting[0]
             iou = None
             if layers is not None:
                 if not (every or self._remote.full):
@@ -183,7 +183,7 @@ class FrameSink:
                 iou = self._remote.take()
             self._waiting.popleft()
             gt, mask = (None, None) if layers is None else (layers.gt, layers.visible)
-            self._scored(frame, pred, index, percent, gt, mask, iou, drawn=layers is not None)
+            self._scored(frame, pred, index, percent, gt, mask, iou, drawn)
 
     def _scored(self, frame, pred: BevPrediction, index: int, percent, gt, mask, iou, drawn: bool = False) -> None:
         """Keep a scored frame's IoU (``iou``, as the scorer counted it: FrameScores.add would
@@ -207,7 +207,7 @@ class FrameSink:
         options = run.options
         if options.pictures and index % options.frames_every == 0:
             name = self._picture_name(frame)
-            if not (drawn and not options.gif):
+            if not drawn:
                 pic = save_comparison(
                     run.tmp_frames / name, run.grid, pred.probs, pred.known, mapper.classes, gt, mask,
                     self.scorer.classes, method=options.mapper.method,

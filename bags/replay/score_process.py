@@ -39,6 +39,7 @@ from bev_mapper_core.geometry.grid import BevGrid
 from bev_mapper_core.mapper import BevPrediction
 
 from ..errors import BagError
+from ..memory import keep_freed_memory
 from ..report.pictures import save_comparison
 from .frame_scores import FrameScores, caption
 from .scoring import FrameLayers, ReplayScorer
@@ -316,6 +317,7 @@ def main() -> None:
     """Entry point of the child: messages on stdin, answers on what was stdout (stdout itself now
     goes to stderr, so that nothing printed can corrupt the answers).
     """
+    keep_freed_memory()  # the per-frame arrays reuse the heap (bags/memory.py)
     out = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)
     try:
