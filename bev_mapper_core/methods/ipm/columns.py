@@ -153,8 +153,8 @@ class ColumnOcclusion:
 
     def hidden(self, cr: ColumnRaster, labels: np.ndarray, ids: np.ndarray,
                margin: float) -> np.ndarray | None:
-        """``(n,)`` bool over the camera's seen cells (gather order): hidden from it; ``None``
-        when nothing is.
+        """The camera's seen cells hidden from it: ``(k,)`` increasing indices into its gather
+        order; ``None`` when none is.
 
         Args:
             cr: the camera's :class:`ColumnRaster`.
@@ -207,6 +207,4 @@ class ColumnOcclusion:
             first = np.full(w, NO_KEY, np.int32)
             first[cols] = np.where(cr.dist[:, cols] > far[cols][None], sub, NO_KEY).min(axis=0)
             cols = cols[first[cols] < NO_KEY]
-        out = np.zeros(len(ids), bool)
-        out[cand] = hidden
-        return out
+        return cand[hidden] if hidden.any() else None

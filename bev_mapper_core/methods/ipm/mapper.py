@@ -116,8 +116,9 @@ class LineOfSight:
             self.rays = {c.name: ray_raster(c, grid, self.tables[c.name].valid) for c in rig.cameras}
 
     def hidden(self, name: str, labels: np.ndarray, ids: np.ndarray) -> np.ndarray | None:
-        """Column search: ``(n,)`` bool over camera ``name``'s gathered cells, hidden from it
-        (``ids`` = its gather of ``labels``); ``None`` when none is.
+        """Column search: camera ``name``'s gathered cells hidden from it, as ``(k,)``
+        increasing indices into its gather (``ids`` = its gather of ``labels``); ``None`` when
+        none is.
         """
         slack = self.grid.resolution * NEAR_EDGE_SLACK_CELLS
         return self._column_occlusion.hidden(self.column_rasters[name], labels, ids, slack)
@@ -225,10 +226,9 @@ class IpmMapper(Mapper):
             g = self.gathers[name]
             ids = g.gather(labels)  # (n,) uint8 label ids of the seen cells
             cells = g.cells
-            if occlusion and self.sight.columns:  # per image column: a mask over the gather
+            hidden = None  # per image column: indices into the gather
+            if occlusion and self.sight.columns:
                 hidden = self.sight.hidden(name, labels, ids)
-                if hidden is not None:
-                    cells, ids = cells[~hidden], ids[~hidden]
             elif occlusion:  # the polar raster reads the warped image
                 warped = np.zeros(H * W, labels.dtype)
                 warped[cells] = ids
@@ -236,8 +236,15 @@ class IpmMapper(Mapper):
                 cells, ids = cells[keep], ids[keep]
             # cells are unique within a camera, so fancy-indexed += adds once per cell
             if codes is not None:
-                acc[cells] += codes[ids]  # every class's count and the camera count in one integer
+                add = codes[ids]  # every class's count and the camera count in one integer
+                if hidden is not None:
+                    add[hidden] = 0  # a hidden cell adds nothing, not even to the count
+                acc[cells] += add
             else:
+                if hidden is not None:
+                    keep = np.ones(len(ids), bool)
+                    keep[hidden] = False
+                    cells, ids = cells[keep], ids[keep]
                 acc[:, cells] += self._lut_t[:, ids]
                 count[cells] += 1.0
         if codes is not None:  # unpack: field f is bits [f*bits, (f+1)*bits), the count last
