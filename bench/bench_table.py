@@ -8,8 +8,9 @@ Rows: IPM against its earlier algorithm (``bench_ipm.py``); Bi-Mapper by inferen
 against torch eager, and by thread count with a competing process (``bench_backends.py
 --competitor``); the node at 10 and 20 Hz with reliable publishers and at 10 Hz with
 best-effort ones, and with ``backend:=torch`` against the default ``auto`` (``bench_node_rate.py``);
-replay against reading in turn (``bench_replay.py``) and its marginal rate against real time, the
-reading and writing before #28's second part and everything before #28 (``bench_replay_rate.py``); the node's start to its first grid per
+replay against reading in turn (``bench_replay.py``) and its marginal rate against real time, ours
+scored in the replay's own process, the reading and writing before #28's second part and
+everything before #28 (``bench_replay_rate.py``); the node's start to its first grid per
 method, cold and warm export cache (``bench_node_startup.py --methods``);
 1600 x 900 cameras against 400 x 225 ones on RGB (``bench_full_resolution.py``).
 Run it on a quiet machine: every figure is a wall-clock time (on a shared one, only the ratios
@@ -69,8 +70,8 @@ def markdown(rows: list[dict]) -> str:
     lines = [f"Measured by `.venv/bin/python bench/bench_table.py --write` on {machine()}, "
              f"{datetime.date.today().isoformat()}. Ratio: the reference's time over ours (above 1: ours is "
              "faster); for the node, sets mapped over sets published; for replay, the pipeline's speed over one thread; "
-             "for replay's marginal rate, ours over the reading and writing before #28's second part and over "
-             "everything before #28; for the start-up, torch's over the "
+             "for replay's marginal rate, ours over ours scored in the replay's own process, over the reading and "
+             "writing before #28's second part and over everything before #28; for the start-up, torch's over the "
              "warm export cache's. The machine was shared with other jobs: a row's two figures come from the same "
              "run, interleaved where the row says so, and only their ratio carries over.",
              "",
