@@ -57,7 +57,7 @@ from ..io.writer import BagWriter
 from .mapping import map_frames
 from .options import BAG_DIR, FRAMES_DIR, ReplayOptions, ReplayResult, ReplayRun, check_outputs
 from .outputs import FrameSink, write_outputs
-from .score_process import Pictures, ScoringProcess, use_process
+from .score_process import Pictures, ScoringError, ScoringProcess, use_process
 from .scoring import scorer_for
 
 
@@ -112,9 +112,7 @@ def _run(run: ReplayRun, progress: Callable | None) -> ReplayResult:
     if options.pictures:
         run.tmp_frames.mkdir()
     with BagWriter(run.out / BAG_DIR, storage=options.storage, force=options.force) as bw:
-        pictures = Pictures(options.mapper.method, tuple(run.mapper.classes), str(run.tmp_frames))
-        remote = ScoringProcess(scorer, len(run.mapper.class_names), run.grid.shape, pictures=pictures) \
-            if scorer.acc is not None and use_process(options.score_process, total) else None
+        remote = _scoring_process(run, scorer, total)
         try:
             sink = FrameSink(run, bw, scorer, remote)
         except BaseException:
@@ -131,6 +129,22 @@ def _run(run: ReplayRun, progress: Callable | None) -> ReplayResult:
     tally.damage = _damage_note(tally.damage, run.reader)
     # the output bag is in place; now the pictures, the GIF and last the metrics
     return write_outputs(run, sink, tally)
+
+
+def _scoring_process(run: ReplayRun, scorer, total: int | None) -> ScoringProcess | None:
+    """The scoring process ``options.score_process`` asks for (``None``: score here). One that
+    does not start (no shared memory, no interpreter to run) leaves the scoring here, with a
+    note: the outputs are the same either way.
+    """
+    options = run.options
+    if scorer.acc is None or not use_process(options.score_process, total):
+        return None
+    try:
+        pictures = Pictures(options.mapper.method, tuple(run.mapper.classes), str(run.tmp_frames))
+        return ScoringProcess(scorer, len(run.mapper.class_names), run.grid.shape, pictures=pictures)
+    except (OSError, ScoringError) as exc:
+        run.notes.append(f"scored in the replay's own process: the scoring process did not start ({exc})")
+        return None
 
 
 def _expected_frames(run: ReplayRun) -> int | None:

@@ -116,3 +116,14 @@ def test_auto_scores_in_a_process_only_long_drives_on_two_cores():
     assert use_process("on", 1) and not use_process("off", 10 ** 6)
     assert not use_process("auto", None) and not use_process("auto", AUTO_MIN_FRAMES - 1)
     assert use_process("auto", AUTO_MIN_FRAMES) == (cores >= 2)
+
+
+def test_a_scoring_process_that_cannot_start_leaves_the_scoring_here(tmp_path, monkeypatch):
+    """No interpreter to run (an embedded Python): the replay scores in its own process and says so."""
+    bag = synth_small(tmp_path / "drive", frames=3, seed=35)
+    monkeypatch.setattr("sys.executable", str(tmp_path / "no-python"))
+    result = replay(ReplayOptions(bag=bag, out=tmp_path / "out", mapper=MapperConfig(method="ipm"),
+                                  score_process="on"))
+    assert result.metrics["frames_scored"] == 3 and result.damage is None
+    assert any("scoring process did not start" in n for n in result.notes)
+    assert not _children()
