@@ -133,6 +133,9 @@ class ScoringProcess:
         try:
             os.ftruncate(fd, self._size * depth)
             self._map = mmap.mmap(fd, self._size * depth)
+        except BaseException:
+            os.unlink(path)
+            raise
         finally:
             os.close(fd)
         self._proc = None
