@@ -1,8 +1,8 @@
 """Scoring a replay in a process of its own: :class:`ScoringProcess`.
 
 The scoring of a frame (IoU, Chamfer distances, the whole-grid counts) is numpy and OpenCV work
-that holds the GIL much of the time, so in threads it hardly overlaps the reading, mapping and
-writing. A :class:`ScoringProcess` runs a twin of the replay's
+that holds the GIL much of the time, so in threads it overlaps the reading, mapping and writing
+only in part. A :class:`ScoringProcess` runs a twin of the replay's
 :class:`~bags.replay.scoring.ReplayScorer` in a child process (a fresh interpreter running this
 module: nothing of the parent's threads or locks is inherited, and unlike ``multiprocessing``'s
 ``spawn`` the caller's main module is not run again there) and hands it each frame through a
