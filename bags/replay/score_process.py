@@ -150,6 +150,7 @@ class ScoringProcess:
             raise
         finally:
             os.unlink(path)
+        self._slots = [_views(self._map, self._fields, self._size, k) for k in range(depth)]  # built once
         self._free = deque(range(depth))
         self._busy: deque[int] = deque()  # slots of the frames submitted, oldest first
 
@@ -161,7 +162,7 @@ class ScoringProcess:
         """
         if not self._free:
             raise RuntimeError("every slot is in use: take() the oldest answer first")
-        views = _views(self._map, self._fields, self._size, self._free[0])
+        views = self._slots[self._free[0]]
         if pred.probs.dtype != views["probs"].dtype or pred.probs.shape != views["probs"].shape:
             raise ScoringError(f"the scoring process takes {views['probs'].shape} float32 probabilities, "
                                f"got {pred.probs.shape} {pred.probs.dtype}")
@@ -254,6 +255,7 @@ class ScoringProcess:
                     proc.kill()
                     proc.wait()
         finally:
+            self._slots = None  # the views of the map, which would keep it open
             try:
                 self._map.close()
             except BufferError:  # a view of it still referenced (an exception's frames): freed with it
@@ -273,6 +275,7 @@ def _serve(inp, out) -> None:
     path, fields, size, depth, (grid, *args), pictures = pickle.load(inp)
     with open(path, "r+b") as f:
         shared = mmap.mmap(f.fileno(), size * depth)
+    slots = [_views(shared, fields, size, k) for k in range(depth)]
     grid = BevGrid.from_dict(grid)
     scorer = ReplayScorer(grid, *args)
 
@@ -294,7 +297,7 @@ def _serve(inp, out) -> None:
                 answer("state", scorer.state())
                 continue
             _, slot, names, present, picture = message
-            v = _views(shared, fields, size, slot)
+            v = slots[slot]
             layers = FrameLayers(v["gt"], v["visible"], v["truth"] if present["truth"] else None,
                                  v["seen"], v["ground"] if present["ground"] else None)
             pred = BevPrediction(names, v["probs"], v["known"] if present["known"] else None)
