@@ -12,7 +12,8 @@ import numpy as np
 from ..errors import ConfigError, InputError
 from ..geometry.grid import BevGrid
 from ..labels.classes import resolve_classes
-from ._checks import _check_bool, _check_mask, _nan_to_none, _row_counts, _safe_div
+from ._checks import _check_bool, _check_mask, _nan_to_none, _safe_div
+from ._packed import CellCounter, pack, unpack
 from ._state import Mergeable, _from_json_number, _json_number
 from .functional import DEFAULT_CLIP_M, _chamfer_terms, mean_iou
 
@@ -151,11 +152,12 @@ class MetricAccumulator(Mergeable):
         self.clip = float(clip)
         self.use_visibility = bool(use_visibility)
         self.chamfer_reduction = chamfer_reduction
-        # (B, H*W) bool band membership: the per-band counts of every class are the row counts
-        # of one (C, B, H*W) product
-        self._band_masks = np.stack(
+        # (B, H*W) bool band membership: each frame's counts, in total and per band, come from
+        # one histogram of the packed layers (._packed)
+        band_masks = np.stack(
             [((ranges >= lo) & (ranges < hi)).ravel() for lo, hi in bands]
         ) if bands else np.zeros((0, ranges.size), bool)
+        self._counter = CellCounter(len(names), band_masks)
         self.reset()
 
     # -------------------------------------------------------------------------- state
@@ -213,10 +215,7 @@ class MetricAccumulator(Mergeable):
         else:
             visibility = _check_mask("visibility", visibility, self.grid.shape)
         known = _check_mask("known", known, self.grid.shape)
-        finite = np.isfinite(probs)
-        if known is not None:
-            finite |= ~known  # values in unknown cells are never looked at
-        if not finite.all():
+        if not _finite_where(probs, known):
             raise InputError("probs contain NaN or infinite values in known cells")
         return probs, gt, visibility, known
 
@@ -240,29 +239,34 @@ class MetricAccumulator(Mergeable):
         """
         probs, gt, visibility, known = self._check_frame(probs, gt, visibility, known)
         C = len(self.class_names)
-        pred = probs >= self.threshold  # (C, H, W)
+        # one bit per class (see ._packed): the counts read H * W bytes per 8 classes
+        pred = pack(probs >= self.threshold)  # (G, H*W)
+        truth = pack(gt)
         if known is not None:
-            pred &= known
+            pred *= known.reshape(-1).view(np.uint8)  # unknown cells: no class
         mask = visibility if (self.use_visibility and visibility is not None) else None
         if mask is not None:
-            pred &= mask  # (H, W) broadcasts over classes; (C, H, W) is per class
-            gt = gt & mask
-
-        inter = (pred & gt).reshape(C, -1)  # (C, H*W)
-        union = (pred | gt).reshape(C, -1)
-        n_inter = _row_counts(inter)
-        n_union = _row_counts(union)
-        n_pred = _row_counts(pred.reshape(C, -1))
+            if mask.ndim == 3:  # per class
+                scope = pack(mask)
+                pred &= scope
+                truth &= scope
+            else:
+                pred *= mask.reshape(-1).view(np.uint8)
+                truth *= mask.reshape(-1).view(np.uint8)
+        n_inter, band_inter = self._counter.counts(pred & truth)
+        n_union, band_union = self._counter.counts(pred | truth)
+        n_pred = self._counter.totals(pred)
         self._inter += n_inter
         self._union += n_union
         self._tp += n_inter
         self._fp += n_pred - n_inter
-        if self.range_bands:
-            self._band_inter += self._band_counts(inter)
-            self._band_union += self._band_counts(union)
+        self._band_inter += band_inter
+        self._band_union += band_union
 
+        shape = self.grid.shape
         for c in range(C):
-            d_p, d_g = _chamfer_terms(pred[c], gt[c], self.grid.resolution, self.clip)
+            d_p, d_g = _chamfer_terms(unpack(pred, c).reshape(shape), unpack(truth, c).reshape(shape),
+                                      self.grid.resolution, self.clip)
             if d_p.size == 0 and d_g.size == 0:
                 continue  # class absent from both: no contribution
             if self.chamfer_reduction == "pixel":
@@ -278,12 +282,6 @@ class MetricAccumulator(Mergeable):
 
         self.frames += 1
         return _safe_div(n_inter, n_union)
-
-    def _band_counts(self, cells: np.ndarray) -> np.ndarray:
-        """``(C, B)`` int64 True cells of ``cells`` ``(C, H*W)`` bool in each range band."""
-        B = len(self.range_bands)
-        both = cells[:, None, :] & self._band_masks[None]  # (C, 1, H*W) & (1, B, H*W) -> (C, B, H*W)
-        return _row_counts(both.reshape(-1, both.shape[-1])).reshape(-1, B)  # (C*B,) -> (C, B)
 
     # ------------------------------------------------------------------------- result
     def class_iou(self) -> np.ndarray:
@@ -333,3 +331,22 @@ class MetricAccumulator(Mergeable):
             "map": _nan_to_none(mean_iou(precision)),
             "iou_by_range": by_range,
         }
+
+
+def _finite_where(probs: np.ndarray, known: np.ndarray | None) -> bool:
+    """True when ``probs`` ``(C, H, W)`` is finite in every cell ``known`` ``(H, W)`` marks (all
+    cells when ``None``). The classes' sum per cell is finite when all of them are; only when it
+    is not somewhere known (a NaN or infinity, or a sum that overflows) are the cells checked
+    one by one.
+    """
+    with np.errstate(over="ignore", invalid="ignore"):  # an overflow or inf - inf: checked below
+        total = np.add.reduce(probs, axis=0)  # (H, W)
+    finite = np.isfinite(total)
+    if known is not None:
+        finite |= ~known
+    if finite.all():
+        return True
+    each = np.isfinite(probs).all(axis=0)  # (H, W)
+    if known is not None:
+        each |= ~known
+    return bool(each.all())
