@@ -119,10 +119,9 @@ class ReplayScorer:
         self.frame_iou = self.acc.update(probs, layers.gt, masks, pred.known)
         # whole percent, as in the OccupancyGrids
         pct = published_percent(probs) if percent is None else percent if self._all_pred else percent[self._pred_idx]
-        published = pct / 100.0
         with np.errstate(invalid="ignore"):  # NaN only in unknown cells, which are not counted
             percent_u8 = pct.astype(np.uint8)
-        self.whole.update(published, pred.known, layers.seen, layers.gt, layers.truth, masks, percent=percent_u8)
+        self.whole.update(None, pred.known, layers.seen, layers.gt, layers.truth, masks, percent=percent_u8)
         return self.frame_iou
 
     def _union(self, layers: np.ndarray) -> np.ndarray:

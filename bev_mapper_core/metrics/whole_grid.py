@@ -162,7 +162,8 @@ class WholeGridAccumulator(Mergeable):
         """Add one frame.
 
         Args:
-            probs: ``(C, H, W)`` float, the probabilities as published (in unknown cells ignored).
+            probs: ``(C, H, W)`` float, the probabilities as published (in unknown cells
+                ignored); may be ``None`` when ``percent`` is given.
             known: ``(H, W)`` bool, cells published as known (not -1).
             visible: ``(H, W)`` bool, cells some camera sees.
             gt: ``(C, H, W)`` bool ground truth, meaningful on visible cells (for the ECE).
@@ -180,9 +181,16 @@ class WholeGridAccumulator(Mergeable):
         """
         C = len(self.class_names)
         shape = (C,) + self.grid.shape
-        probs = np.asarray(probs)
-        if not np.issubdtype(probs.dtype, np.floating) or probs.shape != shape:
-            raise InputError(f"probs must be float {shape}, got {probs.dtype} {probs.shape}")
+        if probs is None and percent is not None:
+            percent = np.asarray(percent)
+            if percent.dtype != np.uint8 or percent.shape != shape:
+                raise InputError(f"percent must be uint8 {shape}, got {percent.dtype} {percent.shape}")
+            values = np.arange(101, dtype=np.float32) / 100.0  # what each percent is published as
+        else:
+            probs = np.asarray(probs)
+            if not np.issubdtype(probs.dtype, np.floating) or probs.shape != shape:
+                raise InputError(f"probs must be float {shape}, got {probs.dtype} {probs.shape}")
+            values = np.arange(101, dtype=probs.dtype) / 100.0
         known = _check_mask("known", known, self.grid.shape)
         visible = _check_mask("visible", visible, self.grid.shape)
         gt = _check_bool("gt", gt, 3)
@@ -202,19 +210,24 @@ class WholeGridAccumulator(Mergeable):
         self._known += int(np.count_nonzero(known))
         self._known_visible += int(np.count_nonzero(known & visible))
         self._unknown_hidden += int(np.count_nonzero(hidden & ~known))
-        claims = (probs >= self.threshold) & (hidden & known)  # (C, H, W)
+        if probs is None:  # p >= threshold from the percent: the values increase with it
+            claims = percent >= np.count_nonzero(~(values >= self.threshold))
+        else:
+            claims = probs >= self.threshold
+        claims &= hidden & known  # (C, H, W)
         n_claims = _row_counts(claims.reshape(C, -1))
         self._claims += n_claims
         if truth is not None:
             self._claims_t += n_claims
             self._false += _row_counts((claims & ~truth).reshape(C, -1))
             self.frames_with_truth += 1
-        if percent is not None and probs[0].size <= _EXACT_PERCENT_CELLS:
-            values = np.arange(101, dtype=probs.dtype) / 100.0
+        if percent is not None and percent[0].size <= _EXACT_PERCENT_CELLS:
             mask = np.ascontiguousarray(calib & known)
             count, conf, pos = _percent_calibration_counts(np.ascontiguousarray(percent, np.uint8), values,
                                                            np.ascontiguousarray(gt), mask, self.bins)
         else:
+            if probs is None:
+                probs = values[np.minimum(percent, 100)]  # (C, H, W); unknown cells may hold any byte
             count, conf, pos = _calibration_counts(probs, gt, calib & known, self.bins)
         self._count += count
         self._conf += conf

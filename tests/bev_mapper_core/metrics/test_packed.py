@@ -83,3 +83,31 @@ def test_finite_check_is_per_cell_when_the_class_sum_is_not_finite():
     known = np.ones(GRID.shape, bool)
     known[3, 4] = False
     acc.update(bad, gt, known=known)
+
+
+@pytest.mark.parametrize("threshold", [0.5, 0.335, 0.0, 1.0])
+def test_whole_grid_scores_from_the_percent_alone_equal_those_from_the_probabilities(threshold, monkeypatch):
+    """``WholeGridAccumulator.update(None, ..., percent=...)`` (the replay's scorer) counts the
+    claims and the calibration exactly as from the published probabilities, on both of its
+    calibration paths."""
+    import bev_mapper_core.metrics.whole_grid as whole_grid
+    from bev_mapper_core.metrics import WholeGridAccumulator
+
+    rng = np.random.default_rng(7)
+    names = ("a", "b", "c")
+    for exact_cells in (whole_grid._EXACT_PERCENT_CELLS, 0):  # 0: the per-cell sums
+        monkeypatch.setattr(whole_grid, "_EXACT_PERCENT_CELLS", exact_cells)
+        from_probs = WholeGridAccumulator(GRID, names, threshold=threshold)
+        from_percent = WholeGridAccumulator(GRID, names, threshold=threshold)
+        for _ in range(3):
+            percent = rng.integers(0, 101, (3,) + GRID.shape).astype(np.uint8)
+            probs = np.arange(101, dtype=np.float32)[percent] / 100.0
+            known, seen = rng.random(GRID.shape) < 0.8, rng.random(GRID.shape) < 0.6
+            gt, truth = rng.random((3,) + GRID.shape) < 0.4, rng.random((3,) + GRID.shape) < 0.4
+            percent[:, ~known] = 255  # unknown cells hold anything
+            from_probs.update(probs, known, seen, gt, truth, percent=percent)
+            from_percent.update(None, known, seen, gt, truth, percent=percent)
+        assert from_percent.state() == from_probs.state()
+        assert from_percent._claims.sum() > 0 or threshold == 1.0
+    with pytest.raises(InputError, match="percent must be uint8"):
+        from_percent.update(None, known, seen, gt, truth, percent=percent.astype(np.int16))
