@@ -27,6 +27,7 @@ on held-out drives of every rig (docs/RESULTS.md, "Occlusion per image column").
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import cv2
@@ -136,6 +137,95 @@ def column_raster(camera: RigCamera, grid: BevGrid, valid: np.ndarray, cells: np
                         cell_dist)
 
 
+@dataclass(frozen=True)
+class RigColumns:
+    """A rig's :class:`ColumnRaster` s side by side, so each per-frame step of the column search
+    runs once for all cameras instead of once per camera. Built once per calibration.
+
+    Camera ``c``'s image column ``u`` is joint column ``offset[c] + u``; one column of no keys
+    follows each camera, so no face of the face rule spans two cameras. Camera ``c``'s raster
+    rows are the joint rows ``0 .. r1 - r0``, padded below with no keys to the rig's most rows.
+
+    Attributes:
+        names: the cameras, in rig order.
+        rasters: camera name -> its :class:`ColumnRaster`.
+        offset: camera name -> its first joint column.
+        key: ``(R, Wt)`` int32 the cameras' ``key`` side by side (:data:`NO_KEY` in padding).
+        dist: ``(R, Wt)`` float32 their ``dist`` (``inf`` in padding).
+        dist_max: ``(Wt,)`` float32 each column's largest finite ``dist`` (``-inf``: none).
+        dazimuth: ``(R, Wt)`` float32 their ``dazimuth`` (0 in padding).
+        row_code: ``(R, Wt)`` uint8 ``row + 1`` where a pixel has a key, else 0; ``None`` unless
+            every column's keys fall strictly from row to row (a near pixel lies lower in the
+            image): then a column's smallest key among occluders is its lowest occluder's.
+        shift: ``(Wt,)`` int64 per joint column, its camera's ``row_bits + LABEL_BITS``.
+        row_mask: ``(Wt,)`` int64 its camera's ``(1 << row_bits) - 1``.
+        quantum: ``(Wt,)`` float64 its camera's ``quantum``.
+        height: ``(Wt,)`` float64 its camera's ``height``; ``height32`` the same in float32.
+        resolution: the grid's cell size (m).
+        cell_column: camera name -> ``(n,)`` int64 joint column of each seen cell (gather order).
+        all_column, all_dist: ``(N,)`` every camera's ``cell_column`` and ``cell_dist``,
+            concatenated in rig order; ``all_offsets`` ``(cameras + 1,)`` where each starts.
+    """
+
+    names: tuple[str, ...]
+    rasters: dict[str, ColumnRaster]
+    offset: dict[str, int]
+    key: np.ndarray
+    dist: np.ndarray
+    dist_max: np.ndarray
+    dazimuth: np.ndarray
+    row_code: np.ndarray | None
+    shift: np.ndarray
+    row_mask: np.ndarray
+    quantum: np.ndarray
+    height: np.ndarray
+    height32: np.ndarray
+    resolution: float
+    cell_column: dict[str, np.ndarray]
+    all_column: np.ndarray
+    all_dist: np.ndarray
+    all_offsets: np.ndarray
+
+
+def rig_columns(rasters: dict[str, ColumnRaster]) -> RigColumns:
+    """The joint raster of ``rasters`` (camera name -> its :class:`ColumnRaster`, rig order)."""
+    names = tuple(rasters)
+    widths = [cr.key.shape[1] for cr in rasters.values()]
+    starts = np.concatenate([[0], np.cumsum(np.add(widths, 1))])  # each camera, then a gap column
+    R, Wt = max([cr.key.shape[0] for cr in rasters.values()] or [1]), int(starts[-1])
+    key = np.full((R, Wt), NO_KEY, np.int32)
+    dist = np.full((R, Wt), np.inf, np.float32)
+    daz = np.zeros((R, Wt), np.float32)
+    shift, row_mask = np.full(Wt, LABEL_BITS, np.int64), np.zeros(Wt, np.int64)
+    quantum, height = np.ones(Wt), np.ones(Wt)
+    offset, cell_column = {}, {}
+    for (name, cr), s, w in zip(rasters.items(), starts, widths):
+        n, s = cr.key.shape[0], int(s)
+        key[:n, s:s + w], dist[:n, s:s + w], daz[:n, s:s + w] = cr.key, cr.dist, cr.dazimuth
+        shift[s:s + w], row_mask[s:s + w] = cr.row_bits + LABEL_BITS, (1 << cr.row_bits) - 1
+        quantum[s:s + w], height[s:s + w] = cr.quantum, cr.height
+        offset[name], cell_column[name] = s, cr.cell_column + s
+    has = key < NO_KEY  # (R, Wt)
+    dist_max = np.where(has, dist, -np.inf).max(axis=0).astype(np.float32)
+    # the keys of a column, its keyed pixels from the top down: falling strictly?
+    down = np.where(has, key.astype(np.int64), -1)[::-1]  # (R, Wt), rows bottom up, -1: no key
+    seen = np.maximum.accumulate(down, axis=0)  # the largest key below each row (bottom up)
+    falling = R < 255 and not (has[::-1][1:] & (down[1:] <= seen[:-1])).any()
+    row_code = np.where(has, np.arange(1, R + 1)[:, None], 0).astype(np.uint8) if falling else None
+    resolution = next(iter(rasters.values())).resolution if rasters else 1.0
+    counts = [len(cell_column[n]) for n in names]
+    return RigColumns(names, dict(rasters), offset, key, dist, dist_max, daz, row_code, shift, row_mask,
+                      quantum, height, height.astype(np.float32), resolution, cell_column,
+                      np.concatenate([cell_column[n] for n in names] or [np.zeros(0, np.int64)]),
+                      np.concatenate([rasters[n].cell_dist for n in names] or [np.zeros(0, np.float32)]),
+                      np.concatenate([[0], np.cumsum(counts, dtype=np.int64)]))
+
+
+def _uint8(a: np.ndarray) -> np.ndarray:
+    """``a`` as uint8 label ids (ids above 255 become 255)."""
+    return a if a.dtype == np.uint8 else np.minimum(a, 255).astype(np.uint8)
+
+
 class ColumnOcclusion:
     """:class:`~.occlusion.OcclusionModel`'s priors and face rule, evaluated per image column.
 
@@ -148,63 +238,113 @@ class ColumnOcclusion:
         occludes = np.zeros(256, bool)
         occludes[: len(model.heights) - 1] = model.heights[:-1] > 0
         self.occludes = occludes  # (256,) label id -> occludes
+        self._occludes_u8 = occludes.astype(np.uint8)  # the same for cv2.LUT (bool views it back)
+        self._occludes_ff = occludes.astype(np.uint8) * np.uint8(255)  # label id -> 0xFF if it occludes
         #: label id -> the value added to a pixel's key: its label, or NO_KEY (no occluder)
         self._key_lut = np.where(occludes, np.arange(256), int(NO_KEY)).astype(np.int32)
+        self._blank = np.uint8(np.flatnonzero(~occludes)[0])  # a label id that occludes nothing
 
-    def hidden(self, cr: ColumnRaster, labels: np.ndarray, ids: np.ndarray,
-               margin: float) -> np.ndarray | None:
-        """The camera's seen cells hidden from it: ``(k,)`` increasing indices into its gather
-        order; ``None`` when none is.
+    def hidden(self, rc: RigColumns, labels: Mapping[str, np.ndarray], ids: Mapping[str, np.ndarray],
+               margin: float) -> dict[str, np.ndarray | None]:
+        """The seen cells hidden from each camera of ``labels``: camera name -> ``(k,)``
+        increasing indices into its gather order, ``None`` when none is.
 
         Args:
-            cr: the camera's :class:`ColumnRaster`.
-            labels: ``(h, w)`` the camera's label image.
-            ids: ``(n,)`` the label id each seen cell takes (the gather of ``labels``).
+            rc: the rig's :class:`RigColumns`.
+            labels: camera name -> ``(h, w)`` its label image (any subset of ``rc.names``).
+            ids: camera name -> ``(n,)`` the label id each of its seen cells takes (the gather
+                of its ``labels``).
             margin: slack in metres added to each near edge's footprint depth.
         """
-        if ids.dtype != np.uint8:
-            ids = np.minimum(ids, 255).astype(np.uint8)
-        cand = np.flatnonzero(self.occludes[ids])  # only a cell showing an occluder can be hidden
+        names = [n for n in rc.names if n in labels]
+        out: dict[str, np.ndarray | None] = dict.fromkeys(names)
+        if not names:
+            return out
+        if len(names) == len(rc.names):
+            column, dist, starts = rc.all_column, rc.all_dist, rc.all_offsets
+        else:
+            column = np.concatenate([rc.cell_column[n] for n in names])
+            dist = np.concatenate([rc.rasters[n].cell_dist for n in names])
+            starts = np.concatenate([[0], np.cumsum([len(rc.cell_column[n]) for n in names])])
+        # only a cell showing an occluder can be hidden; (N,) over the cameras' cells in turn
+        flags = cv2.LUT(np.concatenate([_uint8(ids[n]) for n in names]), self._occludes_u8)
+        cand = np.flatnonzero(flags.reshape(-1).view(bool))
         if not len(cand):
-            return None
-        r0, r1 = cr.rows
-        part = labels[r0:r1]
-        if part.dtype != np.uint8:
-            part = np.minimum(part, 255).astype(np.uint8)
-        key = cr.key + cv2.LUT(part, self._key_lut)  # (rows, w) int32; >= NO_KEY: no occluder
-        first = key.min(axis=0)  # (w,) each column's nearest occluding pixel
-        m = self.model
-        col, dist = cr.cell_column[cand], cr.cell_dist[cand]
-        hidden = np.zeros(len(cand), bool)
-        shift = cr.row_bits + LABEL_BITS
-        slack = COLUMN_SLACK_CELLS * cr.resolution
-        w = key.shape[1]
+            return out
+        per_camera = np.searchsorted(cand, starts)  # (cameras + 1,) where each camera's begin
+        # the joint label image: cameras with no candidate keep the blank label (no occluder)
+        image = np.full(rc.key.shape, self._blank, np.uint8)  # (R, Wt)
+        for i, name in enumerate(names):
+            if per_camera[i + 1] > per_camera[i]:
+                (r0, r1), s = rc.rasters[name].rows, rc.offset[name]
+                part = labels[name][r0:r1]
+                image[:r1 - r0, s:s + part.shape[1]] = _uint8(part)
+        hidden = self._search(rc, image, column[cand], dist[cand], margin)
+        if hidden is None:
+            return out
+        hid = cand[hidden]
+        bounds = np.searchsorted(hid, starts)
+        for i, name in enumerate(names):
+            if bounds[i + 1] > bounds[i]:
+                out[name] = hid[bounds[i]:bounds[i + 1]] - starts[i]
+        return out
+
+    def _near_edges(self, rc: RigColumns, image: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+        """Each column's first near edge in ``image`` (``(R, Wt)`` the joint label image):
+        ``(cols, key, kcols)``: ``cols`` ``(k,)`` the columns with one, ``kcols`` ``(k,)`` int32
+        its key; ``key`` ``(R, Wt)`` int32 every pixel's key (``None`` where ``rc.row_code``
+        finds the edges without it).
+        """
+        if rc.row_code is not None:  # a column's nearest occluder is its lowest: no key image
+            lowest = cv2.bitwise_and(cv2.LUT(image, self._occludes_ff), rc.row_code).max(axis=0)  # (Wt,)
+            cols = np.flatnonzero(lowest)
+            rows = lowest[cols].astype(np.intp) - 1
+            return cols, None, rc.key[rows, cols] + self._key_lut[image[rows, cols]]
+        key = cv2.LUT(image, self._key_lut)  # (R, Wt) int32; >= NO_KEY: no occluder
+        key += rc.key
+        first = key.min(axis=0)  # (Wt,) each column's nearest occluding pixel
         cols = np.flatnonzero(first < NO_KEY)
-        for _ in range(MAX_EDGES):
+        return cols, key, first[cols]
+
+    def _search(self, rc: RigColumns, image: np.ndarray, col: np.ndarray, dist: np.ndarray,
+                margin: float) -> np.ndarray | None:
+        """``(n,)`` bool: which of the candidate cells (joint column ``col``, distance ``dist``
+        from their camera) lie in a shadow; ``None`` when none does. ``image``: ``(R, Wt)`` the
+        joint label image of this frame.
+        """
+        cols, key, kcols = self._near_edges(rc, image)
+        m = self.model
+        hidden = np.zeros(len(col), bool)
+        slack = COLUMN_SLACK_CELLS * rc.resolution
+        w = image.shape[1]
+        for edge in range(MAX_EDGES):
             if not len(cols):
                 break
-            k = first[cols].astype(np.int64)
-            d0 = ((k >> shift) * cr.quantum).astype(np.float32)
-            row0 = (k >> LABEL_BITS) & ((1 << cr.row_bits) - 1)
+            k = kcols.astype(np.int64)
+            d0 = ((k >> rc.shift[cols]) * rc.quantum[cols]).astype(np.float32)
+            row0 = (k >> LABEL_BITS) & rc.row_mask[cols]
             lab0 = k & ((1 << LABEL_BITS) - 1)
             h = m.heights[lab0]
-            lateral = d0 * cr.dazimuth[row0, cols]
+            lateral = d0 * rc.dazimuth[row0, cols]
             # the polar raster breaks a face where its near edge jumps by more than FACE_BREAK_M
             # from one ray to the next; between two columns it steps once per image row
-            face_break = (FACE_BREAK_M + COLUMN_FACE_BREAK_CELLS * cr.resolution) * np.maximum(np.abs(np.diff(row0)), 1)
+            face_break = (FACE_BREAK_M + COLUMN_FACE_BREAK_CELLS * rc.resolution) * np.maximum(np.abs(np.diff(row0)), 1)
             near = np.full(w, np.inf, np.float32)  # object claims cells up to here
             far = np.full(w, -np.inf, np.float32)  # shadow end
             near[cols] = d0 + m._face_depth(cols, d0, lab0, lateral, face_break) + margin + slack
+            height = rc.height[cols]
             with np.errstate(divide="ignore"):
-                far[cols] = np.where(h >= cr.height, np.inf,
-                                     d0 * cr.height / np.maximum(cr.height - h, 1e-6))
+                far[cols] = np.where(h >= height, np.inf,
+                                     d0 * rc.height32[cols] / np.maximum(height - h, 1e-6))
             hidden |= (dist > near[col]) & (dist <= far[col])
-            cols = cols[np.isfinite(far[cols])]
+            if edge == MAX_EDGES - 1:
+                break
+            # the next near edge: the nearest occluding pixel beyond the shadow's end, in the
+            # columns with a keyed pixel beyond it (an infinite shadow has none)
+            cols = cols[far[cols] < rc.dist_max[cols]]
             if not len(cols):
                 break
-            # the next near edge: the nearest occluding pixel beyond the shadow's end
-            sub = key[:, cols]  # (rows, k)
-            first = np.full(w, NO_KEY, np.int32)
-            first[cols] = np.where(cr.dist[:, cols] > far[cols][None], sub, NO_KEY).min(axis=0)
-            cols = cols[first[cols] < NO_KEY]
-        return cand[hidden] if hidden.any() else None
+            sub = key[:, cols] if key is not None else rc.key[:, cols] + self._key_lut[image[:, cols]]  # (R, k)
+            kcols = np.where(rc.dist[:, cols] > far[cols][None], sub, NO_KEY).min(axis=0)
+            cols, kcols = cols[kcols < NO_KEY], kcols[kcols < NO_KEY]
+        return hidden if hidden.any() else None

@@ -26,7 +26,7 @@ from bev_mapper_core.geometry.rig import Rig
 from bev_mapper_core.labels.classes import label_lut
 from bev_mapper_core.mapper import BevPrediction, Mapper, MapperConfig
 
-from .columns import ColumnOcclusion, column_raster
+from .columns import ColumnOcclusion, column_raster, rig_columns
 from .occlusion import NEAR_EDGE_SLACK_CELLS, OcclusionModel, ray_raster
 
 #: bits per field of IPM's packed per-cell counts (each class's, then the cameras'), the first
@@ -111,6 +111,7 @@ class LineOfSight:
             self.column_rasters = {
                 c.name: column_raster(c, grid, self.tables[c.name].valid, self.gathers[c.name].cells,
                                       self.gathers[c.name].pixels) for c in rig.cameras}
+            self._rig_columns = rig_columns(self.column_rasters)  # all cameras' columns side by side
             self._column_occlusion = ColumnOcclusion(occlusion)
         elif occlusion is not None:
             self.rays = {c.name: ray_raster(c, grid, self.tables[c.name].valid) for c in rig.cameras}
@@ -120,8 +121,15 @@ class LineOfSight:
         increasing indices into its gather (``ids`` = its gather of ``labels``); ``None`` when
         none is.
         """
+        return self.hidden_all({name: labels}, {name: ids})[name]
+
+    def hidden_all(self, images: Mapping[str, np.ndarray],
+                   ids: Mapping[str, np.ndarray]) -> dict[str, np.ndarray | None]:
+        """Column search for all cameras of ``images`` (name -> label image) at once: camera
+        name -> its gathered cells hidden from it (as :meth:`hidden`), ``ids`` its gathers.
+        """
         slack = self.grid.resolution * NEAR_EDGE_SLACK_CELLS
-        return self._column_occlusion.hidden(self.column_rasters[name], labels, ids, slack)
+        return self._column_occlusion.hidden(self._rig_columns, images, ids, slack)
 
     def camera_valid(self, name: str, warped: np.ndarray, labels: np.ndarray | None = None) -> np.ndarray:
         """``(H, W)`` bool: the cells camera ``name`` sees, given its warped labels ``(H, W)``
@@ -146,9 +154,15 @@ class LineOfSight:
     def known(self, images: Mapping[str, np.ndarray]) -> np.ndarray:
         """``(H, W)`` bool: the cells some camera in ``images`` (name -> label image) sees."""
         known = np.zeros(self.grid.shape, bool)
+        if self.columns:  # every camera's search in one pass
+            ids = {name: self.gathers[name].gather(labels) for name, labels in images.items()}
+            for name, hidden in self.hidden_all(images, ids).items():
+                cells = self.gathers[name].cells  # (n,) the cells of its ground table
+                known.reshape(-1)[cells if hidden is None else np.delete(cells, hidden)] = True
+            return known
         for name, labels in images.items():
-            warped = None if self.columns else self.tables[name].warp(labels, cv2.INTER_NEAREST)
-            known |= self.camera_valid(name, warped, labels)
+            warped = self.tables[name].warp(labels, cv2.INTER_NEAREST)
+            known |= self.camera_valid(name, warped)
         return known
 
 
@@ -222,14 +236,13 @@ class IpmMapper(Mapper):
         acc = np.zeros(H * W, np.uint64) if codes is not None else np.zeros((C, H * W), np.float32)
         count = None if codes is not None else np.zeros(H * W, np.float32)
         occlusion = self.sight.occlusion is not None
+        gathered = {name: self.gathers[name].gather(labels) for name, labels in images.items()}  # (n,) each
+        columns = occlusion and self.sight.columns
+        hidden_all = self.sight.hidden_all(images, gathered) if columns else {}
         for name, labels in images.items():
-            g = self.gathers[name]
-            ids = g.gather(labels)  # (n,) uint8 label ids of the seen cells
-            cells = g.cells
-            hidden = None  # per image column: indices into the gather
-            if occlusion and self.sight.columns:
-                hidden = self.sight.hidden(name, labels, ids)
-            elif occlusion:  # the polar raster reads the warped image
+            cells, ids = self.gathers[name].cells, gathered[name]  # ids: (n,) uint8 label ids of the seen cells
+            hidden = hidden_all.get(name)  # per image column: indices into the gather
+            if occlusion and not columns:  # the polar raster reads the warped image
                 warped = np.zeros(H * W, labels.dtype)
                 warped[cells] = ids
                 keep = self.sight.camera_valid(name, warped.reshape(H, W)).reshape(-1)[cells]
