@@ -1,11 +1,14 @@
 """IPM's occlusion search per image column (issue #28) against the polar raster's search."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from bev_mapper_core.geometry.grid import BevGrid, grid_preset
 from bev_mapper_core.geometry.rig import preset_rig
 from bev_mapper_core.mapper import MapperConfig
+from bev_mapper_core.methods.ipm.columns import rig_columns
 from bev_mapper_core.methods.ipm.mapper import IpmMapper, LineOfSight
 from bev_mapper_core.methods.ipm.occlusion import OcclusionModel
 from bev_mapper_core.synth import SynthConfig, generate_drive
@@ -52,3 +55,59 @@ def test_line_of_sight_known_is_the_ipm_known():
             np.testing.assert_array_equal(sight.known(subset), mapper.map(subset).known)
     with pytest.raises(ValueError):
         sight.camera_valid("front", np.zeros(grid.shape, np.uint8))
+
+
+def _hidden_frames(rig, grid, seed):
+    """Synthetic frames plus harder ones: random occluder labels (second near edges), a camera
+    that sees no occluder, one that sees nothing but an occluder and one with finite shadows."""
+    rng = np.random.default_rng(seed)
+    frames = [{n: c.labels for n, c in f.cameras.items()} for f in generate_drive(rig, grid, SynthConfig(frames=2, seed=seed))]
+    names = list(frames[0])
+    mixed = {n: rng.choice(np.array([0, 1, 6, 7, 8, 9], np.uint8), v.shape) for n, v in frames[0].items()}
+    mixed[names[0]] = np.zeros_like(mixed[names[0]])  # no occluder at all
+    mixed[names[-1]] = np.full_like(mixed[names[-1]], 6)  # every pixel a car
+    return frames + [mixed]
+
+
+@pytest.mark.parametrize("rig_name,grid", [("surround6", BevGrid()), ("cam2bev4", BevGrid()),
+                                           ("front1", grid_preset("ahead"))])
+def test_joint_search_is_each_cameras_own(rig_name, grid):
+    """The cameras' joint search (one pass for all) hides, per camera, exactly what that
+    camera's search alone hides, whichever cameras are present; and the lowest-occluder shortcut
+    gives the same cells as the key image's minimum (the general path)."""
+    rig = preset_rig(rig_name)
+    sight = LineOfSight(rig, grid, OcclusionModel(), columns=True)
+    assert sight._rig_columns.row_code is not None  # every shipped camera's keys fall row by row
+    general = LineOfSight(rig, grid, OcclusionModel(), columns=True)
+    general._rig_columns = dataclasses.replace(general._rig_columns, row_code=None)
+    some_hidden = 0
+    for images in _hidden_frames(rig, grid, 950_000_022):
+        ids = {n: sight.gathers[n].gather(v) for n, v in images.items()}
+        joint = sight.hidden_all(images, ids)
+        assert list(joint) == [c.name for c in rig.cameras]
+        for name, labels in images.items():
+            alone = sight.hidden(name, labels, ids[name])
+            assert (alone is None) == (joint[name] is None)
+            if alone is not None:
+                np.testing.assert_array_equal(alone, joint[name])
+                assert (np.diff(alone) > 0).all()
+                some_hidden += 1
+        if len(images) > 1:  # a camera missing: the others' cells as before
+            rest = {n: v for n, v in list(images.items())[1:]}
+            for name, h in sight.hidden_all(rest, ids).items():
+                assert (h is None) == (joint[name] is None) and (h is None or np.array_equal(h, joint[name]))
+        for name, h in general.hidden_all(images, ids).items():
+            assert (h is None) == (joint[name] is None) and (h is None or np.array_equal(h, joint[name]))
+    assert some_hidden > 0
+    assert sight.hidden_all({}, {}) == {}
+
+
+def test_joint_raster_without_falling_keys_uses_the_key_image():
+    """A raster whose keys do not fall row by row (here: upside down) gets no lowest-occluder
+    shortcut: its search takes the key image's minimum."""
+    rig, grid = preset_rig("front1"), grid_preset("ahead")
+    sight = LineOfSight(rig, grid, OcclusionModel(), columns=True)
+    cr = sight.column_rasters["front"]
+    flipped = rig_columns({"front": dataclasses.replace(cr, key=cr.key[::-1].copy())})
+    assert flipped.row_code is None and sight._rig_columns.row_code is not None
+    assert rig_columns({"front": cr}).row_code is not None
