@@ -105,6 +105,9 @@ class BevPainter:
         if self.scale < 1:
             raise ValueError(f"scale must be >= 1, got {scale}")
         self.lut = color_table(self.classes)
+        # the same colours as a 256-entry 3-channel table for cv2.LUT (about twice np.take's speed)
+        self._lut3 = np.zeros((256, 1, 3), np.uint8)
+        self._lut3[:len(self.lut), 0] = self.lut
         self.unknown_code = len(self.classes) + 1
         self.height, self.width = grid.width * self.scale, grid.height * self.scale  # display
         stripes = hatch_mask(self.height, self.width)
@@ -174,7 +177,8 @@ class BevPainter:
             hidden: ``(H, W)`` bool, cells to hatch as unknown as well (None = none).
             ego: draw the ego footprint.
         """
-        rgb = np.take(self.lut, self.codes(layers, known, hidden), axis=0)
+        codes = self.codes(layers, known, hidden)  # (height, width) uint8, below len(self.lut)
+        rgb = cv2.LUT(cv2.merge([codes, codes, codes]), self._lut3)  # (height, width, 3): self.lut[codes]
         if ego:
             rgb.reshape(-1, 3)[self._ego_idx] = self._ego_vals
         return rgb

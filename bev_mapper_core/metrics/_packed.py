@@ -56,10 +56,14 @@ class CellCounter:
     def __init__(self, n_classes: int, band_masks: np.ndarray) -> None:
         self.n_classes = int(n_classes)
         self.n_bands = band_masks.shape[0]
-        if self.n_bands:
-            patterns, which = np.unique(band_masks.T, axis=0, return_inverse=True)  # (K, B), (N,)
-        else:  # one pattern, in no band
+        if not self.n_bands:  # one pattern, in no band
             patterns, which = np.zeros((1, 0), bool), np.zeros(band_masks.shape[1], np.intp)
+        elif self.n_bands <= 62:  # each cell's bands as the bits of one integer
+            code = (band_masks.astype(np.int64) << np.arange(self.n_bands)[:, None]).sum(axis=0)  # (N,)
+            codes, which = np.unique(code, return_inverse=True)  # (K,), (N,)
+            patterns = (codes[:, None] >> np.arange(self.n_bands)[None, :]) & 1  # (K, B)
+        else:
+            patterns, which = np.unique(band_masks.T, axis=0, return_inverse=True)  # (K, B), (N,)
         self._offset = which.reshape(-1).astype(np.intp) * 256  # (N,) 256 * pattern of each cell
         self._members = patterns.astype(np.int64)  # (K, B) 1 where the pattern is in the band
         self._bins = 256 * len(patterns)

@@ -56,7 +56,8 @@ def _percent_calibration_counts(percent: np.ndarray, values: np.ndarray, truth: 
     bin_of = np.minimum((p * bins).astype(np.int64), bins - 1)  # (101,)
     onehot = np.zeros((101, bins), np.float64)
     onehot[np.arange(101), bin_of] = 1.0
-    code = (percent << 1) | truth.view(np.uint8)  # (C, H, W) uint8: 2 * percent + present
+    code = np.add(percent, percent)  # (C, H, W) uint8: 2 * percent + present (numpy adds bytes faster than it shifts them)
+    code |= truth.view(np.uint8)
     hist = np.empty((C, 202), np.float64)
     for c in range(C):  # (202,) cells per (percent, present) inside the mask
         hist[c] = cv2.calcHist([code[c]], [0], mask[c].view(np.uint8), [202], [0, 202]).ravel()

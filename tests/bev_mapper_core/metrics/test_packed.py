@@ -111,3 +111,13 @@ def test_whole_grid_scores_from_the_percent_alone_equal_those_from_the_probabili
         assert from_percent._claims.sum() > 0 or threshold == 1.0
     with pytest.raises(InputError, match="percent must be uint8"):
         from_percent.update(None, known, seen, gt, truth, percent=percent.astype(np.int16))
+
+
+def test_counts_with_more_bands_than_bits_of_an_integer():
+    """Past 62 bands the cells' band patterns are found row by row: the same counts."""
+    rng = np.random.default_rng(70)
+    layers = rng.random((3, 300)) < 0.5
+    bands = rng.random((70, 300)) < 0.2
+    totals, per_band = CellCounter(3, bands).counts(pack(layers))
+    np.testing.assert_array_equal(per_band, (layers[:, None, :] & bands[None]).sum(axis=2))
+    np.testing.assert_array_equal(totals, layers.sum(axis=1))
