@@ -67,8 +67,9 @@ def _distance_to(cells: np.ndarray, at: np.ndarray, reach: float | None = None) 
     ``reach`` (:data:`_CELL_COST`), one distance transform of that box finds them all (every
     nearer cell of ``cells`` lies in it, so the distances up to ``reach`` are the same as on the
     whole grid). Otherwise those with a cell of ``cells`` within :data:`_NEAR` cells find it
-    among the offsets around them, nearest first, and the transform runs on the box (or tiles)
-    around the rest, widened alike.
+    among the offsets around them, nearest first, then (when they are few) those within
+    :data:`_FARTHER` cells, and the transform runs on the box (or tiles) around the rest,
+    widened alike.
     """
     if reach is None:
         # distanceTransform measures the distance to the nearest *zero* pixel.
@@ -89,22 +90,21 @@ def _distance_to(cells: np.ndarray, at: np.ndarray, reach: float | None = None) 
         return out
     d2 = np.full(len(q), np.nan)  # squared distance in cells, found so far
     # nearby: every offset up to _NEAR cells around each cell at once, nearest first
-    padded = np.zeros((H + 2 * _NEAR, W + 2 * _NEAR), bool)  # no cell outside the grid
-    padded[_NEAR:_NEAR + H, _NEAR:_NEAR + W] = cells
-    wp = W + 2 * _NEAR
-    base = (rows + _NEAR) * wp + (cols + _NEAR)  # (n,) flat index into padded
-    hit = padded.ravel()[base[:, None] + (_OFFSETS_DY * wp + _OFFSETS_DX)[None, :]]  # (n, K)
-    first = hit.argmax(axis=1)  # (n,) the nearest offset holding a cell (0 when none does)
-    found = hit[np.arange(len(q)), first]
-    d2[found] = _OFFSETS_D2[first[found]]
-    todo = np.flatnonzero(~found)
+    pad = _FARTHER
+    padded = np.zeros((H + 2 * pad, W + 2 * pad), bool)  # no cell outside the grid
+    padded[pad:pad + H, pad:pad + W] = cells
+    wp = W + 2 * pad
+    base = (rows + pad) * wp + (cols + pad)  # (n,) flat index into padded
+    todo = _nearest(padded.ravel(), base, wp, d2, np.arange(len(q)), _OFFSETS[0])
+    if len(todo) and len(todo) * _FARTHER_COST < _box_area(rows[todo], cols[todo], r, H, W):
+        # a few farther: the offsets up to _FARTHER cells (beyond _NEAR), before any transform
+        todo = _nearest(padded.ravel(), base, wp, d2, todo, _OFFSETS[1])
     if len(todo):  # farther: the transform around those cells, widened by reach
         rows, cols = rows[todo], cols[todo]
         # one box around them all, or one per tile of _TILE cells holding some when that is less
         tile = (rows // _TILE) * (W // _TILE + 1) + cols // _TILE
         tiles, which = np.unique(tile, return_inverse=True)
-        box = ((min(int(rows.max()) + r + 1, H) - max(int(rows.min()) - r, 0))
-               * (min(int(cols.max()) + r + 1, W) - max(int(cols.min()) - r, 0)))
+        box = _box_area(rows, cols, r, H, W)
         groups = [np.arange(len(todo))] if len(tiles) * (_TILE + 2 * r) ** 2 >= box else \
             [np.flatnonzero(which == i) for i in range(len(tiles))]
         for g in groups:
@@ -113,6 +113,26 @@ def _distance_to(cells: np.ndarray, at: np.ndarray, reach: float | None = None) 
                                   max(int(gc.min()) - r, 0), min(int(gc.max()) + r + 1, W), gr, gc)
     out[~cells[at]] = np.sqrt(d2)  # at's order: q is row-major, as at's cells
     return out
+
+
+def _nearest(padded: np.ndarray, base: np.ndarray, wp: int, d2: np.ndarray, todo: np.ndarray,
+             offsets: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
+    """For the cells ``todo`` (indices into ``base``, their flat indices in ``padded``, a grid
+    ``wp`` wide padded with no cells), the nearest cell among ``offsets`` ``(d2, dy, dx)``
+    (nearest first): its squared distance into ``d2``. Returns the cells of ``todo`` with none.
+    """
+    o_d2, o_dy, o_dx = offsets
+    hit = padded[base[todo, None] + (o_dy * wp + o_dx)[None, :]]  # (n, K)
+    first = hit.argmax(axis=1)  # (n,) the nearest offset holding a cell (0 when none does)
+    found = hit[np.arange(len(todo)), first]
+    d2[todo[found]] = o_d2[first[found]]
+    return todo[~found]
+
+
+def _box_area(rows: np.ndarray, cols: np.ndarray, r: int, H: int, W: int) -> int:
+    """Cells of the box around ``(rows, cols)`` widened by ``r``, inside the ``(H, W)`` grid."""
+    return ((min(int(rows.max()) + r + 1, H) - max(int(rows.min()) - r, 0))
+            * (min(int(cols.max()) + r + 1, W) - max(int(cols.min()) - r, 0)))
 
 
 def _box_d2(cells: np.ndarray, r0: int, r1: int, c0: int, c1: int, rows: np.ndarray,
@@ -142,14 +162,27 @@ def _near_offsets(radius: int) -> list[tuple[int, np.ndarray, np.ndarray]]:
     return [(int(k), dy[d2 == k], dx[d2 == k]) for k in np.unique(d2) if 0 < k <= radius ** 2]
 
 
-_NEAR_OFFSETS = _near_offsets(_NEAR)
-#: the same offsets one by one, nearest first: ``(K,)`` squared distance, rows and columns
-_OFFSETS_D2 = np.concatenate([np.full(len(dy), k, np.float64) for k, dy, _ in _NEAR_OFFSETS])
-_OFFSETS_DY = np.concatenate([dy for _, dy, _ in _NEAR_OFFSETS])
-_OFFSETS_DX = np.concatenate([dx for _, _, dx in _NEAR_OFFSETS])
+#: ... then, when that is less work than a transform (:data:`_FARTHER_COST`), among the offsets
+#: up to this many cells
+_FARTHER = 12
+#: a distance transform costs about this many cells' farther search per cell of its box
+_FARTHER_COST = 60
+
+
+def _offsets(lo: int, hi: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The offsets ``lo < distance <= hi`` cells one by one, nearest first: ``(K,)`` squared
+    distance (float64), rows and columns.
+    """
+    shells = [(k, dy, dx) for k, dy, dx in _near_offsets(hi) if k > lo ** 2]
+    return (np.concatenate([np.full(len(dy), k, np.float64) for k, dy, _ in shells]),
+            np.concatenate([dy for _, dy, _ in shells]), np.concatenate([dx for _, _, dx in shells]))
+
+
+#: the offsets of the near search, then of the farther one
+_OFFSETS = (_offsets(0, _NEAR), _offsets(_NEAR, _FARTHER))
 #: a distance transform costs about this many cells' near search per cell of its box: with more
 #: cells asked than its box's area over this, one transform of the box finds them all
-_CELL_COST = 24
+_CELL_COST = 60
 
 
 def _snap(d: np.ndarray) -> np.ndarray:
