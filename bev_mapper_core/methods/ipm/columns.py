@@ -13,11 +13,17 @@ calibration:
 * per cell the camera sees (its :class:`~.mapper.GatherTable` order), the image column of the
   pixel it takes and its distance from the camera's ground point.
 
-Per frame: one ``cv2.LUT`` of the label image into those keys (non-occluders: no key), one
-minimum per column (its first near edge, its label and row), the face rule and shadow of
-:class:`~.occlusion.OcclusionModel` on the columns (a few hundred), and each cell whose own
-pixel shows an occluder reads its column's near edge and shadow end. A second near edge is
-searched, like the polar raster's, beyond a finite shadow (:data:`~.occlusion.MAX_EDGES`).
+Per frame: each column's first near edge, the occluding pixel with the smallest key (its
+label and row); the face rule and shadow of :class:`~.occlusion.OcclusionModel` on the columns
+(a few hundred per camera), and each cell whose own pixel shows an occluder reads its column's
+near edge and shadow end. A second near edge is searched, like the polar raster's, beyond a
+finite shadow (:data:`~.occlusion.MAX_EDGES`), in the columns with a pixel beyond it.
+
+All cameras of a frame run these steps together (:class:`RigColumns`: their columns side by
+side), so each numpy step runs once per frame, not once per camera. Where every column's keys
+fall from row to row (every shipped camera: a nearer ground point lies lower in the image), a
+column's first near edge is its lowest occluding pixel, found with a uint8 range test and a
+maximum, with no int32 key image; otherwise the minimum of the keys. Both give the same cells.
 
 The result differs from the polar raster's in the cells where the two discretisations of a ray
 disagree (a column is about 4 mrad wide, a polar ray 1 mrad; the near edge is a pixel's ground
@@ -291,9 +297,9 @@ class ColumnOcclusion:
         image = np.full(rc.key.shape, self._blank, np.uint8)  # (R, Wt)
         for i, name in enumerate(names):
             if per_camera[i + 1] > per_camera[i]:
-                (r0, r1), s = rc.rasters[name].rows, rc.offset[name]
-                part = labels[name][r0:r1]
-                image[:r1 - r0, s:s + part.shape[1]] = _uint8(part)
+                cr, s = rc.rasters[name], rc.offset[name]
+                (r0, r1), w = cr.rows, cr.key.shape[1]
+                image[:r1 - r0, s:s + w] = _uint8(labels[name][r0:r1])  # (a wrong width raises)
         hidden = self._search(rc, image, column[cand], dist[cand], margin)
         if hidden is None:
             return out
