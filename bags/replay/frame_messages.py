@@ -115,20 +115,19 @@ _HEADS: weakref.WeakKeyDictionary[BagWriter, _Heads] = weakref.WeakKeyDictionary
 
 
 def write_frame_messages(bw: BagWriter, grid: BevGrid, mapper, pred: BevPrediction, stamp: int, ego: str,
-                         percent: np.ndarray | None = None) -> None:
-    """``/bev/<class>`` grids and the ``/bev/image`` picture of one frame (``percent``: the
-    frame's :func:`published_percent`, computed here when not given).
+                         cells: np.ndarray | None = None) -> None:
+    """``/bev/<class>`` grids and the ``/bev/image`` picture of one frame (``cells``: the
+    frame's :func:`occupancy_cells`, computed here when not given).
     """
     heads = _HEADS.get(bw)
     if heads is None:
         heads = _HEADS[bw] = _Heads()
     names = mapper.class_names
-    if percent is None:
-        percent = published_percent(pred.probs)
-    cells = occupancy_cells(percent, pred.known)
+    if cells is None:
+        cells = occupancy_cells(published_percent(pred.probs), pred.known)
     n = cells.shape[1]
     key = ("grid", grid, ego, n)
-    head = heads.head(key, stamp) if n == grid.width * grid.height and percent.shape[1:] == grid.shape else None
+    head = heads.head(key, stamp) if n == grid.width * grid.height and pred.probs.shape[1:] == grid.shape else None
     if head is not None:
         for ci, c in enumerate(names):
             bw.write_raw(OUT_PREFIX + c, b"".join((head, cells[ci])), stamp)

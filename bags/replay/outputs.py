@@ -25,7 +25,7 @@ from ..io.writer import BagWriter
 from ..report.html import render_report
 from ..report.pictures import encode_gif, encode_png, save_comparison
 from ..report.reliability import reliability_picture
-from .frame_messages import published_percent, write_frame_messages
+from .frame_messages import occupancy_cells, published_percent, write_frame_messages
 from .frame_scores import FrameScores, caption
 from .mapping import MappingTally
 from .options import (
@@ -152,10 +152,11 @@ class FrameSink:
         a scoring process: once its score is back, the frames before it first).
         """
         scorer = self.scorer
-        percent = published_percent(pred.probs)  # (C, H, W), shared by the grids and the scores
+        # (C, H*W) int8 OccupancyGrid cells, shared by the grids and the scores
+        cells = occupancy_cells(published_percent(pred.probs), pred.known)
         if self._remote is None:
-            gt, mask = scorer.update(frame, pred, percent)
-            self._scored(frame, pred, index, percent, gt, mask, None if gt is None else scorer.frame_iou)
+            gt, mask = scorer.update(frame, pred, cells)
+            self._scored(frame, pred, index, cells, gt, mask, None if gt is None else scorer.frame_iou)
             return
         layers, picture = scorer.frame_layers(frame), None
         if layers is not None:
@@ -165,8 +166,8 @@ class FrameSink:
             options = self.run.options
             if options.pictures and not options.gif and index % options.frames_every == 0:
                 picture = (self._picture_name(frame), frame.index, frame.stamp_ns)
-            self._remote.submit(layers, pred, picture)
-        self._waiting.append((frame, pred, index, percent, layers, picture is not None))
+            self._remote.submit(layers, pred, cells, picture)
+        self._waiting.append((frame, pred, index, cells, layers, picture is not None))
         self._release()
 
     def _release(self, every: bool = False) -> None:
@@ -175,7 +176,7 @@ class FrameSink:
         all of them).
         """
         while self._waiting:
-            frame, pred, index, percent, layers, drawn = self._waiting[0]
+            frame, pred, index, cells, layers, drawn = self._waiting[0]
             iou = None
             if layers is not None:
                 if not (every or self._remote.full):
@@ -183,9 +184,9 @@ class FrameSink:
                 iou = self._remote.take()
             self._waiting.popleft()
             gt, mask = (None, None) if layers is None else (layers.gt, layers.visible)
-            self._scored(frame, pred, index, percent, gt, mask, iou, drawn)
+            self._scored(frame, pred, index, cells, gt, mask, iou, drawn)
 
-    def _scored(self, frame, pred: BevPrediction, index: int, percent, gt, mask, iou, drawn: bool = False) -> None:
+    def _scored(self, frame, pred: BevPrediction, index: int, cells, gt, mask, iou, drawn: bool = False) -> None:
         """Keep a scored frame's IoU (``iou``, as the scorer counted it: FrameScores.add would
         score it again alike) and have the frame written (``drawn``: its picture, if it has one,
         was drawn by the scoring process).
@@ -193,17 +194,17 @@ class FrameSink:
         score = None if gt is None else self.scores.add_ious(
             frame.index, frame.stamp_ns, [c.name for c in self.scorer.classes], iou)
         if self._writing is None:
-            self._write(frame, pred, index, percent, gt, mask, score, drawn)
+            self._write(frame, pred, index, cells, gt, mask, score, drawn)
         else:
-            self._writing.submit(self._write, frame, pred, index, percent, gt, mask, score, drawn)
+            self._writing.submit(self._write, frame, pred, index, cells, gt, mask, score, drawn)
 
-    def _write(self, frame, pred: BevPrediction, index: int, percent, gt, mask, score, drawn: bool) -> None:
+    def _write(self, frame, pred: BevPrediction, index: int, cells, gt, mask, score, drawn: bool) -> None:
         """The frame's messages in the output bag (after the calibration logged up to it) and
         its picture (unless ``drawn`` by the scoring process).
         """
         run, mapper = self.run, self.run.mapper
         self.copier.upto(_frame_time(frame))
-        write_frame_messages(self.bw, run.grid, mapper, pred, frame.stamp_ns, self.ego, percent)
+        write_frame_messages(self.bw, run.grid, mapper, pred, frame.stamp_ns, self.ego, cells)
         options = run.options
         if options.pictures and index % options.frames_every == 0:
             name = self._picture_name(frame)

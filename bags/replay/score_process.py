@@ -86,6 +86,7 @@ class _Field:
 def _layout(n_pred: int, n_scored: int, shape: tuple[int, int]) -> tuple[tuple[_Field, ...], int]:
     """The fields of one slot and its size in bytes (each field 64-byte aligned)."""
     spec = [("probs", (n_pred, *shape), "float32"), ("known", shape, "bool"),
+            ("cells", (n_pred, shape[0] * shape[1]), "int8"),
             ("gt", (n_scored, *shape), "bool"), ("visible", shape, "bool"),
             ("truth", (n_scored, *shape), "bool"), ("seen", shape, "bool"), ("ground", shape, "bool")]
     fields, offset = [], 0
@@ -154,10 +155,11 @@ class ScoringProcess:
         self._free = deque(range(depth))
         self._busy: deque[int] = deque()  # slots of the frames submitted, oldest first
 
-    def submit(self, layers: FrameLayers, pred: BevPrediction,
+    def submit(self, layers: FrameLayers, pred: BevPrediction, cells: np.ndarray,
                picture: tuple[str, int, int] | None = None) -> None:
         """Copy a frame into a free slot and have the child score it (the caller :meth:`take` s
-        the oldest answer first while the slots are :attr:`full`); ``picture``: ``(file name,
+        the oldest answer first while the slots are :attr:`full`); ``cells``: its OccupancyGrid
+        cells (:func:`~bags.replay.frame_messages.occupancy_cells`); ``picture``: ``(file name,
         frame index, stamp)``, the child also draws the frame's picture into ``pictures.directory``.
         """
         if not self._free:
@@ -168,6 +170,7 @@ class ScoringProcess:
                                f"got {pred.probs.shape} {pred.probs.dtype}")
         slot = self._free.popleft()
         np.copyto(views["probs"], pred.probs)
+        np.copyto(views["cells"], cells)
         present = {"known": pred.known is not None, "truth": layers.truth is not None,
                    "ground": layers.ground is not None}
         for name, value in (("known", pred.known), ("gt", layers.gt), ("visible", layers.visible),
@@ -301,7 +304,7 @@ def _serve(inp, out) -> None:
             layers = FrameLayers(v["gt"], v["visible"], v["truth"] if present["truth"] else None,
                                  v["seen"], v["ground"] if present["ground"] else None)
             pred = BevPrediction(names, v["probs"], v["known"] if present["known"] else None)
-            iou = scorer.add(layers, pred)
+            iou = scorer.add(layers, pred, v["cells"])
             if picture is not None:
                 _draw(pictures, picture, grid, scorer, layers, pred, iou)
             answer("iou", iou)

@@ -86,16 +86,16 @@ class ReplayScorer:
         """Predicted classes scored against GT layers of other names: ``{class: [gt layers]}``."""
         return {c: list(g) for c, g in self.class_map.items() if g != (c,)}
 
-    def update(self, frame, pred: BevPrediction, percent: np.ndarray | None = None):
+    def update(self, frame, pred: BevPrediction, cells: np.ndarray | None = None):
         """Score one frame; returns ``(gt (C', H, W) bool, visible (H, W))`` or ``(None, None)``.
 
-        ``percent``: the prediction's whole percent ``(C, H, W)``
-        (:func:`~bags.replay.frame_messages.published_percent`), computed here when not given.
+        ``cells``: the prediction's OccupancyGrid cells ``(C, H*W)`` int8
+        (:func:`~bags.replay.frame_messages.occupancy_cells`), computed here when not given.
         """
         layers = self.frame_layers(frame)
         if layers is None:
             return None, None
-        self.add(layers, pred, percent)
+        self.add(layers, pred, cells)
         return layers.gt, layers.visible
 
     def frame_layers(self, frame) -> FrameLayers | None:
@@ -109,19 +109,24 @@ class ReplayScorer:
         seen = frame.visibility if frame.visibility is not None else visible
         return FrameLayers(gt, visible, truth, seen, frame.ground_visibility)
 
-    def add(self, layers: FrameLayers, pred: BevPrediction, percent: np.ndarray | None = None) -> np.ndarray:
+    def add(self, layers: FrameLayers, pred: BevPrediction, cells: np.ndarray | None = None) -> np.ndarray:
         """Score ``pred`` against a frame's :meth:`frame_layers`; returns (and keeps in
         ``frame_iou``) the frame's own IoU per scored class (NaN: undefined), as
-        :class:`~bags.replay.frame_scores.FrameScores` would score it.
+        :class:`~bags.replay.frame_scores.FrameScores` would score it. ``cells``: as in
+        :meth:`update`.
         """
         masks = scope_masks(self._names, layers.visible, layers.ground, self.scope_used)
         probs = pred.probs if self._all_pred else pred.probs[self._pred_idx]  # (C', H, W)
         self.frame_iou = self.acc.update(probs, layers.gt, masks, pred.known)
-        # whole percent, as in the OccupancyGrids
-        pct = published_percent(probs) if percent is None else percent if self._all_pred else percent[self._pred_idx]
-        with np.errstate(invalid="ignore"):  # NaN only in unknown cells, which are not counted
-            percent_u8 = pct.astype(np.uint8)
-        self.whole.update(None, pred.known, layers.seen, layers.gt, layers.truth, masks, percent=percent_u8)
+        # whole percent, as in the OccupancyGrids (their bytes; the unknown cells' are not counted)
+        if cells is None:
+            with np.errstate(invalid="ignore"):  # NaN only in unknown cells
+                percent = published_percent(probs).astype(np.uint8)
+        else:
+            percent = cells.view(np.uint8).reshape(pred.probs.shape)  # (C, H*W) -> (C, H, W)
+            if not self._all_pred:
+                percent = percent[self._pred_idx]
+        self.whole.update(None, pred.known, layers.seen, layers.gt, layers.truth, masks, percent=percent)
         return self.frame_iou
 
     def _union(self, layers: np.ndarray) -> np.ndarray:

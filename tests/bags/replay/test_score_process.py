@@ -13,6 +13,7 @@ import pytest
 from bag_helpers import replay_ipm, replay_outputs, synth_small
 
 from bags.replay import ReplayOptions, replay
+from bags.replay.frame_messages import occupancy_cells, published_percent
 from bags.replay.score_process import AUTO_MIN_FRAMES, ScoringError, ScoringProcess, use_process
 from bags.replay.scoring import FrameLayers, ReplayScorer
 from bev_mapper_core.errors import InputError
@@ -95,13 +96,14 @@ def test_the_scorers_error_in_the_process_is_raised_in_the_replay():
                                  rng.random(grid.shape) < 0.8)
             if remote.full:
                 remote.take()
-            remote.submit(layers, pred)
-            local.add(layers, pred)
+            remote.submit(layers, pred, occupancy_cells(published_percent(pred.probs), pred.known))
+            local.add(layers, pred)  # the published bytes computed here: the same scores
         while remote.pending:
             remote.take()
         probs = pred.probs.copy()
         probs[0, 0, 0] = np.nan
-        remote.submit(layers, BevPrediction(names, probs, np.ones(grid.shape, bool)))
+        remote.submit(layers, BevPrediction(names, probs, np.ones(grid.shape, bool)),
+                      occupancy_cells(published_percent(probs), None))
         with pytest.raises(InputError, match="NaN"):
             remote.take()
         state = remote.close()
