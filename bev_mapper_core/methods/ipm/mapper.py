@@ -274,7 +274,8 @@ class IpmMapper(Mapper):
         """
         n = len(self._shifts)
         if self._bits == 8 and sys.byteorder == "little":  # field f is byte f
-            return acc.view(np.uint8).reshape(-1, 8)[:, :n].T.astype(np.float32, order="C")  # (H*W, 8) -> (n, H*W)
+            fields = cv2.transpose(acc.view(np.uint8).reshape(-1, 8))  # (H*W, 8) -> (8, H*W); ~5x numpy's copy of .T
+            return fields[:n].astype(np.float32)  # (n, H*W)
         return ((acc[None] >> self._shifts[:, None]) & np.uint64(2 ** self._bits - 1)).astype(np.float32)
 
     def warp_rgb(self, images: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
