@@ -82,10 +82,10 @@ def reference_scoring():
         accumulator._chamfer_terms, whole_grid._EXACT_PERCENT_CELLS, outputs.FrameSink.finish = saved
 
 
-def reference_write_frame_messages(bw, grid, mapper, pred, stamp, ego, cells=None):
+def reference_write_frame_messages(bw, grid, mapper, pred, stamp, ego, cells=None, picture=None):
     """``/bev/<class>`` grids and the ``/bev/image`` picture, each message built and serialized
     by rosbags (as before #28's second part)."""
-    del cells
+    del cells, picture
     for ci, c in enumerate(mapper.class_names):
         bw.write(OUT_PREFIX + c, make_occupancy_grid(bw.factory, grid, pred.probs[ci], pred.known, stamp, ego),
                  stamp)

@@ -141,7 +141,8 @@ def _scoring_process(run: ReplayRun, scorer, total: int | None) -> ScoringProces
         return None
     try:
         pictures = Pictures(options.mapper.method, tuple(run.mapper.classes), str(run.tmp_frames))
-        return ScoringProcess(scorer, len(run.mapper.class_names), run.grid.shape, pictures=pictures)
+        return ScoringProcess(scorer, len(run.mapper.class_names), run.grid.shape, pictures=pictures,
+                              published=tuple(run.mapper.classes))
     except (OSError, ScoringError) as exc:
         run.notes.append(f"scored in the replay's own process: the scoring process did not start ({exc})")
         return None

@@ -115,9 +115,10 @@ _HEADS: weakref.WeakKeyDictionary[BagWriter, _Heads] = weakref.WeakKeyDictionary
 
 
 def write_frame_messages(bw: BagWriter, grid: BevGrid, mapper, pred: BevPrediction, stamp: int, ego: str,
-                         cells: np.ndarray | None = None) -> None:
+                         cells: np.ndarray | None = None, picture: np.ndarray | None = None) -> None:
     """``/bev/<class>`` grids and the ``/bev/image`` picture of one frame (``cells``: the
-    frame's :func:`occupancy_cells`, computed here when not given).
+    frame's :func:`occupancy_cells`; ``picture``: its ``bev_picture``; each computed here when
+    not given).
     """
     heads = _HEADS.get(bw)
     if heads is None:
@@ -146,7 +147,8 @@ def write_frame_messages(bw: BagWriter, grid: BevGrid, mapper, pred: BevPredicti
             for ci, c in enumerate(names):
                 bw.write(OUT_PREFIX + c, make_occupancy_grid(bw.factory, grid, pred.probs[ci], pred.known,
                                                              stamp, ego), stamp)
-    picture = bev_picture(grid, pred.probs, mapper.classes, pred.known)
+    if picture is None:
+        picture = bev_picture(grid, pred.probs, mapper.classes, pred.known)
     key = ("image", picture.shape, ego)
     head = None
     if picture.dtype == np.uint8 and picture.ndim == 3 and picture.shape[2] == 3 and picture.flags.c_contiguous:

@@ -152,21 +152,23 @@ class FrameSink:
         a scoring process: once its score is back, the frames before it first).
         """
         scorer = self.scorer
-        # (C, H*W) int8 OccupancyGrid cells, shared by the grids and the scores
-        cells = occupancy_cells(published_percent(pred.probs), pred.known)
         if self._remote is None:
+            # (C, H*W) int8 OccupancyGrid cells, shared by the grids and the scores
+            cells = occupancy_cells(published_percent(pred.probs), pred.known)
             gt, mask = scorer.update(frame, pred, cells)
             self._scored(frame, pred, index, cells, gt, mask, None if gt is None else scorer.frame_iou)
             return
-        layers, picture = scorer.frame_layers(frame), None
-        if layers is not None:
+        layers, picture, cells = scorer.frame_layers(frame), None, None
+        if layers is None:  # not scored: the cells are computed here (the scoring process's otherwise)
+            cells = occupancy_cells(published_percent(pred.probs), pred.known)
+        else:
             self._release()  # waits for the oldest frame's score while every slot is in use
             # the scoring process draws the picture of a frame it scores (not for a GIF: its
             # pictures are kept here)
             options = self.run.options
             if options.pictures and not options.gif and index % options.frames_every == 0:
                 picture = (self._picture_name(frame), frame.index, frame.stamp_ns)
-            self._remote.submit(layers, pred, cells, picture)
+            self._remote.submit(layers, pred, None, picture)
         self._waiting.append((frame, pred, index, cells, layers, picture is not None))
         self._release()
 
@@ -177,34 +179,36 @@ class FrameSink:
         """
         while self._waiting:
             frame, pred, index, cells, layers, drawn = self._waiting[0]
-            iou = None
+            iou, image = None, None
             if layers is not None:
                 if not (every or self._remote.full):
                     return
-                iou = self._remote.take()
+                iou, cells, image = self._remote.take()  # its cells and /bev/image from the process
             self._waiting.popleft()
             gt, mask = (None, None) if layers is None else (layers.gt, layers.visible)
-            self._scored(frame, pred, index, cells, gt, mask, iou, drawn)
+            self._scored(frame, pred, index, cells, gt, mask, iou, drawn, image)
 
-    def _scored(self, frame, pred: BevPrediction, index: int, cells, gt, mask, iou, drawn: bool = False) -> None:
+    def _scored(self, frame, pred: BevPrediction, index: int, cells, gt, mask, iou, drawn: bool = False,
+                image=None) -> None:
         """Keep a scored frame's IoU (``iou``, as the scorer counted it: FrameScores.add would
         score it again alike) and have the frame written (``drawn``: its picture, if it has one,
-        was drawn by the scoring process).
+        was drawn by the scoring process; ``image``: its ``/bev/image`` picture, if drawn there).
         """
         score = None if gt is None else self.scores.add_ious(
             frame.index, frame.stamp_ns, [c.name for c in self.scorer.classes], iou)
         if self._writing is None:
-            self._write(frame, pred, index, cells, gt, mask, score, drawn)
+            self._write(frame, pred, index, cells, gt, mask, score, drawn, image)
         else:
-            self._writing.submit(self._write, frame, pred, index, cells, gt, mask, score, drawn)
+            self._writing.submit(self._write, frame, pred, index, cells, gt, mask, score, drawn, image)
 
-    def _write(self, frame, pred: BevPrediction, index: int, cells, gt, mask, score, drawn: bool) -> None:
+    def _write(self, frame, pred: BevPrediction, index: int, cells, gt, mask, score, drawn: bool,
+               image=None) -> None:
         """The frame's messages in the output bag (after the calibration logged up to it) and
         its picture (unless ``drawn`` by the scoring process).
         """
         run, mapper = self.run, self.run.mapper
         self.copier.upto(_frame_time(frame))
-        write_frame_messages(self.bw, run.grid, mapper, pred, frame.stamp_ns, self.ego, cells)
+        write_frame_messages(self.bw, run.grid, mapper, pred, frame.stamp_ns, self.ego, cells, image)
         options = run.options
         if options.pictures and index % options.frames_every == 0:
             name = self._picture_name(frame)

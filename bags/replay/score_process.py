@@ -11,7 +11,10 @@ probabilities and known cells, and the frame's :class:`~bags.replay.scoring.Fram
 in the replay's process, which needs them for the pictures anyway). The child scores the frames
 in the order they were submitted and answers each with the frame's IoU; the replay takes the
 answers in the same order (:meth:`ScoringProcess.take`). The child also draws the pictures of the
-frames it scores (it holds their prediction, GT and score). At the end the child's scores come back
+frames it scores (it holds their prediction, GT and score) and, given the mapper's classes,
+computes what the replay publishes of them: the OccupancyGrid cells and the ``/bev/image``
+picture, left in the frame's slot for the replay to write (work taken off the replay's process,
+the busier of the two). At the end the child's scores come back
 as its scorer's mergeable state (:meth:`~bags.replay.scoring.ReplayScorer.state`), which the
 replay's scorer loads: the same numbers as scoring in the replay's process, frame for frame
 (the same arithmetic in the same order).
@@ -36,11 +39,13 @@ from pathlib import Path
 import numpy as np
 
 from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.labels.classes import bev_picture
 from bev_mapper_core.mapper import BevPrediction
 
 from ..errors import BagError
 from ..memory import keep_freed_memory
 from ..report.pictures import save_comparison
+from .frame_messages import occupancy_cells, published_percent
 from .frame_scores import FrameScores, caption
 from .scoring import FrameLayers, ReplayScorer
 
@@ -83,10 +88,13 @@ class _Field:
         return int(np.prod(self.shape)) * np.dtype(self.dtype).itemsize
 
 
-def _layout(n_pred: int, n_scored: int, shape: tuple[int, int]) -> tuple[tuple[_Field, ...], int]:
-    """The fields of one slot and its size in bytes (each field 64-byte aligned)."""
+def _layout(n_pred: int, n_scored: int, shape: tuple[int, int],
+            image: tuple[int, ...] = (0, 0, 3)) -> tuple[tuple[_Field, ...], int]:
+    """The fields of one slot and its size in bytes (each field 64-byte aligned); ``image``:
+    the shape of the ``/bev/image`` picture the child draws (none: 0 pixels).
+    """
     spec = [("probs", (n_pred, *shape), "float32"), ("known", shape, "bool"),
-            ("cells", (n_pred, shape[0] * shape[1]), "int8"),
+            ("cells", (n_pred, shape[0] * shape[1]), "int8"), ("image", image, "uint8"),
             ("gt", (n_scored, *shape), "bool"), ("visible", shape, "bool"),
             ("truth", (n_scored, *shape), "bool"), ("seen", shape, "bool"), ("ground", shape, "bool")]
     fields, offset = [], 0
@@ -121,15 +129,23 @@ class ScoringProcess:
         scorer: the replay's scorer (its :attr:`~bags.replay.scoring.ReplayScorer.args` build the twin).
         n_pred: classes of the mapper's predictions; ``shape``: the grid's ``(H, W)``.
         depth: frames in flight (slots of shared memory).
+        pictures: what the child needs to draw the comparison pictures (``None``: none asked).
+        published: the mapper's classes: the child also computes each frame's OccupancyGrid
+            cells and ``/bev/image`` picture (:meth:`take` returns them); ``None``: it does not.
 
     Raises:
         ScoringError: the child did not start.
     """
 
     def __init__(self, scorer: ReplayScorer, n_pred: int, shape: tuple[int, int], depth: int = DEPTH,
-                 pictures: Pictures | None = None) -> None:
+                 pictures: Pictures | None = None, published: tuple | None = None) -> None:
         self.depth = depth
-        self._fields, self._size = _layout(n_pred, len(scorer.classes), tuple(shape))
+        self._published = published is not None
+        image = (0, 0, 3)
+        if published is not None:  # the picture's size, from the (cached) painter of the grid
+            grid = scorer.args[0]
+            image = bev_picture(grid, np.zeros((len(published), *grid.shape), np.float32), published).shape
+        self._fields, self._size = _layout(n_pred, len(scorer.classes), tuple(shape), image)
         fd, path = tempfile.mkstemp(prefix="bev-bag-scoring-", dir=_shared_dir())
         try:
             os.ftruncate(fd, self._size * depth)
@@ -144,7 +160,8 @@ class ScoringProcess:
             self._proc = subprocess.Popen([sys.executable, "-c", f"from {__name__} import main; main()"],
                                           stdin=subprocess.PIPE, stdout=subprocess.PIPE)
             grid, *rest = scorer.args
-            self._send((path, self._fields, self._size, depth, (grid.to_dict(), *rest), pictures))  # no cached arrays
+            self._send((path, self._fields, self._size, depth, (grid.to_dict(), *rest), pictures,
+                        published))  # no cached arrays
             self._recv()  # mapped: the file can go
         except BaseException:
             self.close(abandon=True)
@@ -155,12 +172,14 @@ class ScoringProcess:
         self._free = deque(range(depth))
         self._busy: deque[int] = deque()  # slots of the frames submitted, oldest first
 
-    def submit(self, layers: FrameLayers, pred: BevPrediction, cells: np.ndarray,
+    def submit(self, layers: FrameLayers, pred: BevPrediction, cells: np.ndarray | None = None,
                picture: tuple[str, int, int] | None = None) -> None:
         """Copy a frame into a free slot and have the child score it (the caller :meth:`take` s
         the oldest answer first while the slots are :attr:`full`); ``cells``: its OccupancyGrid
-        cells (:func:`~bags.replay.frame_messages.occupancy_cells`); ``picture``: ``(file name,
-        frame index, stamp)``, the child also draws the frame's picture into ``pictures.directory``.
+        cells (:func:`~bags.replay.frame_messages.occupancy_cells`), which the child computes
+        when not given (it must when it is to compute what is published); ``picture``: ``(file
+        name, frame index, stamp)``, the child also draws the frame's picture into
+        ``pictures.directory``.
         """
         if not self._free:
             raise RuntimeError("every slot is in use: take() the oldest answer first")
@@ -170,13 +189,15 @@ class ScoringProcess:
                                f"got {pred.probs.shape} {pred.probs.dtype}")
         slot = self._free.popleft()
         np.copyto(views["probs"], pred.probs)
-        np.copyto(views["cells"], cells)
+        if cells is not None:
+            np.copyto(views["cells"], cells)
         present = {"known": pred.known is not None, "truth": layers.truth is not None,
                    "ground": layers.ground is not None}
         for name, value in (("known", pred.known), ("gt", layers.gt), ("visible", layers.visible),
                             ("truth", layers.truth), ("seen", layers.seen), ("ground", layers.ground)):
             if value is not None:
                 np.copyto(views[name], value)
+        present["cells"] = cells is not None
         self._busy.append(slot)
         self._send(("frame", slot, tuple(pred.classes), present, picture))
 
@@ -190,8 +211,10 @@ class ScoringProcess:
         """Frames submitted whose answer was not taken yet."""
         return len(self._busy)
 
-    def take(self) -> np.ndarray:
-        """The IoU per scored class of the oldest frame submitted (waits for it).
+    def take(self) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """The oldest frame submitted (waits for it): its IoU per scored class, and, when the
+        child computes what is published (``published``), its OccupancyGrid cells ``(C, H*W)``
+        int8 and ``/bev/image`` picture (copies: the slot is free again), else ``None``.
 
         Raises:
             the child's exception, re-raised; ScoringError: the child exited.
@@ -200,7 +223,11 @@ class ScoringProcess:
             raise RuntimeError("no frame is being scored")
         slot = self._busy.popleft()
         try:
-            return self._recv()  # its IoU, or its error raised here: either way the slot is free again
+            iou = self._recv()  # its IoU, or its error raised here: either way the slot is free again
+            if not self._published:
+                return iou, None, None
+            views = self._slots[slot]
+            return iou, views["cells"].copy(), views["image"].copy()
         finally:
             self._free.append(slot)
 
@@ -275,7 +302,7 @@ def _serve(inp, out) -> None:
     order, and answer its IoU (or the exception it raised); answer ``("state",)`` with the
     scorer's state; exit at the end of the input.
     """
-    path, fields, size, depth, (grid, *args), pictures = pickle.load(inp)
+    path, fields, size, depth, (grid, *args), pictures, published = pickle.load(inp)
     with open(path, "r+b") as f:
         shared = mmap.mmap(f.fileno(), size * depth)
     slots = [_views(shared, fields, size, k) for k in range(depth)]
@@ -304,7 +331,11 @@ def _serve(inp, out) -> None:
             layers = FrameLayers(v["gt"], v["visible"], v["truth"] if present["truth"] else None,
                                  v["seen"], v["ground"] if present["ground"] else None)
             pred = BevPrediction(names, v["probs"], v["known"] if present["known"] else None)
+            if not present["cells"]:  # as the replay's process computes them (FrameSink.finish)
+                np.copyto(v["cells"], occupancy_cells(published_percent(pred.probs), pred.known))
             iou = scorer.add(layers, pred, v["cells"])
+            if published is not None:  # as write_frame_messages draws it
+                np.copyto(v["image"], bev_picture(grid, pred.probs, published, pred.known))
             if picture is not None:
                 _draw(pictures, picture, grid, scorer, layers, pred, iou)
             answer("iou", iou)
