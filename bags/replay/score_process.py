@@ -12,9 +12,10 @@ in the replay's process, which needs them for the pictures anyway). The child sc
 in the order they were submitted and answers each with the frame's IoU; the replay takes the
 answers in the same order (:meth:`ScoringProcess.take`). The child also draws the pictures of the
 frames it scores (it holds their prediction, GT and score) and, given the mapper's classes,
-computes what the replay publishes of them: the OccupancyGrid cells and the ``/bev/image``
-picture, left in the frame's slot for the replay to write (work taken off the replay's process,
-the busier of the two). At the end the child's scores come back
+computes what the replay publishes of them: the OccupancyGrid cells and, while the replay's
+process does not wait for the child's answers, the ``/bev/image`` picture, left in the frame's
+slot for the replay to write (work taken off the busier process: when the replay's process
+waits, it draws the picture itself). At the end the child's scores come back
 as its scorer's mergeable state (:meth:`~bags.replay.scoring.ReplayScorer.state`), which the
 replay's scorer loads: the same numbers as scoring in the replay's process, frame for frame
 (the same arithmetic in the same order).
@@ -32,6 +33,7 @@ import pickle
 import subprocess
 import sys
 import tempfile
+import time
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,6 +58,9 @@ DEPTH = 3
 AUTO_MIN_FRAMES = 100
 #: seconds to wait for the child to exit before it is killed
 _JOIN_S = 10.0
+#: the child draws a frame's ``/bev/image`` while the replay's process waits less than this for
+#: an answer, on average over the last answers (:attr:`ScoringProcess.waited_s`)
+DRAW_WAIT_S = 0.5e-3
 
 
 class ScoringError(BagError):
@@ -170,7 +175,9 @@ class ScoringProcess:
             os.unlink(path)
         self._slots = [_views(self._map, self._fields, self._size, k) for k in range(depth)]  # built once
         self._free = deque(range(depth))
-        self._busy: deque[int] = deque()  # slots of the frames submitted, oldest first
+        self._busy: deque[tuple[int, bool]] = deque()  # (slot, picture drawn there) of the frames submitted, oldest first
+        #: seconds the replay's process waited for an answer, a moving average over the last ones
+        self.waited_s = 0.0
 
     def submit(self, layers: FrameLayers, pred: BevPrediction, cells: np.ndarray | None = None,
                picture: tuple[str, int, int] | None = None) -> None:
@@ -198,7 +205,8 @@ class ScoringProcess:
             if value is not None:
                 np.copyto(views[name], value)
         present["cells"] = cells is not None
-        self._busy.append(slot)
+        present["image"] = self._published and self.waited_s < DRAW_WAIT_S  # else the replay draws it
+        self._busy.append((slot, present["image"]))
         self._send(("frame", slot, tuple(pred.classes), present, picture))
 
     @property
@@ -214,20 +222,23 @@ class ScoringProcess:
     def take(self) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
         """The oldest frame submitted (waits for it): its IoU per scored class, and, when the
         child computes what is published (``published``), its OccupancyGrid cells ``(C, H*W)``
-        int8 and ``/bev/image`` picture (copies: the slot is free again), else ``None``.
+        int8 and (when it drew it, see :data:`DRAW_WAIT_S`) its ``/bev/image`` picture (copies:
+        the slot is free again); ``None`` for what it did not compute.
 
         Raises:
             the child's exception, re-raised; ScoringError: the child exited.
         """
         if not self._busy:
             raise RuntimeError("no frame is being scored")
-        slot = self._busy.popleft()
+        slot, image = self._busy.popleft()
         try:
+            start = time.perf_counter()
             iou = self._recv()  # its IoU, or its error raised here: either way the slot is free again
+            self.waited_s += 0.2 * (time.perf_counter() - start - self.waited_s)
             if not self._published:
                 return iou, None, None
             views = self._slots[slot]
-            return iou, views["cells"].copy(), views["image"].copy()
+            return iou, views["cells"].copy(), views["image"].copy() if image else None
         finally:
             self._free.append(slot)
 
@@ -334,7 +345,7 @@ def _serve(inp, out) -> None:
             if not present["cells"]:  # as the replay's process computes them (FrameSink.finish)
                 np.copyto(v["cells"], occupancy_cells(published_percent(pred.probs), pred.known))
             iou = scorer.add(layers, pred, v["cells"])
-            if published is not None:  # as write_frame_messages draws it
+            if present["image"]:  # as write_frame_messages draws it
                 np.copyto(v["image"], bev_picture(grid, pred.probs, published, pred.known))
             if picture is not None:
                 _draw(pictures, picture, grid, scorer, layers, pred, iou)

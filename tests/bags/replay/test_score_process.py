@@ -132,9 +132,10 @@ def test_a_scoring_process_that_cannot_start_leaves_the_scoring_here(tmp_path, m
 
 
 def test_the_process_computes_the_published_cells_and_picture_as_the_replay_does():
-    """With the mapper's classes the child also computes each frame's OccupancyGrid cells and
-    ``/bev/image`` picture (taken off the replay's process): the same bytes as computed here,
-    the unknown cells included; without them it computes neither."""
+    """With the mapper's classes the child also computes each frame's OccupancyGrid cells and,
+    while the replay does not wait for its answers, the ``/bev/image`` picture (taken off the
+    replay's process): the same bytes as computed here, the unknown cells included. When the
+    replay waits it draws the picture itself; without the classes the child computes neither."""
     from bev_mapper_core.labels.classes import bev_picture, resolve_classes
 
     grid = BevGrid(x_min=-5.0, x_max=5.0, y_min=-2.5, y_max=2.5, resolution=0.25)
@@ -149,25 +150,26 @@ def test_the_process_computes_the_published_cells_and_picture_as_the_replay_does
         layers = FrameLayers(rng.random((2,) + grid.shape) < 0.3, rng.random(grid.shape) < 0.9, None,
                              np.ones(grid.shape, bool), None)
         frames.append((layers, BevPrediction(names, probs, known)))
-    for published in (classes, None):
+    for published, waited in ((classes, 0.0), (classes, 1.0), (None, 0.0)):
         remote = ScoringProcess(ReplayScorer(grid, names, names, ground=False), 2, grid.shape,
                                 published=published)
         try:
             got = []  # every frame's answer, in order
             for layers, pred in frames:
-                if remote.full:
-                    got.append(remote.take())
+                remote.waited_s = waited  # 1 s: the replay is waiting for the child
                 remote.submit(layers, pred)
-            got += [remote.take() for _ in range(remote.pending)]
+                got.append(remote.take())
             remote.close()
         finally:
             remote.close(abandon=True)
-        assert len(got) == len(frames)
         for (_, pred), (_, cells, image) in zip(frames, got):
             if published is None:
                 assert cells is None and image is None
                 continue
             np.testing.assert_array_equal(cells, occupancy_cells(published_percent(pred.probs), pred.known))
-            np.testing.assert_array_equal(image, bev_picture(grid, pred.probs, classes, pred.known))
             assert (cells == -1).any()
+            if waited:
+                assert image is None
+            else:
+                np.testing.assert_array_equal(image, bev_picture(grid, pred.probs, classes, pred.known))
     assert not _children()
