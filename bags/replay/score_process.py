@@ -136,7 +136,8 @@ class ScoringProcess:
         depth: frames in flight (slots of shared memory).
         pictures: what the child needs to draw the comparison pictures (``None``: none asked).
         published: the mapper's classes: the child also computes each frame's OccupancyGrid
-            cells and ``/bev/image`` picture (:meth:`take` returns them); ``None``: it does not.
+            cells and, while the replay waits less than :data:`DRAW_WAIT_S` for its answers,
+            its ``/bev/image`` picture (:meth:`take` returns them); ``None``: neither.
 
     Raises:
         ScoringError: the child did not start.
@@ -184,7 +185,7 @@ class ScoringProcess:
         """Copy a frame into a free slot and have the child score it (the caller :meth:`take` s
         the oldest answer first while the slots are :attr:`full`); ``cells``: its OccupancyGrid
         cells (:func:`~bags.replay.frame_messages.occupancy_cells`), which the child computes
-        when not given (it must when it is to compute what is published); ``picture``: ``(file
+        when not given; ``picture``: ``(file
         name, frame index, stamp)``, the child also draws the frame's picture into
         ``pictures.directory``.
         """
