@@ -83,10 +83,9 @@ def _distance_to(cells: np.ndarray, at: np.ndarray, reach: float | None = None) 
     H, W = cells.shape
     r = int(math.ceil(reach)) + 1
     rows, cols = q // W, q % W
-    r0, r1 = max(int(rows[0]) - r, 0), min(int(rows[-1]) + r + 1, H)
-    c0, c1 = max(int(cols.min()) - r, 0), min(int(cols.max()) + r + 1, W)
-    if len(q) * _CELL_COST >= (r1 - r0) * (c1 - c0):  # many cells: one transform around them all
-        out[~cells[at]] = np.sqrt(_box_d2(cells, r0, r1, c0, c1, rows, cols))
+    around = _box(rows, cols, r, H, W)
+    if len(q) * _CELL_COST >= _box_area(around):  # many cells: one transform around them all
+        out[~cells[at]] = np.sqrt(_box_d2(cells, around, rows, cols))
         return out
     d2 = np.full(len(q), np.nan)  # squared distance in cells, found so far
     # nearby: every offset up to _NEAR cells around each cell at once, nearest first
@@ -96,7 +95,7 @@ def _distance_to(cells: np.ndarray, at: np.ndarray, reach: float | None = None) 
     wp = W + 2 * pad
     base = (rows + pad) * wp + (cols + pad)  # (n,) flat index into padded
     todo = _nearest(padded.ravel(), base, wp, d2, np.arange(len(q)), _OFFSETS[0])
-    if len(todo) and len(todo) * _FARTHER_COST < _box_area(rows[todo], cols[todo], r, H, W):
+    if len(todo) and len(todo) * _FARTHER_COST < _box_area(_box(rows[todo], cols[todo], r, H, W)):
         # a few farther: the offsets up to _FARTHER cells (beyond _NEAR), before any transform
         todo = _nearest(padded.ravel(), base, wp, d2, todo, _OFFSETS[1])
     if len(todo):  # farther: the transform around those cells, widened by reach
@@ -104,13 +103,11 @@ def _distance_to(cells: np.ndarray, at: np.ndarray, reach: float | None = None) 
         # one box around them all, or one per tile of _TILE cells holding some when that is less
         tile = (rows // _TILE) * (W // _TILE + 1) + cols // _TILE
         tiles, which = np.unique(tile, return_inverse=True)
-        box = _box_area(rows, cols, r, H, W)
+        box = _box_area(_box(rows, cols, r, H, W))
         groups = [np.arange(len(todo))] if len(tiles) * (_TILE + 2 * r) ** 2 >= box else \
             [np.flatnonzero(which == i) for i in range(len(tiles))]
         for g in groups:
-            gr, gc = rows[g], cols[g]
-            d2[todo[g]] = _box_d2(cells, max(int(gr.min()) - r, 0), min(int(gr.max()) + r + 1, H),
-                                  max(int(gc.min()) - r, 0), min(int(gc.max()) + r + 1, W), gr, gc)
+            d2[todo[g]] = _box_d2(cells, _box(rows[g], cols[g], r, H, W), rows[g], cols[g])
     out[~cells[at]] = np.sqrt(d2)  # at's order: q is row-major, as at's cells
     return out
 
@@ -129,18 +126,27 @@ def _nearest(padded: np.ndarray, base: np.ndarray, wp: int, d2: np.ndarray, todo
     return todo[~found]
 
 
-def _box_area(rows: np.ndarray, cols: np.ndarray, r: int, H: int, W: int) -> int:
-    """Cells of the box around ``(rows, cols)`` widened by ``r``, inside the ``(H, W)`` grid."""
-    return ((min(int(rows.max()) + r + 1, H) - max(int(rows.min()) - r, 0))
-            * (min(int(cols.max()) + r + 1, W) - max(int(cols.min()) - r, 0)))
+def _box(rows: np.ndarray, cols: np.ndarray, r: int, H: int, W: int) -> tuple[int, int, int, int]:
+    """``(r0, r1, c0, c1)``: the box ``[r0, r1) x [c0, c1)`` around the cells ``(rows, cols)``
+    widened by ``r``, inside the ``(H, W)`` grid.
+    """
+    return (max(int(rows.min()) - r, 0), min(int(rows.max()) + r + 1, H),
+            max(int(cols.min()) - r, 0), min(int(cols.max()) + r + 1, W))
 
 
-def _box_d2(cells: np.ndarray, r0: int, r1: int, c0: int, c1: int, rows: np.ndarray,
+def _box_area(box: tuple[int, int, int, int]) -> int:
+    """Cells of a :func:`_box`."""
+    r0, r1, c0, c1 = box
+    return (r1 - r0) * (c1 - c0)
+
+
+def _box_d2(cells: np.ndarray, box: tuple[int, int, int, int], rows: np.ndarray,
             cols: np.ndarray) -> np.ndarray:
     """Squared distances (cells, float64 integers) from the cells ``(rows, cols)`` to the
-    nearest True cell of ``cells`` inside the box ``[r0, r1) x [c0, c1)``, by one distance
-    transform of the box (snapped as :func:`_snap`).
+    nearest True cell of ``cells`` inside ``box`` (:func:`_box`), by one distance transform of
+    the box (snapped as :func:`_snap`).
     """
+    r0, r1, c0, c1 = box
     src = (~cells[r0:r1, c0:c1]).view(np.uint8)  # (h, w) 1 = not a cell; the transform finds 0s
     d = cv2.distanceTransform(np.ascontiguousarray(src), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     return np.rint(d[rows - r0, cols - c0].astype(np.float64) ** 2)
@@ -153,15 +159,6 @@ _NEAR = 4
 _TILE = 32
 
 
-def _near_offsets(radius: int) -> list[tuple[int, np.ndarray, np.ndarray]]:
-    """``(d2, dy, dx)`` per squared distance ``d2`` up to ``radius ** 2``, increasing: the
-    offsets at exactly that distance (all of them, so the first hit is the nearest).
-    """
-    dy, dx = np.mgrid[-radius:radius + 1, -radius:radius + 1]
-    d2 = dy ** 2 + dx ** 2
-    return [(int(k), dy[d2 == k], dx[d2 == k]) for k in np.unique(d2) if 0 < k <= radius ** 2]
-
-
 #: ... then, when that is less work than a transform (:data:`_FARTHER_COST`), among the offsets
 #: up to this many cells
 _FARTHER = 12
@@ -170,12 +167,15 @@ _FARTHER_COST = 60
 
 
 def _offsets(lo: int, hi: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The offsets ``lo < distance <= hi`` cells one by one, nearest first: ``(K,)`` squared
-    distance (float64), rows and columns.
+    """The offsets ``lo < distance <= hi`` cells one by one, nearest first (all of those at
+    each distance, so the first hit is the nearest): ``(K,)`` squared distance (float64), rows
+    and columns.
     """
-    shells = [(k, dy, dx) for k, dy, dx in _near_offsets(hi) if k > lo ** 2]
-    return (np.concatenate([np.full(len(dy), k, np.float64) for k, dy, _ in shells]),
-            np.concatenate([dy for _, dy, _ in shells]), np.concatenate([dx for _, _, dx in shells]))
+    dy, dx = np.mgrid[-hi:hi + 1, -hi:hi + 1]
+    d2 = dy ** 2 + dx ** 2
+    keep = (d2 > lo ** 2) & (d2 <= hi ** 2)
+    order = np.argsort(d2[keep], kind="stable")  # nearest first; at one distance, row-major
+    return d2[keep][order].astype(np.float64), dy[keep][order], dx[keep][order]
 
 
 #: the offsets of the near search, then of the farther one
