@@ -51,6 +51,13 @@ def occupancy_cells(percent: np.ndarray, known: np.ndarray | None) -> np.ndarray
     return cells.reshape(len(cells), -1)  # (C, H, W) -> (C, H*W)
 
 
+def prediction_cells(pred: BevPrediction) -> np.ndarray:
+    """``(C, H*W)`` int8 OccupancyGrid cells of ``pred`` as published: :func:`occupancy_cells`
+    of its :func:`published_percent`.
+    """
+    return occupancy_cells(published_percent(pred.probs), pred.known)
+
+
 _STAMP = struct.Struct("<iI")  # builtin_interfaces/Time: sec int32, nanosec uint32
 _STAMP_AT = 4  # the header's stamp: the first field after the 4-byte CDR encapsulation header
 
@@ -125,7 +132,7 @@ def write_frame_messages(bw: BagWriter, grid: BevGrid, mapper, pred: BevPredicti
         heads = _HEADS[bw] = _Heads()
     names = mapper.class_names
     if cells is None:
-        cells = occupancy_cells(published_percent(pred.probs), pred.known)
+        cells = prediction_cells(pred)
     n = cells.shape[1]
     key = ("grid", grid, ego, n)
     head = heads.head(key, stamp) if n == grid.width * grid.height and pred.probs.shape[1:] == grid.shape else None

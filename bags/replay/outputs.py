@@ -25,7 +25,7 @@ from ..io.writer import BagWriter
 from ..report.html import render_report
 from ..report.pictures import encode_gif, encode_png, save_comparison
 from ..report.reliability import reliability_picture
-from .frame_messages import occupancy_cells, published_percent, write_frame_messages
+from .frame_messages import prediction_cells, write_frame_messages
 from .frame_scores import FrameScores, caption
 from .mapping import MappingTally
 from .options import (
@@ -154,13 +154,13 @@ class FrameSink:
         scorer = self.scorer
         if self._remote is None:
             # (C, H*W) int8 OccupancyGrid cells, shared by the grids and the scores
-            cells = occupancy_cells(published_percent(pred.probs), pred.known)
+            cells = prediction_cells(pred)
             gt, mask = scorer.update(frame, pred, cells)
             self._scored(frame, pred, index, cells, gt, mask, None if gt is None else scorer.frame_iou)
             return
         layers, picture, cells = scorer.frame_layers(frame), None, None
         if layers is None:  # not scored: the cells are computed here (the scoring process's otherwise)
-            cells = occupancy_cells(published_percent(pred.probs), pred.known)
+            cells = prediction_cells(pred)
         else:
             self._release()  # waits for the oldest frame's score while every slot is in use
             # the scoring process draws the picture of a frame it scores (not for a GIF: its

@@ -47,7 +47,7 @@ from bev_mapper_core.mapper import BevPrediction
 from ..errors import BagError
 from ..memory import keep_freed_memory
 from ..report.pictures import save_comparison
-from .frame_messages import occupancy_cells, published_percent
+from .frame_messages import prediction_cells
 from .frame_scores import FrameScores, caption
 from .scoring import FrameLayers, ReplayScorer
 
@@ -344,7 +344,7 @@ def _serve(inp, out) -> None:
                                  v["seen"], v["ground"] if present["ground"] else None)
             pred = BevPrediction(names, v["probs"], v["known"] if present["known"] else None)
             if not present["cells"]:  # as the replay's process computes them (FrameSink.finish)
-                np.copyto(v["cells"], occupancy_cells(published_percent(pred.probs), pred.known))
+                np.copyto(v["cells"], prediction_cells(pred))
             iou = scorer.add(layers, pred, v["cells"])
             if present["image"]:  # as write_frame_messages draws it
                 np.copyto(v["image"], bev_picture(grid, pred.probs, published, pred.known))

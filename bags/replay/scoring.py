@@ -15,7 +15,7 @@ from bev_mapper_core.mapper import BevPrediction
 from bev_mapper_core.metrics import MetricAccumulator, WholeGridAccumulator, scope_masks
 
 from ..io import topics as T
-from .frame_messages import published_percent
+from .frame_messages import prediction_cells
 from .options import ReplayRun
 
 
@@ -119,13 +119,10 @@ class ReplayScorer:
         probs = pred.probs if self._all_pred else pred.probs[self._pred_idx]  # (C', H, W)
         self.frame_iou = self.acc.update(probs, layers.gt, masks, pred.known)
         # whole percent, as in the OccupancyGrids (their bytes; the unknown cells' are not counted)
-        if cells is None:
-            with np.errstate(invalid="ignore"):  # NaN only in unknown cells
-                percent = published_percent(probs).astype(np.uint8)
-        else:
-            percent = cells.view(np.uint8).reshape(pred.probs.shape)  # (C, H*W) -> (C, H, W)
-            if not self._all_pred:
-                percent = percent[self._pred_idx]
+        cells = prediction_cells(pred) if cells is None else cells
+        percent = cells.view(np.uint8).reshape(pred.probs.shape)  # (C, H*W) -> (C, H, W)
+        if not self._all_pred:
+            percent = percent[self._pred_idx]
         self.whole.update(None, pred.known, layers.seen, layers.gt, layers.truth, masks, percent=percent)
         return self.frame_iou
 

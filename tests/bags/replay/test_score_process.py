@@ -13,7 +13,7 @@ import pytest
 from bag_helpers import replay_ipm, replay_outputs, synth_small
 
 from bags.replay import ReplayOptions, replay
-from bags.replay.frame_messages import occupancy_cells, published_percent
+from bags.replay.frame_messages import prediction_cells
 from bags.replay.score_process import AUTO_MIN_FRAMES, ScoringError, ScoringProcess, use_process
 from bags.replay.scoring import FrameLayers, ReplayScorer
 from bev_mapper_core.errors import InputError
@@ -96,14 +96,14 @@ def test_the_scorers_error_in_the_process_is_raised_in_the_replay():
                                  rng.random(grid.shape) < 0.8)
             if remote.full:
                 remote.take()
-            remote.submit(layers, pred, occupancy_cells(published_percent(pred.probs), pred.known))
+            remote.submit(layers, pred, prediction_cells(pred))
             local.add(layers, pred)  # the published bytes computed here: the same scores
         while remote.pending:
             remote.take()
         probs = pred.probs.copy()
         probs[0, 0, 0] = np.nan
         remote.submit(layers, BevPrediction(names, probs, np.ones(grid.shape, bool)),
-                      occupancy_cells(published_percent(probs), None))
+                      prediction_cells(BevPrediction(names, probs, None)))
         with pytest.raises(InputError, match="NaN"):
             remote.take()
         state = remote.close()
@@ -166,7 +166,7 @@ def test_the_process_computes_the_published_cells_and_picture_as_the_replay_does
             if published is None:
                 assert cells is None and image is None
                 continue
-            np.testing.assert_array_equal(cells, occupancy_cells(published_percent(pred.probs), pred.known))
+            np.testing.assert_array_equal(cells, prediction_cells(pred))
             assert (cells == -1).any()
             if waited:
                 assert image is None
