@@ -101,7 +101,7 @@ def _stages() -> list[tuple[str, object, str]]:
             ("map: IPM", mapping, "_map_frame"),
             ("score: ReplayScorer.update", scoring.ReplayScorer, "update"),
             ("  MetricAccumulator.update", MetricAccumulator, "update"),
-            ("    of which Chamfer distances", accumulator, "_chamfer_terms"),
+            ("    of which Chamfer distances", accumulator, "_packed_chamfer_terms"),
             ("  WholeGridAccumulator.update", WholeGridAccumulator, "update"),
             ("write: grids and /bev/image", outputs, "write_frame_messages"),
             ("write: CameraInfo copied", outputs.InfoCopier, "upto"),

@@ -30,6 +30,7 @@ from bags.replay.frame_scores import caption
 from bags.replay.options import OUT_PREFIX
 from bags.report.pictures import comparison_picture
 from bev_mapper_core.labels.classes import bev_picture
+from bev_mapper_core.metrics._packed import unpack
 from msg_adapters import make_image, make_occupancy_grid
 
 
@@ -44,6 +45,11 @@ def reference_chamfer_terms(pred, gt, resolution, clip):
     d_p = np.full(n_p, clip) if n_g == 0 else np.minimum(distance_to(gt, pred) * resolution, clip)
     d_g = np.full(n_g, clip) if n_p == 0 else np.minimum(distance_to(pred, gt) * resolution, clip)
     return d_p, d_g
+
+
+def reference_packed_chamfer_terms(pred, gt, c, shape, resolution, clip):
+    """:func:`reference_chamfer_terms` of class ``c`` of the accumulator's packed layers."""
+    return reference_chamfer_terms(unpack(pred, c).reshape(shape), unpack(gt, c).reshape(shape), resolution, clip)
 
 
 def reference_finish(self, frame, pred, index):
@@ -72,14 +78,14 @@ def reference_finish(self, frame, pred, index):
 @contextlib.contextmanager
 def reference_scoring():
     """Within the block, replays score as before #28."""
-    saved = (accumulator._chamfer_terms, whole_grid._EXACT_PERCENT_CELLS, outputs.FrameSink.finish)
-    accumulator._chamfer_terms = reference_chamfer_terms
+    saved = (accumulator._packed_chamfer_terms, whole_grid._EXACT_PERCENT_CELLS, outputs.FrameSink.finish)
+    accumulator._packed_chamfer_terms = reference_packed_chamfer_terms
     whole_grid._EXACT_PERCENT_CELLS = 0  # the per-cell calibration sums
     outputs.FrameSink.finish = reference_finish
     try:
         yield
     finally:
-        accumulator._chamfer_terms, whole_grid._EXACT_PERCENT_CELLS, outputs.FrameSink.finish = saved
+        accumulator._packed_chamfer_terms, whole_grid._EXACT_PERCENT_CELLS, outputs.FrameSink.finish = saved
 
 
 def reference_write_frame_messages(bw, grid, mapper, pred, stamp, ego, cells=None, picture=None):

@@ -13,9 +13,9 @@ from ..errors import ConfigError, InputError
 from ..geometry.grid import BevGrid
 from ..labels.classes import resolve_classes
 from ._checks import _check_bool, _check_mask, _nan_to_none, _safe_div
-from ._packed import CellCounter, pack, unpack
+from ._packed import CellCounter, pack
 from ._state import Mergeable, _from_json_number, _json_number
-from .functional import DEFAULT_CLIP_M, _chamfer_terms, mean_iou
+from .functional import DEFAULT_CLIP_M, _packed_chamfer_terms, mean_iou
 
 # ----------------------------------------------------------------------------- scopes
 #: Scoring scopes: ``visible`` scores every class on the cells some camera sees (GT not -1);
@@ -265,8 +265,7 @@ class MetricAccumulator(Mergeable):
 
         shape = self.grid.shape
         for c in range(C):
-            d_p, d_g = _chamfer_terms(unpack(pred, c).reshape(shape), unpack(truth, c).reshape(shape),
-                                      self.grid.resolution, self.clip)
+            d_p, d_g = _packed_chamfer_terms(pred, truth, c, shape, self.grid.resolution, self.clip)
             if d_p.size == 0 and d_g.size == 0:
                 continue  # class absent from both: no contribution
             if self.chamfer_reduction == "pixel":

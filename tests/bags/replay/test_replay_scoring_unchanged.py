@@ -22,6 +22,7 @@ from bag_helpers import replay_ipm, synth_small
 import bev_mapper_core.metrics.whole_grid as whole_grid
 from bags.replay import FRAMES_DIR, METRICS_FILE
 from bev_mapper_core.metrics import functional
+from bev_mapper_core.metrics._packed import pack
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[3] / "bench"))
 from replay_reference import reference_chamfer_terms, reference_scoring  # noqa: E402 - bench/ is no package
@@ -51,9 +52,13 @@ def test_replay_outputs_equal_the_straightforward_scoring(tmp_path):
     assert "mIoU per frame" in fast[2] and fast[2] == ref[2]
 
 
-def test_chamfer_distances_equal_the_whole_grid_transform():
-    """Random layers of every density, sizes and clips: the distances found nearby, per tile and
-    in boxes are those of one transform of the whole grid, bit for bit."""
+@pytest.mark.parametrize("path", ["compiled", "numpy"])
+def test_chamfer_distances_equal_the_whole_grid_transform(path, monkeypatch):
+    """Random layers of every density, sizes and clips: the distances of the compiled kernel, and
+    those the numpy path finds nearby, per tile and in boxes, are those of one transform of the
+    whole grid, bit for bit."""
+    if path == "numpy":
+        monkeypatch.setattr(functional, "_compiled", None)
     rng = np.random.default_rng(28)
     checked = 0
     for trial in range(300):
@@ -68,12 +73,37 @@ def test_chamfer_distances_equal_the_whole_grid_transform():
             gt[rng.integers(H), : rng.integers(1, W + 1)] = True
         res = float(rng.choice([0.1, 0.15, 0.25, 0.5]))
         clip = float(rng.choice([0.3, 1.0, 2.5, 5.0, 20.0]))
+        if trial % 7 == 0:  # a layer seen through a strided view
+            pred = np.ascontiguousarray(np.repeat(pred, 2, axis=1))[:, ::2]
         if not gt.any() or not pred.any():
             continue
         for a, b in zip(functional._chamfer_terms(pred, gt, res, clip), reference_chamfer_terms(pred, gt, res, clip)):
             np.testing.assert_array_equal(a, b)
         checked += 1
     assert checked > 250
+
+
+def test_the_compiled_chamfer_kernel_is_built():
+    """``pip install -e .`` (scripts/setup_venv.sh) builds it; without it scoring is ~5x slower."""
+    assert functional._compiled is not None, "bev_mapper_core/metrics/_chamfer.c was not built: pip install -e ."
+
+
+def test_packed_chamfer_distances_equal_each_class_alone():
+    """The kernel reads each class's bit of the packed layers in place (11 classes: two bytes a
+    cell), an empty class and a class in one set only included."""
+    rng = np.random.default_rng(30)
+    C, H, W = 11, 37, 53
+    pred = rng.random((C, H, W)) < rng.random((C, 1, 1)) * 0.2
+    gt = rng.random((C, H, W)) < rng.random((C, 1, 1)) * 0.2
+    pred[3], gt[3] = False, False
+    gt[9] = False
+    packed_pred, packed_gt = pack(pred), pack(gt)
+    for c in range(C):
+        got = functional._packed_chamfer_terms(packed_pred, packed_gt, c, (H, W), 0.25, 3.0)
+        want = functional._numpy_terms(pred[c], gt[c], 0.25, 3.0)
+        for a, b in zip(got, want):
+            np.testing.assert_array_equal(a, b)
+    assert len(got[0]) == int(pred[10].sum())
 
 
 def test_percent_calibration_counts_equal_the_per_cell_sums():
