@@ -12,10 +12,10 @@ setup(
     # Every subpackage of the four top-level packages (a hand-kept list once missed one).
     packages=find_packages(include=["bev_mapper_core*", "msg_adapters*", "bev_mapper_ros*", "bags*"]),
     package_data={"bev_mapper_core": ["weights/*.safetensors", "weights/*.json"]},
-    # The Chamfer distances' C kernel (plain C, Python's API only): optional, since the metrics
-    # fall back to numpy and OpenCV (the same distances, ~5x slower) where it cannot be built.
-    ext_modules=[Extension("bev_mapper_core.metrics._chamfer", ["bev_mapper_core/metrics/_chamfer.c"],
-                           optional=True)],
+    # Two small C kernels (plain C, Python's API only): the Chamfer distances and IPM's per-cell
+    # counting. Optional: where they cannot be built, numpy gives the same results, slower.
+    ext_modules=[Extension(f"bev_mapper_core.{name}", [f"bev_mapper_core/{name.replace('.', '/')}.c"], optional=True)
+                 for name in ("metrics._chamfer", "methods.ipm._counts")],
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),

@@ -15,7 +15,7 @@ fi
 stamp=.venv/.bev_mapper_installed
 log=.venv/setup.log
 export PYTHONWARNINGS=ignore  # setuptools' editable-install banners are not for users
-want=$(cat setup.py scripts/setup_venv.sh bev_mapper_core/metrics/*.c | sha256sum | cut -c1-16)
+want=$(cat setup.py scripts/setup_venv.sh $(find bev_mapper_core -name '*.c' | sort) | sha256sum | cut -c1-16)
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   echo "setting up .venv: CPU PyTorch 2.13, OpenCV, rosbags, onnxruntime, OpenVINO, Ray, the ROS 2 Jazzy wheels (rclpy, messages," \
        "Fast DDS) and this package; about 1-3 minutes on a first run, seconds afterwards" >&2

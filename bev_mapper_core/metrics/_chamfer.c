@@ -229,6 +229,6 @@ static PyMethodDef methods[] = {
      "clipped Chamfer distances of one class (see the source's header)"},
     {NULL, NULL, 0, NULL}};
 
-static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_chamfer", NULL, -1, methods};
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_chamfer", NULL, -1, methods, NULL, NULL, NULL, NULL};
 
 PyMODINIT_FUNC PyInit__chamfer(void) { return PyModule_Create(&module); }

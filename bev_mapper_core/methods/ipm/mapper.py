@@ -29,6 +29,14 @@ from bev_mapper_core.mapper import BevPrediction, Mapper, MapperConfig
 from .columns import ColumnOcclusion, column_raster, rig_columns
 from .occlusion import NEAR_EDGE_SLACK_CELLS, OcclusionModel, ray_raster
 
+try:  # the per-cell counting in C (optional: setup.py builds it where a C compiler is)
+    from . import _counts as _compiled
+except ImportError:  # pragma: no cover - the numpy paths below give the same maps
+    _compiled = None
+
+#: no hidden cells (the compiled counting's argument)
+_NONE_HIDDEN = np.zeros(0, np.int64)
+
 #: bits per field of IPM's packed per-cell counts (each class's, then the cameras'), the first
 #: that fits: 8 (up to 255 cameras, 8 fields per uint64, unpacked as a byte view) or 4 (up to 15
 #: cameras, 16 fields)
@@ -188,6 +196,12 @@ class IpmMapper(Mapper):
         known_ids = np.where(ids < len(self._lut), ids, 0)  # label ids unknown to us -> unlabeled
         self._lut_t = np.ascontiguousarray(self._lut[known_ids].T)  # (C, 256): one class row per gather
         self._known_ids = known_ids
+        #: label id -> what it adds to a cell's counts (class indicators, then 1 camera, then
+        #: zeros to a multiple of 8 bytes), for the compiled counting
+        C = len(self.classes)
+        self._table = np.zeros((256, 8 * (C // 8 + 1)), np.uint8)  # (256, S), S >= C + 1
+        self._table[:, :C] = self._lut[known_ids]
+        self._table[:, C] = 1
         self._pack(code_bits(len(self.classes) + 1, len(self.rig.cameras)))
 
     def _pack(self, bits: int | None) -> None:
@@ -232,6 +246,9 @@ class IpmMapper(Mapper):
         images = self.check_images(images)
         H, W = self.grid.shape
         C = len(self.classes)
+        if _compiled is not None and len(self.rig.cameras) < 256 and (
+                self.sight.occlusion is None or self.sight.columns):
+            return self._map_compiled(images)
         codes = self._codes
         acc = np.zeros(H * W, np.uint64) if codes is not None else np.zeros((C, H * W), np.float32)
         count = None if codes is not None else np.zeros(H * W, np.float32)
@@ -266,6 +283,28 @@ class IpmMapper(Mapper):
         known = (count > 0).reshape(H, W)
         # a sum of class indicators (0 / 1) is exact in float32 either way
         probs = (acc / np.maximum(count, 1.0)[None]).reshape(C, H, W)  # (C, H*W) -> (C, H, W)
+        return BevPrediction(self.class_names, probs, known)
+
+    def _map_compiled(self, images: Mapping[str, np.ndarray]) -> BevPrediction:
+        """:meth:`map` by the compiled counting (``_counts.c``): the same maps, bit for bit.
+
+        Per camera one gather of the seen cells' label ids, then one pass adding each id's
+        class indicators and a camera count into ``(H*W, S)`` uint8 counts (``S >= C + 1``, a
+        multiple of 8; a field counts at most every camera: fewer than 256), then one division.
+        """
+        H, W = self.grid.shape
+        C = len(self.classes)
+        gathered = {name: self.gathers[name].gather(labels) for name, labels in images.items()}  # (n,) each
+        hidden_all = self.sight.hidden_all(images, gathered) if self.sight.columns else {}
+        S = self._table.shape[1]
+        counts = np.zeros((H * W, S), np.uint8)
+        for name, ids in gathered.items():
+            hidden = hidden_all.get(name)
+            hidden = _NONE_HIDDEN if hidden is None else np.ascontiguousarray(hidden, np.int64)
+            _compiled.add(counts, S, self.gathers[name].cells, ids, self._table, hidden)
+        probs = np.empty((C, H, W), np.float32)
+        known = np.empty((H, W), bool)
+        _compiled.divide(counts, S, C, probs, known.view(np.uint8))
         return BevPrediction(self.class_names, probs, known)
 
     def _unpack(self, acc: np.ndarray) -> np.ndarray:
