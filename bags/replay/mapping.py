@@ -50,7 +50,8 @@ def map_frames(run: ReplayRun, finish: Callable, bar) -> MappingTally:
         tally.temporal["method"] = {"fused_frames": 0, "resets": 0, "frames_without_pose": 0}
     # with a pipeline, the next frames are read and decoded by a thread while this one maps
     frames = run.reader.frames(rgb=kind == "rgb", labels=kind == "labels",
-                               label_map=label_map(options.mapper.label_map), sync=options.sync)
+                               label_map=label_map(options.mapper.label_map), sync=options.sync,
+                               gt_half=True)  # the scorer reads the layers >= 0.5
     if options.pipeline:
         frames = Prefetch(frames, options.pipeline)
     fusion = TemporalFusion(run.grid, options.temporal) if window > 1 else None

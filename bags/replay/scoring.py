@@ -127,10 +127,14 @@ class ReplayScorer:
         return self.frame_iou
 
     def _union(self, layers: np.ndarray) -> np.ndarray:
-        """``(C', H, W)`` bool: per scored class, its GT layers ``>= 0.5``, united."""
+        """``(C', H, W)`` bool: per scored class, its GT layers ``>= 0.5`` (bool layers: those
+        already), united."""
+        def half(taken: np.ndarray) -> np.ndarray:
+            return taken if taken.dtype == np.bool_ else taken >= 0.5
+
         if self._single is not None:  # one layer per class: no union to take
-            return layers[self._gt_take] >= 0.5
-        return np.stack([(layers[idx] >= 0.5).any(axis=0) for idx in self._gt_idx])
+            return half(layers[self._gt_take])
+        return np.stack([half(layers[idx]).any(axis=0) for idx in self._gt_idx])
 
     def state(self) -> dict | None:
         """The mergeable state ``{"metrics": MetricAccumulator state, "whole":

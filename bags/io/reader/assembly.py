@@ -56,7 +56,7 @@ def _nearest(buf: deque, stamp: int, tol: int):
 
 
 def read_frames(reader: BagReader, *, rgb: bool, labels: bool, gt: bool, odom: bool, sync: SyncConfig,
-                lookahead_ns: int, label_map: LabelMap | None) -> Iterator[BagFrame]:
+                lookahead_ns: int, label_map: LabelMap | None, gt_half: bool = False) -> Iterator[BagFrame]:
     """The frames of :meth:`BagReader.frames <bags.io.reader.BagReader.frames>` (see there)."""
     topics_in = reader.topics
     asm = FrameAssembler(reader)
@@ -89,7 +89,8 @@ def read_frames(reader: BagReader, *, rgb: bool, labels: bool, gt: bool, odom: b
     odom_buf: deque = deque()
     ready: deque[SyncedSet] = deque()
     ctx = dict(cams=cams, kinds=kinds, classes=classes, grid=grid, gt_buf=gt_buf, layers=grid and LayerDecoder(grid),
-               odom_buf=odom_buf, tol=sync.slop_ns, sizes=reader._camera_sizes(), label_map=label_map, sync=sync_)
+               odom_buf=odom_buf, tol=sync.slop_ns, sizes=reader._camera_sizes(), label_map=label_map, sync=sync_,
+               gt_half=gt_half)
     drift = StampDrift()
     index = 0
     try:
@@ -156,7 +157,7 @@ class FrameAssembler:
         visibility = self.layer(T.ANY_VISIBILITY, mean, index, ctx)
         truth = None
         if gt is not None:
-            truth = np.empty(gt.shape, np.float32)  # (C, H, W) 0/1: the layers >= 0.5
+            truth = np.empty(gt.shape, gt.dtype)  # (C, H, W) 0/1 (bool with gt_half): the layers >= 0.5
             found = [self.layer(T.truth_topic(c), mean, index, ctx, out=truth[ci])
                      for ci, c in enumerate(ctx["classes"])]
             if any(layer is None for layer in found):
@@ -249,14 +250,15 @@ class FrameAssembler:
             return None, None, None
         stamp = None
         shape = (len(classes),) + ctx["grid"].shape
-        gt, known = np.empty(shape, np.float32), np.empty(shape, bool)  # (C, H, W)
+        half = ctx["gt_half"]
+        gt, known = np.empty(shape, bool if half else np.float32), np.empty(shape, bool)  # (C, H, W)
         for ci, c in enumerate(classes):
             hit = _nearest(ctx["gt_buf"][c], mean, ctx["tol"])
             if hit is None:
                 return stamp, None, None
             stamp = hit[0]
             try:
-                ctx["layers"].into(hit[1], gt[ci], known[ci])
+                (ctx["layers"].half_into if half else ctx["layers"].into)(hit[1], gt[ci], known[ci])
             except DECODE_ERRORS as exc:
                 self.reader.issues.decode_error(T.gt_topic(c), f"stamp {hit[0]}: {exc}")
                 return stamp, None, None

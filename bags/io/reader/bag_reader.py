@@ -316,6 +316,7 @@ class BagReader:
         sync: SyncConfig = DEFAULT_SYNC,
         lookahead_ns: int = 500 * MS,
         label_map: LabelMap | None = None,
+        gt_half: bool = False,
     ) -> Iterator[BagFrame]:
         """Synchronized frames of the bag (see :class:`BagFrame`).
 
@@ -330,6 +331,8 @@ class BagReader:
             label_map: what the label images hold (:mod:`bev_mapper_core.labels.label_maps`), applied as
                 each is decoded, so ``labels`` are Label ids; None = ``native``. A label image of
                 another encoding than the map takes is a decode error (skipped, counted).
+            gt_half: ``gt`` and ``truth`` as bool, the cells ``>= 0.5`` (what the scorers
+                read), instead of float32: no float decoding (the replay's).
 
         Messages with an invalid header stamp, images that do not decode or whose size differs
         from their camera's CameraInfo, GT layers that do not fit the grid and odometry that
@@ -341,7 +344,7 @@ class BagReader:
             BagCorruptError: after the frames before the damage were yielded.
         """
         yield from read_frames(self, rgb=rgb, labels=labels, gt=gt, odom=odom, sync=sync,
-                               lookahead_ns=lookahead_ns, label_map=label_map)
+                               lookahead_ns=lookahead_ns, label_map=label_map, gt_half=gt_half)
 
 
 def _as_bytes(raw: bytes, msgtype: str) -> bytes:

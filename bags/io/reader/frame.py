@@ -40,14 +40,15 @@ class BagFrame:
         rgb, labels: per valid camera, ``(H, W, 3)`` uint8 RGB / ``(H, W)`` uint8 label ids
             (only the kinds requested).
         gt_classes: names of the GT layers, in layer order.
-        gt: ``(C, H, W)`` float32 in [0, 1] (100 -> 1.0), or ``None`` if no GT matched.
+        gt: ``(C, H, W)`` float32 in [0, 1] (100 -> 1.0), or ``None`` if no GT matched; bool
+            (the cells ``>= 0.5``) when read with ``gt_half``.
         gt_known: ``(C, H, W)`` bool, False where the layer was -1 (not visible).
         odom: the matched odometry, or ``None``.
         ground_visibility: ``(H, W)`` bool, cells whose ground point some camera sees (from
             ``/bev/visibility/ground``), or ``None`` when the bag has no such layer.
         visibility: ``(H, W)`` bool, cells some camera sees (from ``/bev/visibility/any``), or
             ``None`` when the bag has no such layer (then ``gt_known`` tells the same).
-        truth: ``(C, H, W)`` float32 0/1, what is in every cell whether seen or not (from
+        truth: ``(C, H, W)`` float32 0/1 (bool with ``gt_half``), what is in every cell whether seen or not (from
             ``/bev/truth/<class>``, layers in ``gt_classes`` order), or ``None`` when the bag
             lacks a truth layer of one of the GT classes (bags written before they existed).
     """

@@ -104,11 +104,28 @@ class LayerDecoder:
                 return half
             out[...] = half
             return out
+        if out is not None and out.dtype == np.bool_:  # straight into it
+            return np.less_equal(np.subtract(cells, HALF_FROM, dtype=np.uint8), 100 - HALF_FROM, out=out)
         half = np.subtract(cells, HALF_FROM, dtype=np.uint8) <= 100 - HALF_FROM  # HALF's values
         if out is None:
             return half
         out[...] = half
         return out
+
+    def half_into(self, msg: Any, half: np.ndarray, known: np.ndarray) -> None:
+        """Decode ``msg`` into ``half`` ``(H, W)`` bool (``probs >= 0.5``) and ``known``
+        ``(H, W)`` bool: :meth:`into`'s layers as the scorers read them, with no float decoding.
+
+        Raises:
+            what :func:`~msg_adapters.occupancy_grid_to_layer` raises for it.
+        """
+        cells = self.cells(msg)
+        if cells is None:
+            probs, known[...] = occupancy_grid_to_layer(msg, self.grid)
+            np.greater_equal(probs, 0.5, out=half)
+            return
+        np.less_equal(np.subtract(cells, HALF_FROM, dtype=np.uint8), 100 - HALF_FROM, out=half)  # HALF's values
+        np.not_equal(cells, _UNKNOWN, out=known)  # KNOWN's values
 
 
 def _lut(cells: np.ndarray, out: np.ndarray) -> None:

@@ -42,6 +42,13 @@ def test_layers_equal_occupancy_grid_to_layer():
             np.testing.assert_array_equal(half, want_p >= 0.5)
             as_f32 = dec.half(msg, np.empty(GRID.shape, np.float32))
             np.testing.assert_array_equal(as_f32, (want_p >= 0.5).astype(np.float32))
+            into_bool = np.empty(GRID.shape, bool)
+            assert dec.half(msg, into_bool) is into_bool
+            np.testing.assert_array_equal(into_bool, want_p >= 0.5)
+            half, known = np.empty(GRID.shape, bool), np.empty(GRID.shape, bool)  # the replay's decoding
+            dec.half_into(msg, half, known)
+            np.testing.assert_array_equal(half, want_p >= 0.5)
+            np.testing.assert_array_equal(known, want_k)
         assert dec.cells(fast) is not None and dec.cells(slow) is None
 
 
@@ -63,3 +70,27 @@ def test_a_layer_it_refuses_fails_as_occupancy_grid_to_layer_does(bad):
     assert str(got.value) == str(want.value)
     with pytest.raises(GridMessageError):
         dec.half(fast)
+    with pytest.raises(GridMessageError) as got:
+        dec.half_into(fast, np.empty(GRID.shape, bool), np.empty(GRID.shape, bool))
+    assert str(got.value) == str(want.value)
+
+
+def test_frames_read_with_gt_half_are_the_float_layers_at_one_half(tmp_path):
+    """``BagReader.frames(gt_half=True)`` (the replay's) gives bool GT and truth layers, the float
+    ones ``>= 0.5``, and the same known cells, frame for frame."""
+    from bag_helpers import synth_small
+
+    from bags.io.reader import BagReader
+
+    bag = synth_small(tmp_path / "drive", frames=3, seed=31)
+    with BagReader(bag) as r:
+        floats = list(r.frames(rgb=False))
+    with BagReader(bag) as r:
+        halves = list(r.frames(rgb=False, gt_half=True))
+    assert len(floats) == len(halves) == 3
+    for f, h in zip(floats, halves):
+        assert f.gt.dtype == np.float32 and h.gt.dtype == bool and h.truth.dtype == bool
+        np.testing.assert_array_equal(h.gt, f.gt >= 0.5)
+        np.testing.assert_array_equal(h.gt_known, f.gt_known)
+        np.testing.assert_array_equal(h.truth, f.truth >= 0.5)
+        assert h.gt.any() and not h.gt.all()
