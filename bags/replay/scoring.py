@@ -128,7 +128,8 @@ class ReplayScorer:
 
     def _union(self, layers: np.ndarray) -> np.ndarray:
         """``(C', H, W)`` bool: per scored class, its GT layers ``>= 0.5`` (bool layers: those
-        already), united."""
+        already), united.
+        """
         def half(taken: np.ndarray) -> np.ndarray:
             return taken if taken.dtype == np.bool_ else taken >= 0.5
 
