@@ -27,7 +27,7 @@ The best of the repeats is reported. Every output is written: the output bag, th
 ``--stages`` also replays ours on one thread (``--pipeline 0 --score-process off``) with each stage timed, and prints
 each stage's marginal cost per frame: where the time of a frame goes.
 
-    .venv/bin/python bench/bench_replay_rate.py [--frames 60] [--repeat 3] [--bag BAG] [--stages]
+    .venv/bin/python bench/bench_replay_rate.py [--frames 120] [--repeat 3] [--bag BAG] [--stages]
 """
 
 from __future__ import annotations
@@ -154,7 +154,9 @@ MODES = {"ours": ((), "on"), "ours, one process": ((), "off"), "io before": ((re
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--bag", type=Path, default=None, help="replay this bag instead of a synth one")
-    ap.add_argument("--frames", type=int, default=60, help="frames of the synthetic drive")
+    # 120: a drive long enough that --score-process auto scores it in a process of its own (100
+    # frames or more), and 80 frames of marginal rate after the first third
+    ap.add_argument("--frames", type=int, default=120, help="frames of the synthetic drive")
     ap.add_argument("--seed", type=int, default=3)
     ap.add_argument("--rate-hz", type=float, default=10.0, help="the synthetic drive's frame rate")
     ap.add_argument("--frames-every", type=int, default=ReplayOptions.frames_every)
