@@ -46,7 +46,7 @@ setup(
         # fleet scale (bev-bag evaluate / synth-many on a Ray cluster, or a local Ray runtime)
         "fleet": ["ray>=2.30"],
     },
-    zip_safe=False,  # the compiled kernel
+    zip_safe=False,  # the compiled kernels
     maintainer="bev_mapper maintainers",
     description="Bird's-eye-view semantic mapping from cameras, with ROS 2 node and bag tool.",
     license="Apache-2.0",

@@ -65,21 +65,21 @@ static inline uint64_t load8(const uint8_t *p)
 
 /* Squared distance from (i, j) to the nearest cell of the set whose column distances are v
  * (box-relative), or beyond = r * r + 1 when none is within r cells. */
-static long nearest_d2(const uint16_t *v, Py_ssize_t w, Py_ssize_t i, Py_ssize_t j, long r)
+static int64_t nearest_d2(const uint16_t *v, Py_ssize_t w, Py_ssize_t i, Py_ssize_t j, int64_t r)
 {
     const uint16_t *row = v + i * w;
-    long best = r * r + 1;
-    for (long dj = 0; dj <= r; dj++) {
-        long dj2 = dj * dj;
+    int64_t best = r * r + 1;
+    for (int64_t dj = 0; dj <= r; dj++) {
+        int64_t dj2 = dj * dj;
         if (dj2 >= best)
             break;
         if (j - dj >= 0) {
-            long h = row[j - dj];
+            int64_t h = row[j - dj];
             if (h <= r && dj2 + h * h < best)
                 best = dj2 + h * h;
         }
         if (dj && j + dj < w) {
-            long h = row[j + dj];
+            int64_t h = row[j + dj];
             if (h <= r && dj2 + h * h < best)
                 best = dj2 + h * h;
         }
@@ -91,7 +91,7 @@ typedef struct {
     const uint8_t *pred, *truth;
     uint8_t bit;
     Py_ssize_t H, W;
-    long r;
+    int64_t r;
     double resolution, clip;
     double *out_p, *out_g;
     Py_ssize_t n_p, n_g;
@@ -141,11 +141,12 @@ static void run(Job *job)
         return;
     }
     const Py_ssize_t h = r1 - r0, w = c1 - c0;
-    long r = job->r;
-    if (r > (long)(h + w)) /* no two cells of the box are farther apart */
-        r = (long)(h + w);
+    int64_t r = job->r;
+    if (r > (int64_t)(h + w)) /* no two cells of the box are farther apart */
+        r = (int64_t)(h + w);
     const uint16_t cap = (uint16_t)(r + 1);
-    uint16_t *v_p = malloc(sizeof(uint16_t) * h * w), *v_g = malloc(sizeof(uint16_t) * h * w);
+    const size_t box = (size_t)h * (size_t)w;
+    uint16_t *v_p = malloc(sizeof(uint16_t) * box), *v_g = malloc(sizeof(uint16_t) * box);
     if (!v_p || !v_g) {
         free(v_p);
         free(v_g);
@@ -154,7 +155,7 @@ static void run(Job *job)
     }
     column_distances(pred, bit, W, r0, r1, c0, c1, cap, v_p);
     column_distances(truth, bit, W, r0, r1, c0, c1, cap, v_g);
-    const long beyond = r * r + 1;
+    const int64_t beyond = r * r + 1;
     const uint64_t bits8 = 0x0101010101010101ull * bit;
     Py_ssize_t kp = 0, kg = 0;
     for (Py_ssize_t i = r0; i < r1; i++) {
@@ -168,7 +169,7 @@ static void run(Job *job)
             if (inp) {
                 double d = 0.0;
                 if (!ing) {
-                    long d2 = nearest_d2(v_g, w, i - r0, j - c0, r);
+                    int64_t d2 = nearest_d2(v_g, w, i - r0, j - c0, r);
                     d = d2 >= beyond ? clip : sqrt((double)d2) * res;
                 }
                 job->out_p[kp++] = d < clip ? d : clip;
@@ -176,7 +177,7 @@ static void run(Job *job)
             if (ing) {
                 double d = 0.0;
                 if (!inp) {
-                    long d2 = nearest_d2(v_p, w, i - r0, j - c0, r);
+                    int64_t d2 = nearest_d2(v_p, w, i - r0, j - c0, r);
                     d = d2 >= beyond ? clip : sqrt((double)d2) * res;
                 }
                 job->out_g[kg++] = d < clip ? d : clip;
@@ -193,9 +194,9 @@ static PyObject *distances(PyObject *self, PyObject *args)
     Py_buffer pred, truth, out_p, out_g;
     int bit;
     Py_ssize_t H, W;
-    long reach;
+    long long reach;
     double resolution, clip;
-    if (!PyArg_ParseTuple(args, "y*y*innlddw*w*", &pred, &truth, &bit, &H, &W, &reach, &resolution,
+    if (!PyArg_ParseTuple(args, "y*y*innLddw*w*", &pred, &truth, &bit, &H, &W, &reach, &resolution,
                           &clip, &out_p, &out_g))
         return NULL;
     PyObject *result = NULL;

@@ -301,7 +301,8 @@ class IpmMapper(Mapper):
         for name, ids in gathered.items():
             hidden = hidden_all.get(name)
             hidden = _NONE_HIDDEN if hidden is None else np.ascontiguousarray(hidden, np.int64)
-            _compiled.add(counts, S, self.gathers[name].cells, ids, self._table, hidden)
+            cells = np.ascontiguousarray(self.gathers[name].cells, np.int64)  # (no copy where intp is 64 bits)
+            _compiled.add(counts, S, cells, ids, self._table, hidden)
         probs = np.empty((C, H, W), np.float32)
         known = np.empty((H, W), bool)
         _compiled.divide(counts, S, C, probs, known.view(np.uint8))

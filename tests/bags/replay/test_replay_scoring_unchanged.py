@@ -88,6 +88,22 @@ def test_the_compiled_chamfer_kernel_is_built():
     assert functional._compiled is not None, "bev_mapper_core/metrics/_chamfer.c was not built: pip install -e ."
 
 
+def test_the_compiled_chamfer_kernel_refuses_mismatched_buffers():
+    """Wrong sizes, bits or reaches are a ValueError, never a read or write outside a buffer."""
+    kernel = functional._compiled
+    if kernel is None:
+        pytest.skip("not built")
+    cells, out = np.zeros(12, np.uint8), np.empty(12)
+    kernel.distances(cells, cells, 1, 3, 4, 5, 0.5, 2.0, out, out)  # the sizes that fit
+    for args in [(cells[:11], cells, 1, 3, 4, 5, 0.5, 2.0, out, out),  # a layer too small
+                 (cells, cells, 1, 3, 4, 5, 0.5, 2.0, out[:11], out),  # an output too small
+                 (cells, cells, 0, 3, 4, 5, 0.5, 2.0, out, out),  # no bit
+                 (cells, cells, 1, 3, 4, -1, 0.5, 2.0, out, out),  # a negative reach
+                 (cells, cells, 1, 40000, 30000, 5, 0.5, 2.0, out, out)]:  # H + W past uint16
+        with pytest.raises(ValueError):
+            kernel.distances(*args)
+
+
 def test_packed_chamfer_distances_equal_each_class_alone():
     """The kernel reads each class's bit of the packed layers in place (11 classes: two bytes a
     cell), an empty class and a class in one set only included."""

@@ -175,6 +175,34 @@ def test_the_compiled_counting_is_built():
     assert ipm_mapper._compiled is not None, "bev_mapper_core/methods/ipm/_counts.c was not built: pip install -e ."
 
 
+def test_the_compiled_counting_refuses_mismatched_buffers():
+    """Wrong sizes are a ValueError and a cell outside the grid an IndexError, never a write
+    outside the counts."""
+    import bev_mapper_core.methods.ipm.mapper as ipm_mapper
+
+    kernel = ipm_mapper._compiled
+    if kernel is None:
+        pytest.skip("not built")
+    counts, table = np.zeros((10, 8), np.uint8), np.zeros((256, 8), np.uint8)
+    table[:, 7] = 1
+    cells, ids, none = np.array([0, 9], np.int64), np.array([3, 4], np.uint8), np.zeros(0, np.int64)
+    kernel.add(counts, 8, cells, ids, table, none)
+    assert counts[[0, 9], 7].tolist() == [1, 1]
+    with pytest.raises(IndexError):
+        kernel.add(counts, 8, np.array([0, 10], np.int64), ids, table, none)
+    for args in [(counts, 8, cells.astype(np.int32), ids, table, none),  # cells not int64
+                 (counts, 8, cells, ids[:1], table, none),  # ids of another length
+                 (counts, 8, cells, ids, table[:255], none),  # a table short of a label
+                 (counts, 6, cells, ids, table, none)]:  # a stride not a multiple of 8
+        with pytest.raises(ValueError):
+            kernel.add(*args)
+    probs, known = np.empty((7, 10), np.float32), np.empty(10, np.uint8)
+    kernel.divide(counts, 8, 7, probs, known)
+    assert known.tolist() == [1] + [0] * 8 + [1]
+    with pytest.raises(ValueError):
+        kernel.divide(counts, 8, 7, probs[:6], known)
+
+
 @pytest.mark.parametrize("counting", ["compiled", "numpy"])
 @pytest.mark.parametrize("occlusion", [True, False])
 def test_gather_tables_give_the_whole_image_warps_cell_for_cell(occlusion, counting, monkeypatch):
