@@ -87,6 +87,20 @@ static int64_t nearest_d2(const uint16_t *v, Py_ssize_t w, Py_ssize_t i, Py_ssiz
     return best;
 }
 
+/* The clipped distance (metres) of cell (i, j) (box-relative) of one set to the other set, whose
+ * column distances are v: 0 inside it (in_other), else min(sqrt(d2) * res, clip). */
+static inline double clipped(int in_other, const uint16_t *v, Py_ssize_t w, Py_ssize_t i, Py_ssize_t j,
+                             int64_t r, double res, double clip)
+{
+    if (in_other)
+        return 0.0;
+    int64_t d2 = nearest_d2(v, w, i, j, r);
+    if (d2 > r * r) /* none within r cells: beyond the clip */
+        return clip;
+    double d = sqrt((double)d2) * res;
+    return d < clip ? d : clip;
+}
+
 typedef struct {
     const uint8_t *pred, *truth;
     uint8_t bit;
@@ -155,7 +169,6 @@ static void run(Job *job)
     }
     column_distances(pred, bit, W, r0, r1, c0, c1, cap, v_p);
     column_distances(truth, bit, W, r0, r1, c0, c1, cap, v_g);
-    const int64_t beyond = r * r + 1;
     const uint64_t bits8 = 0x0101010101010101ull * bit;
     Py_ssize_t kp = 0, kg = 0;
     for (Py_ssize_t i = r0; i < r1; i++) {
@@ -166,22 +179,10 @@ static void run(Job *job)
                 continue;
             }
             int inp = (p[j] & bit) != 0, ing = (t[j] & bit) != 0;
-            if (inp) {
-                double d = 0.0;
-                if (!ing) {
-                    int64_t d2 = nearest_d2(v_g, w, i - r0, j - c0, r);
-                    d = d2 >= beyond ? clip : sqrt((double)d2) * res;
-                }
-                job->out_p[kp++] = d < clip ? d : clip;
-            }
-            if (ing) {
-                double d = 0.0;
-                if (!inp) {
-                    int64_t d2 = nearest_d2(v_p, w, i - r0, j - c0, r);
-                    d = d2 >= beyond ? clip : sqrt((double)d2) * res;
-                }
-                job->out_g[kg++] = d < clip ? d : clip;
-            }
+            if (inp)
+                job->out_p[kp++] = clipped(ing, v_g, w, i - r0, j - c0, r, res, clip);
+            if (ing)
+                job->out_g[kg++] = clipped(inp, v_p, w, i - r0, j - c0, r, res, clip);
         }
     }
     free(v_p);
