@@ -188,6 +188,9 @@ def test_colcon_build_then_ros2_run(tmp_path):
     assert "mapping ['front'] with ipm" in res.stdout, res.stdout
     # the workspace's copy of the package, not the checkout's, ran
     assert (ws / "install" / "bev_mapper_ros" / "lib" / "bev_mapper_ros" / "mapper_node").is_file()
+    # with the two C kernels built (setup.py's ext_modules; optional, so a failed build is silent)
+    built = {p.name.split(".")[0] for p in (ws / "install").rglob("*.so")}
+    assert {"_chamfer", "_counts"} <= built, sorted(built)
 
 
 def test_readme_live_commands_verbatim(layout, tmp_path):
