@@ -246,16 +246,15 @@ class IpmMapper(Mapper):
         images = self.check_images(images)
         H, W = self.grid.shape
         C = len(self.classes)
-        if _compiled is not None and len(self.rig.cameras) < 256 and (
-                self.sight.occlusion is None or self.sight.columns):
-            return self._map_compiled(images)
-        codes = self._codes
-        acc = np.zeros(H * W, np.uint64) if codes is not None else np.zeros((C, H * W), np.float32)
-        count = None if codes is not None else np.zeros(H * W, np.float32)
         occlusion = self.sight.occlusion is not None
         gathered = {name: self.gathers[name].gather(labels) for name, labels in images.items()}  # (n,) each
         columns = occlusion and self.sight.columns
         hidden_all = self.sight.hidden_all(images, gathered) if columns else {}
+        if _compiled is not None and len(self.rig.cameras) < 256 and (columns or not occlusion):
+            return self._map_compiled(gathered, hidden_all)
+        codes = self._codes
+        acc = np.zeros(H * W, np.uint64) if codes is not None else np.zeros((C, H * W), np.float32)
+        count = None if codes is not None else np.zeros(H * W, np.float32)
         for name, labels in images.items():
             cells, ids = self.gathers[name].cells, gathered[name]  # ids: (n,) uint8 label ids of the seen cells
             hidden = hidden_all.get(name)  # per image column: indices into the gather
@@ -285,17 +284,17 @@ class IpmMapper(Mapper):
         probs = (acc / np.maximum(count, 1.0)[None]).reshape(C, H, W)  # (C, H*W) -> (C, H, W)
         return BevPrediction(self.class_names, probs, known)
 
-    def _map_compiled(self, images: Mapping[str, np.ndarray]) -> BevPrediction:
-        """:meth:`map` by the compiled counting (``_counts.c``): the same maps, bit for bit.
+    def _map_compiled(self, gathered: Mapping[str, np.ndarray],
+                      hidden_all: Mapping[str, np.ndarray | None]) -> BevPrediction:
+        """:meth:`map`'s counting by the compiled kernel (``_counts.c``): the same maps, bit for bit.
 
-        Per camera one gather of the seen cells' label ids, then one pass adding each id's
-        class indicators and a camera count into ``(H*W, S)`` uint8 counts (``S >= C + 1``, a
+        ``gathered``: camera -> its seen cells' label ids; ``hidden_all``: camera -> the indices
+        of those hidden from it (column search). One pass per camera adds each id's class
+        indicators and a camera count into ``(H*W, S)`` uint8 counts (``S >= C + 1``, a
         multiple of 8; a field counts at most every camera: fewer than 256), then one division.
         """
         H, W = self.grid.shape
         C = len(self.classes)
-        gathered = {name: self.gathers[name].gather(labels) for name, labels in images.items()}  # (n,) each
-        hidden_all = self.sight.hidden_all(images, gathered) if self.sight.columns else {}
         S = self._table.shape[1]
         counts = np.zeros((H * W, S), np.uint8)
         for name, ids in gathered.items():
