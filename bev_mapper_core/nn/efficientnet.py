@@ -1,8 +1,14 @@
-"""EfficientNet (Tan & Le, ICML 2019) written in the project, trained from scratch.
+"""EfficientNet (Tan & Le, ICML 2019) and EfficientNet-Lite, written in the project.
 
 MBConv blocks (1x1 expansion, depthwise kxk, squeeze-and-excitation, 1x1 projection, stochastic
 depth on the residual) with the B0 stage table; the variants B0..B7 scale that table by their
 width (channels) and depth (block repeats) multipliers with the reference rounding rules.
+
+**Lite** (``EfficientNetConfig.variant("lite0")`` .. ``lite2``; the reference's
+``efficientnet_lite_builder``): no squeeze-excitation, ReLU6 instead of SiLU, the stem fixed at
+32 channels and the first and last stages' repeats not scaled, and TensorFlow's "same" padding
+(stride-2 layers pad less on the top / left), so that the published ImageNet checkpoint
+(:mod:`~bev_mapper_core.nn.pretrained`) computes here what it computed where it was trained.
 
 Departures from the ImageNet classifier, all deliberate:
 
@@ -10,8 +16,9 @@ Departures from the ImageNet classifier, all deliberate:
   (as HDMapNet's ``CamEncode``, which Bi-Mapper's GV stream follows).
 * ``num_stages`` keeps only the first stages (1..7), so a CPU-trainable network can stop at
   stride 8 or 16; ``width_mult`` / ``depth_mult`` override the variant's multipliers.
-* Padding is symmetric ``k // 2`` (PyTorch style) rather than TensorFlow's asymmetric "same";
-  every stride-2 layer maps ``n`` pixels to ``ceil(n / 2)``.
+* Padding is symmetric ``k // 2`` (PyTorch style) rather than TensorFlow's asymmetric "same"
+  (``tf_padding``, the Lite variants' setting); either way every stride-2 layer maps ``n`` pixels
+  to ``ceil(n / 2)``.
 * BatchNorm momentum defaults to PyTorch's 0.1 (the reference uses 0.01): faster-settling
   running statistics suit short CPU training runs. ``bn_momentum`` restores the reference.
 """
@@ -49,6 +56,18 @@ VARIANTS: dict[str, tuple[float, float, int, float]] = {
     "b7": (2.0, 3.1, 600, 0.5),
 }
 
+#: Lite variant -> (width multiplier, depth multiplier, reference resolution, dropout).
+LITE_VARIANTS: dict[str, tuple[float, float, int, float]] = {
+    "lite0": (1.0, 1.0, 224, 0.2),
+    "lite1": (1.0, 1.1, 240, 0.2),
+    "lite2": (1.1, 1.2, 260, 0.3),
+    "lite3": (1.2, 1.4, 280, 0.3),
+    "lite4": (1.4, 1.8, 300, 0.3),
+}
+
+#: The activations a trunk may use.
+ACTIVATIONS = ("silu", "relu6")
+
 
 def round_filters(channels: int, width_mult: float, divisor: int = 8) -> int:
     """Scale a channel count by ``width_mult``, rounded to a multiple of ``divisor`` (reference rule)."""
@@ -79,6 +98,10 @@ class EfficientNetConfig:
         drop_connect_rate: stochastic-depth rate of the last block (linearly ramped from 0).
         se_ratio: squeeze-excitation bottleneck, relative to the block's input channels.
         bn_eps, bn_momentum: BatchNorm settings.
+        lite: the Lite variants' rules: no squeeze-excitation (``se_ratio`` unused), ReLU6, the
+            stem fixed at 32 channels, the first and last stages' repeats not scaled.
+        tf_padding: TensorFlow's "same" padding (asymmetric on stride-2 layers), as the
+            published Lite checkpoints were trained with.
     """
 
     width_mult: float = 1.0
@@ -89,8 +112,13 @@ class EfficientNetConfig:
     se_ratio: float = 0.25
     bn_eps: float = 1e-3
     bn_momentum: float = 0.1
+    lite: bool = False
+    tf_padding: bool = False
 
     def __post_init__(self) -> None:
+        for name in ("lite", "tf_padding"):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(f"{name} must be true or false, got {getattr(self, name)!r}")
         if not 1 <= self.num_stages <= len(B0_STAGES):
             raise ConfigError(f"num_stages must be in 1..{len(B0_STAGES)}, got {self.num_stages}")
         for v in (self.width_mult, self.depth_mult):
@@ -105,16 +133,74 @@ class EfficientNetConfig:
 
     @classmethod
     def variant(cls, name: str, **overrides) -> "EfficientNetConfig":
-        """Config of variant ``name`` (``b0`` .. ``b7``); keyword arguments override fields."""
+        """Config of variant ``name`` (``b0`` .. ``b7``, ``lite0`` .. ``lite4``); keyword
+        arguments override fields.
+        """
+        key = str(name).lower()
+        if key in LITE_VARIANTS:
+            w, d, _, _ = LITE_VARIANTS[key]
+            return replace(cls(width_mult=w, depth_mult=d, lite=True, tf_padding=True), **overrides)
         try:
-            w, d, _, _ = VARIANTS[name.lower()]
+            w, d, _, _ = VARIANTS[key]
         except KeyError:
-            raise ConfigError(f"unknown EfficientNet variant {name!r}; known: {sorted(VARIANTS)}") from None
+            raise ConfigError(f"unknown EfficientNet variant {name!r}; known: "
+                              f"{sorted(VARIANTS) + sorted(LITE_VARIANTS)}") from None
         return replace(cls(width_mult=w, depth_mult=d), **overrides)
+
+    def lite_variant(self) -> str | None:
+        """The Lite variant whose multipliers this config has (``lite0`` ...), else ``None``."""
+        if not self.lite:
+            return None
+        return next((n for n, (w, d, _, _) in LITE_VARIANTS.items()
+                     if (w, d) == (self.width_mult, self.depth_mult)), None)
+
+    def stem_channels(self) -> int:
+        """Channels of the stem (Lite: fixed at 32)."""
+        return 32 if self.lite else round_filters(32, self.width_mult)
+
+    def stage_repeats(self, stage: int) -> int:
+        """Blocks of stage ``stage`` (0-based) after depth scaling (Lite: the first and last
+        stages of the full table keep their repeats).
+        """
+        repeats = B0_STAGES[stage][5]
+        if self.lite and stage in (0, len(B0_STAGES) - 1):
+            return repeats
+        return round_repeats(repeats, self.depth_mult)
 
 
 def _bn(channels: int, cfg: EfficientNetConfig) -> nn.BatchNorm2d:
     return nn.BatchNorm2d(channels, eps=cfg.bn_eps, momentum=cfg.bn_momentum)
+
+
+def _act(cfg: EfficientNetConfig) -> nn.Module:
+    return nn.ReLU6() if cfg.lite else nn.SiLU()
+
+
+class SamePad2d(nn.Module):
+    """TensorFlow's "same" padding of a ``kernel`` x ``kernel`` convolution of ``stride``: the
+    output is ``ceil(n / stride)``; an odd total pad puts the extra pixel on the bottom / right.
+    """
+
+    def __init__(self, kernel: int, stride: int) -> None:
+        super().__init__()
+        self.kernel, self.stride = kernel, stride
+
+    def _pads(self, n: int) -> tuple[int, int]:
+        total = max((-(-n // self.stride) - 1) * self.stride + self.kernel - n, 0)
+        return total // 2, total - total // 2
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """``x`` (B, C, H, W) -> zero-padded (B, C, H + pad_h, W + pad_w)."""
+        top, bottom = self._pads(x.shape[-2])
+        left, right = self._pads(x.shape[-1])
+        return nn.functional.pad(x, (left, right, top, bottom))
+
+
+def _conv(cin: int, cout: int, kernel: int, stride: int, cfg: EfficientNetConfig, groups: int = 1) -> list[nn.Module]:
+    """A bias-free convolution of ``ceil(n / stride)`` output, with the config's padding style."""
+    if cfg.tf_padding and stride > 1:
+        return [SamePad2d(kernel, stride), nn.Conv2d(cin, cout, kernel, stride, 0, groups=groups, bias=False)]
+    return [nn.Conv2d(cin, cout, kernel, stride, kernel // 2, groups=groups, bias=False)]
 
 
 class SqueezeExcite(nn.Module):
@@ -141,15 +227,11 @@ class MBConv(nn.Module):
         mid = cin * expand
         layers: list[nn.Module] = []
         if expand != 1:
-            layers += [nn.Conv2d(cin, mid, 1, bias=False), _bn(mid, cfg), nn.SiLU()]
-        layers += [
-            nn.Conv2d(mid, mid, kernel, stride, kernel // 2, groups=mid, bias=False),
-            _bn(mid, cfg),
-            nn.SiLU(),
-            SqueezeExcite(mid, max(1, int(cin * cfg.se_ratio))),
-            nn.Conv2d(mid, cout, 1, bias=False),
-            _bn(cout, cfg),
-        ]
+            layers += [nn.Conv2d(cin, mid, 1, bias=False), _bn(mid, cfg), _act(cfg)]
+        layers += [*_conv(mid, mid, kernel, stride, cfg, groups=mid), _bn(mid, cfg), _act(cfg)]
+        if not cfg.lite:
+            layers.append(SqueezeExcite(mid, max(1, int(cin * cfg.se_ratio))))
+        layers += [nn.Conv2d(mid, cout, 1, bias=False), _bn(cout, cfg)]
         self.body = nn.Sequential(*layers)
         self.residual = stride == 1 and cin == cout
         self.drop_rate = drop_rate
@@ -179,21 +261,19 @@ class EfficientNet(nn.Module):
         super().__init__()
         self.cfg = cfg
         w = cfg.width_mult
-        stem = round_filters(32, w)
-        self.stem = nn.Sequential(
-            nn.Conv2d(cfg.in_channels, stem, 3, 2, 1, bias=False), _bn(stem, cfg), nn.SiLU()
-        )
+        stem = cfg.stem_channels()
+        self.stem = nn.Sequential(*_conv(cfg.in_channels, stem, 3, 2, cfg), _bn(stem, cfg), _act(cfg))
         stages = B0_STAGES[: cfg.num_stages]
-        total = sum(round_repeats(s[5], cfg.depth_mult) for s in stages)
+        total = sum(cfg.stage_repeats(i) for i in range(len(stages)))
         blocks: list[MBConv] = []
         cin = stem
         stride_now = 2
         ends_at: list[int] = []  # block indices whose output is an endpoint
         strides: list[int] = []
         channels: list[int] = []
-        for expand, kernel, stride, _, cout, repeats in stages:
+        for stage, (expand, kernel, stride, _, cout, _) in enumerate(stages):
             cout = round_filters(cout, w)
-            for r in range(round_repeats(repeats, cfg.depth_mult)):
+            for r in range(cfg.stage_repeats(stage)):
                 s = stride if r == 0 else 1
                 if s == 2:  # the previous output is an endpoint (the stem's, if no block yet)
                     ends_at.append(len(blocks) - 1)
