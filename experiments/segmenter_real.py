@@ -75,24 +75,57 @@ CONFIGS: dict[str, dict] = {
     "w320s6": dict(input_width=320, width_mult=1.0, depth_mult=1.0, encoder_stages=6, decoder_channels=64),
     "w480s6": dict(input_width=480, width_mult=1.0, depth_mult=1.0, encoder_stages=6, decoder_channels=96),
     "tiny": dict(input_width=96, width_mult=0.25, depth_mult=0.25, encoder_stages=4, decoder_channels=16),
+    # issue #37: EfficientNet-Lite trunks (whole, 7 stages) at CamVid's own 480 px, pyramid at stride 4
+    "lite0": dict(input_width=480, encoder="lite", width_mult=1.0, depth_mult=1.0, encoder_stages=7,
+                  decoder_channels=64, decoder_stride=4),
+    "lite2": dict(input_width=480, encoder="lite", width_mult=1.1, depth_mult=1.2, encoder_stages=7,
+                  decoder_channels=64, decoder_stride=4),
+    "tinylite": dict(input_width=96, encoder="lite", width_mult=1.0, depth_mult=1.0, encoder_stages=4,
+                     decoder_channels=16, decoder_stride=4),
 }
+#: Runs of issue #37: a config of CONFIGS and the recipe's settings that differ from the command
+#: line's (``init``: imagenet / none; ``real``: train on CamVid too; ``choose``: the checkpoint
+#: kept is the best by CamVid val (``camvid``) or by held-out synthetic pixel mIoU (``synth``: no
+#: CamVid frame decides anything); ``twin``: also train a from-scratch copy on the very same
+#: batches (the ablation at equal steps); ``weights``: median | enet; ``hard``: OHEM fraction;
+#: ``scale``: the augmentation's zoom range).
+RECIPES: dict[str, dict] = {
+    "lite0_camvid": dict(config="lite0", init="imagenet", real=True, choose="camvid", twin=True, weights="enet",
+                         scale=(0.5, 2.0)),
+    "lite0_camvid_ohem": dict(config="lite0", init="imagenet", real=True, choose="camvid", weights="median",
+                              hard=0.3, scale=(0.5, 2.0)),
+    "lite2_camvid": dict(config="lite2", init="imagenet", real=True, choose="camvid", weights="enet",
+                         scale=(0.5, 2.0)),
+    "lite0_open": dict(config="lite0", init="imagenet", real=False, choose="synth", weights="enet",
+                       scale=(0.5, 2.0)),
+    "tinylite_camvid": dict(config="tinylite", init="imagenet", real=True, choose="camvid", twin=True, weights="enet",
+                            scale=(0.5, 2.0), hard=0.5),
+    "tinylite_open": dict(config="tinylite", init="imagenet", real=False, choose="synth", weights="enet"),
+}
+RECIPE_DEFAULTS = dict(init="none", real=True, choose="camvid", twin=False, weights="median", hard=1.0,
+                       scale=(0.8, 1.8))
 SYNTH_RIG = "surround6"
 SYNTH_SIZE = (225, 400)  # (h, w) of the surround6 cameras
 SYNTH_VAL_FRAMES = 10
 
 
-def parse_config(spec: str) -> tuple[str, SegmenterConfig]:
-    """``name`` (one of CONFIGS) or ``name=key:value/key:value`` (a new config, SegmenterConfig fields)."""
+def parse_config(spec: str) -> tuple[str, SegmenterConfig, dict]:
+    """``name`` (one of RECIPES or CONFIGS) or ``name=key:value/key:value`` (a new config,
+    SegmenterConfig fields): ``(name, config, recipe)``.
+    """
     name, _, rest = spec.partition("=")
     if not rest:
-        if name not in CONFIGS:
-            raise SystemExit(f"error: unknown config {name!r}; known: {sorted(CONFIGS)} or name=key:value/key:value")
-        return name, SegmenterConfig(**CONFIGS[name])
+        recipe = dict(RECIPE_DEFAULTS, **RECIPES.get(name, {}))
+        config = recipe.pop("config", name)
+        if config not in CONFIGS:
+            raise SystemExit(f"error: unknown config {name!r}; known: {sorted(RECIPES) + sorted(CONFIGS)} or "
+                             "name=key:value/key:value")
+        return name, SegmenterConfig(**CONFIGS[config]), recipe
     d = {}
     for kv in rest.split("/"):
         k, _, v = kv.partition(":")
-        d[k] = float(v) if k.endswith("_mult") else int(v)
-    return name, SegmenterConfig(**d)
+        d[k] = v if k == "encoder" else float(v) if k.endswith("_mult") else int(v)
+    return name, SegmenterConfig(**d), dict(RECIPE_DEFAULTS)
 
 
 def get_args(argv=None) -> argparse.Namespace:
@@ -100,8 +133,9 @@ def get_args(argv=None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--camvid", required=True, help="CamVid folder (train/ trainannot/ val/ valannot/ [test/ testannot/])")
     ap.add_argument("--out", required=True, help="output folder (weights + JSON log per config)")
-    ap.add_argument("--configs", default="w200,w320,w320s6,w480s6",
-                    help="comma list of config names (see CONFIGS) or name=input_width:320/width_mult:1.0/...")
+    ap.add_argument("--configs", default="lite0_camvid,lite0_camvid_ohem,lite2_camvid,lite0_open",
+                    help="comma list of recipe or config names (see RECIPES, CONFIGS) or "
+                         "name=input_width:320/width_mult:1.0/...")
     ap.add_argument("--budget-s", type=float, default=420.0, help="training wall-clock seconds per config")
     ap.add_argument("--deadline-s", type=float, default=0.0,
                     help="whole command's wall-clock limit: a config's budget shrinks so that it ends 20 s before "
@@ -187,8 +221,58 @@ def camvid_report(iou: np.ndarray) -> dict:
     return iou_report(iou, CAMVID)
 
 
-def run_worker(args, name: str, cfg: SegmenterConfig) -> None:
-    """Train one config for the time budget; write its weights and JSON log (module docstring)."""
+class Arm:
+    """One model trained in a worker: its weights, optimiser, EMA (what is evaluated and saved)
+    and log. A worker trains one arm, or two on the very same batches (``twin``: the scratch
+    ablation at equal steps).
+    """
+
+    def __init__(self, name: str, cfg: SegmenterConfig, init: str, args, dev: torch.device) -> None:
+        self.name = name
+        self.model = Segmenter(cfg).to(dev)
+        self.init = self.model.init_imagenet() if init == "imagenet" else None
+        if dev.type == "cuda":
+            self.model = self.model.to(memory_format=torch.channels_last)
+        decay = [p for p in self.model.parameters() if p.ndim > 1]
+        no_decay = [p for p in self.model.parameters() if p.ndim <= 1]
+        self.opt = torch.optim.AdamW([{"params": decay, "weight_decay": args.wd},
+                                      {"params": no_decay, "weight_decay": 0.0}],
+                                     lr=args.lr, betas=(0.9, 0.99), fused=dev.type == "cuda")
+        self.ema = Segmenter(cfg).to(dev)
+        self.ema.load_state_dict(self.model.state_dict())
+        if dev.type == "cuda":
+            self.ema = self.ema.to(memory_format=torch.channels_last)
+        self.ema.eval().requires_grad_(False)
+        ema_t, model_t = list(self.ema.state_dict().values()), list(self.model.state_dict().values())
+        self.float_pairs = [(e, m) for e, m in zip(ema_t, model_t) if e.is_floating_point()]
+        self.int_pairs = [(e, m) for e, m in zip(ema_t, model_t) if not e.is_floating_point()]
+        self.log = {"name": name, "config": cfg.to_dict(), "params": sum(p.numel() for p in self.model.parameters()),
+                    "init": init, "init_info": None if self.init is None else
+                    {"variant": self.init["variant"], "loaded": self.init["loaded"]},
+                    "loss": [], "evals": [], "best": None}
+
+    def step(self, parts, cover, weight, hard: float, amp: bool, dev, lr: float, ema_decay: float):
+        """One optimiser step on ``parts``; the parts' losses."""
+        for g in self.opt.param_groups:
+            g["lr"] = lr
+        self.model.train()
+        with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=amp):  # the loss itself runs in float32
+            loss, losses = mixed_loss(self.model, parts, cover, weight, hard)
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(self.model.parameters(), 5.0)
+        self.opt.step()
+        with torch.no_grad():
+            torch._foreach_lerp_([e for e, _ in self.float_pairs], [m for _, m in self.float_pairs], 1 - ema_decay)
+            for e, m in self.int_pairs:
+                e.copy_(m)
+        return losses
+
+
+def run_worker(args, name: str, cfg: SegmenterConfig, recipe: dict) -> None:
+    """Train one recipe (one arm, or two with ``twin``) for the time budget; write each arm's
+    weights and JSON log (module docstring).
+    """
     t_start = time.time()
     dev = torch.device("cuda" if args.device == "auto" and torch.cuda.is_available() else
                        "cpu" if args.device == "auto" else args.device)
@@ -199,12 +283,18 @@ def run_worker(args, name: str, cfg: SegmenterConfig) -> None:
     out = Path(args.out)
     say = lambda msg: print(f"[{name}] {msg}", flush=True)  # noqa: E731
 
-    # data: CamVid train/val (coarse) and synthetic drives (fine), all on the device
-    real_x, real_y = load_camvid(args.camvid, "train", args.limit_real, dev)
+    # data: CamVid train (if the recipe trains on it) and val (coarse), synthetic drives (fine), on the device
+    use_real = bool(recipe["real"])
     val_x, val_y = load_camvid(args.camvid, "val", args.limit_real, dev)
-    real_hw = cfg.input_size((real_x.shape[2], real_x.shape[1]))  # (h, w) of the model input
-    real_x, real_y = base_copy(real_x, real_y, base_size(tuple(real_x.shape[1:3]), real_hw))
+    real_hw = cfg.input_size((val_x.shape[2], val_x.shape[1]))  # (h, w) of the model input
+    if use_real:
+        real_x, real_y = load_camvid(args.camvid, "train", args.limit_real, dev)
+        real_x, real_y = base_copy(real_x, real_y, base_size(tuple(real_x.shape[1:3]), real_hw))
     use_synth = bool(args.synth_dir) and args.synth_drives > 0
+    if not (use_real or use_synth):
+        raise SystemExit(f"error: recipe {name} trains on neither CamVid nor synthetic frames")
+    if recipe["choose"] == "synth" and not use_synth:
+        raise SystemExit(f"error: recipe {name} chooses on synthetic val, but no synthetic drives are rendered")
     if use_synth:
         sd = Path(args.synth_dir)
         syn_x = torch.from_numpy(np.load(sd / "train_rgb.npy")).to(dev)
@@ -218,31 +308,19 @@ def run_worker(args, name: str, cfg: SegmenterConfig) -> None:
     # one code space for both: codes 0..10 = fine labels, 11.. = CamVid classes
     cover, (fine_off, cam_off) = joint_cover([FINE, CAMVID])
     cover = cover.to(dev)
-    real_counts = RealSet("camvid", CAMVID, real_x, real_y, real_hw).counts()
+    real_counts = RealSet("camvid", CAMVID, real_x, real_y, real_hw).counts() if use_real else None
     syn_counts = torch.bincount(syn_y.long().flatten(), minlength=NUM_LABELS)[:NUM_LABELS].cpu() if use_synth else None
-    weight = joint_class_weights([syn_counts, real_counts], [NUM_LABELS, CAMVID.num_classes]).to(dev)
-    say("class weights CamVid " + " ".join(f"{c}={w:.2f}" for c, w in zip(CAMVID.classes, weight[NUM_LABELS:].tolist())))
+    weight = joint_class_weights([syn_counts, real_counts], [NUM_LABELS, CAMVID.num_classes],
+                                 mode=recipe["weights"]).to(dev)
+    say(f"class weights ({recipe['weights']}) CamVid "
+        + " ".join(f"{c}={w:.2f}" for c, w in zip(CAMVID.classes, weight[NUM_LABELS:].tolist())))
 
-    # model, optimiser, EMA
-    model = Segmenter(cfg).to(dev)
-    if dev.type == "cuda":
-        model = model.to(memory_format=torch.channels_last)
-    n_params = sum(p.numel() for p in model.parameters())
-    decay = [p for p in model.parameters() if p.ndim > 1]
-    no_decay = [p for p in model.parameters() if p.ndim <= 1]
-    opt = torch.optim.AdamW([{"params": decay, "weight_decay": args.wd}, {"params": no_decay, "weight_decay": 0.0}],
-                            lr=args.lr, betas=(0.9, 0.99), fused=dev.type == "cuda")
-    ema = Segmenter(cfg).to(dev)
-    ema.load_state_dict(model.state_dict())
-    if dev.type == "cuda":
-        ema = ema.to(memory_format=torch.channels_last)
-    ema.eval().requires_grad_(False)
-    ema_t, model_t = list(ema.state_dict().values()), list(model.state_dict().values())
-    float_pairs = [(e, m) for e, m in zip(ema_t, model_t) if e.is_floating_point()]
-    int_pairs = [(e, m) for e, m in zip(ema_t, model_t) if not e.is_floating_point()]
+    arms = [Arm(name, cfg, recipe["init"], args, dev)]
+    if recipe["twin"]:
+        arms.append(Arm(f"{name}_scratch", cfg, "none", args, dev))
     gen = torch.Generator(device=dev).manual_seed(args.seed)
-    aug = Augment(AugmentConfig(flip=not args.no_flip), gen)
-    mean, std = model.rgb_mean, model.rgb_std
+    aug = Augment(AugmentConfig(flip=not args.no_flip, scale=tuple(recipe["scale"])), gen)
+    mean, std = arms[0].model.rgb_mean, arms[0].model.rgb_std
 
     def lr_at(p: float) -> float:
         if p < args.warmup:
@@ -256,91 +334,83 @@ def run_worker(args, name: str, cfg: SegmenterConfig) -> None:
             x = x.contiguous(memory_format=torch.channels_last)
         return x, y
 
-    log = {"name": name, "config": cfg.to_dict(), "params": n_params, "device": str(dev),
-           "gpu": torch.cuda.get_device_name(0) if dev.type == "cuda" else None, "args": vars(args),
-           "real_input_hw": list(real_hw), "loss": [], "evals": [], "best": None}
+    common = {"device": str(dev), "gpu": torch.cuda.get_device_name(0) if dev.type == "cuda" else None,
+              "args": vars(args), "recipe": recipe, "real_input_hw": list(real_hw)}
 
-    def write_log():
-        tmp = out / f".{name}.json.tmp"
-        tmp.write_text(json.dumps(log, indent=1))
-        os.replace(tmp, out / f"{name}.json")
+    def write_log(arm: Arm) -> None:
+        tmp = out / f".{arm.name}.json.tmp"
+        tmp.write_text(json.dumps({**arm.log, **common}, indent=1))
+        os.replace(tmp, out / f"{arm.name}.json")
 
-    def do_eval(step, t):
-        rep = camvid_report(evaluate(ema, val_x, val_y, CAMVID, amp))
+    def do_eval(arm: Arm, step: int, t: float) -> None:
+        rep = camvid_report(evaluate(arm.ema, val_x, val_y, CAMVID, amp))
         if use_synth:
-            syn_iou = evaluate(ema, sval_x, sval_y, FINE, amp)
+            syn_iou = evaluate(arm.ema, sval_x, sval_y, FINE, amp)
             rep["synth_fine_iou"] = {c: round(100 * float(v), 2) for c, v in zip(FINE.classes, syn_iou)}
             rep["synth_miou"] = round(100 * float(np.nanmean(syn_iou)), 2)
         rep.update(step=step, train_s=round(t, 1))
-        log["evals"].append(rep)
-        best = log["best"]
-        if best is None or rep["common_mean"] >= best["common_mean"]:
-            log["best"] = rep
-            save_segmenter(ema, out / f"{name}.safetensors", "camvid+" + SYNTH_RIG)
-        say(f"eval step {step} t={t:.0f}s val common {rep['common']} mean {rep['common_mean']}"
-            + (f" synth mIoU {rep['synth_miou']}" if use_synth else ""))
-        write_log()
+        arm.log["evals"].append(rep)
+        key = "common_mean" if recipe["choose"] == "camvid" else "synth_miou"
+        best = arm.log["best"]
+        if best is None or rep[key] >= best[key]:
+            arm.log["best"] = rep
+            save_segmenter(arm.ema, out / f"{arm.name}.safetensors",
+                           ("camvid+" if use_real else "") + SYNTH_RIG)
+        say(f"{arm.name} eval step {step} t={t:.0f}s CamVid val common {rep['common']} mean {rep['common_mean']}"
+            + (f" synth mIoU {rep['synth_miou']}" if use_synth else "") + f" (chosen on {key})")
+        write_log(arm)
 
     setup_s = time.time() - t_start
-    if args.end_at:  # the whole command's deadline: leave 20 s for the last evaluation and the files
-        args.budget_s = max(10.0, min(args.budget_s, args.end_at - time.time() - 20.0))
-    say(f"{n_params / 1e6:.2f} M params, real input {real_hw}, setup {setup_s:.0f} s on {dev}")
+    if args.end_at:  # the whole command's deadline: leave time for the last evaluations and the files
+        args.budget_s = max(10.0, min(args.budget_s, args.end_at - time.time() - 20.0 * len(arms)))
+    say(f"{arms[0].log['params'] / 1e6:.2f} M params x {len(arms)} arm(s), real input {real_hw}, "
+        f"init {recipe['init']}, setup {setup_s:.0f} s on {dev}")
     eval_every = args.eval_every_s or args.budget_s / 8
     t0 = time.time()
     next_eval, step = eval_every, 0
-    model.train()
     while True:
         t = time.time() - t0
         p = t / args.budget_s if not args.max_steps else max(t / args.budget_s, step / args.max_steps)
         if p >= 1.0:
             break
-        for g in opt.param_groups:
-            g["lr"] = lr_at(p)
-        xr, yr = batch(real_x, real_y, args.batch_real, real_hw, cam_off)  # augmentation in float32
+        parts = []
+        if use_real:
+            parts.append(batch(real_x, real_y, args.batch_real, real_hw, cam_off) + (1.0,))
         if use_synth:
-            xs, ys = batch(syn_x, syn_y, args.batch_synth, syn_hw, fine_off)
-        with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=amp):  # the loss itself runs in float32
-            parts = [(xr, yr, 1.0)] + ([(xs, ys, args.synth_weight)] if use_synth else [])
-            loss, losses = mixed_loss(model, parts, cover, weight)
-            loss_r, loss_s = losses[0], (losses[1] if use_synth else None)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
-        opt.step()
+            parts.append(batch(syn_x, syn_y, args.batch_synth, syn_hw, fine_off) + (args.synth_weight,))
+        d = min(args.ema, (1 + step) / (10 + step))  # EMA (shorter memory at the start)
+        all_losses = [arm.step(parts, cover, weight, recipe["hard"], amp, dev, lr_at(p), d) for arm in arms]
         step += 1
-        with torch.no_grad():  # EMA (shorter memory at the start)
-            d = min(args.ema, (1 + step) / (10 + step))
-            torch._foreach_lerp_([e for e, _ in float_pairs], [m for _, m in float_pairs], 1 - d)
-            for e, m in int_pairs:
-                e.copy_(m)
         if step % 25 == 0:
-            lr_ = opt.param_groups[0]["lr"]
-            log["loss"].append([step, round(time.time() - t0, 1), round(loss_r.item(), 4),
-                                round(loss_s.item(), 4) if use_synth else None, lr_])
+            for arm, losses in zip(arms, all_losses):
+                arm.log["loss"].append([step, round(time.time() - t0, 1)] + [round(v.item(), 4) for v in losses]
+                                       + [lr_at(p)])
         if step % 200 == 0:
-            say(f"step {step} t={time.time() - t0:.0f}s loss real {loss_r.item():.3f}"
-                + (f" synth {loss_s.item():.3f}" if use_synth else ""))
+            say(f"step {step} t={time.time() - t0:.0f}s losses "
+                + " / ".join(" ".join(f"{v.item():.3f}" for v in losses) for losses in all_losses))
         if time.time() - t0 >= next_eval:
-            do_eval(step, time.time() - t0)
-            model.train()
+            for arm in arms:
+                do_eval(arm, step, time.time() - t0)
             next_eval += eval_every
     train_s = time.time() - t0
-    if not log["evals"] or log["evals"][-1]["step"] != step:
-        do_eval(step, train_s)
-    log.update(steps=step, train_s=round(train_s, 1), setup_s=round(setup_s, 1),
-               steps_per_s=round(step / max(train_s, 1e-9), 2),
-               images_seen=step * (args.batch_real + (args.batch_synth if use_synth else 0)))
-
-    # the best (by CamVid val) as saved: reload through the package's loader, score test if present
-    best = load_segmenter(out / f"{name}.safetensors", device=dev)
-    if (Path(args.camvid) / "test").is_dir():
-        tx, ty = load_camvid(args.camvid, "test", 0, dev)
-        log["test"] = camvid_report(evaluate(best, tx, ty, CAMVID, amp))
-        say(f"TEST common {log['test']['common']} mean {log['test']['common_mean']}")
-    log["wall_s"] = round(time.time() - t_start, 1)
-    write_log()
-    say(f"done: {step} steps in {train_s:.0f} s ({log['steps_per_s']} steps/s), best val common mean "
-        f"{log['best']['common_mean']} at step {log['best']['step']}")
+    per_step = (args.batch_real if use_real else 0) + (args.batch_synth if use_synth else 0)
+    for arm in arms:
+        if not arm.log["evals"] or arm.log["evals"][-1]["step"] != step:
+            do_eval(arm, step, train_s)
+        arm.log.update(steps=step, train_s=round(train_s, 1), setup_s=round(setup_s, 1),
+                       steps_per_s=round(step / max(train_s, 1e-9), 2), images_seen=step * per_step,
+                       camvid_epochs=round(step * args.batch_real / len(real_x), 1) if use_real else 0)
+        # the best as saved: reloaded through the package's loader, CamVid test scored if present
+        best = load_segmenter(out / f"{arm.name}.safetensors", device=dev)
+        if (Path(args.camvid) / "test").is_dir():
+            tx, ty = load_camvid(args.camvid, "test", 0, dev)
+            arm.log["test"] = camvid_report(evaluate(best, tx, ty, CAMVID, amp))
+            say(f"{arm.name} TEST common {arm.log['test']['common']} mean {arm.log['test']['common_mean']}")
+        arm.log["wall_s"] = round(time.time() - t_start, 1)
+        write_log(arm)
+        key = "common_mean" if recipe["choose"] == "camvid" else "synth_miou"
+        say(f"{arm.name} done: {step} steps in {train_s:.0f} s ({arm.log['steps_per_s']} steps/s), best "
+            f"{key} {arm.log['best'][key]} at step {arm.log['best']['step']}")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -351,8 +421,8 @@ def main(argv=None) -> int:
     """Render the synthetic drives, train every config in its own process, print a summary."""
     args = get_args(argv)
     if args.worker:
-        name, cfg = parse_config(next(c for c in args.configs.split(",") if c.partition("=")[0] == args.worker))
-        run_worker(args, name, cfg)
+        name, cfg, recipe = parse_config(next(c for c in args.configs.split(",") if c.partition("=")[0] == args.worker))
+        run_worker(args, name, cfg, recipe)
         return 0
     t0 = time.time()
     configs = [parse_config(c) for c in args.configs.split(",") if c]
@@ -367,7 +437,7 @@ def main(argv=None) -> int:
         width = args.parallel or len(configs)
         running: list[subprocess.Popen] = []
         failed = []
-        for name, _ in configs:
+        for name, _, _ in configs:
             while len(running) >= width:
                 time.sleep(1)
                 failed += [p for p in running if p.poll() not in (None, 0)]
@@ -379,7 +449,8 @@ def main(argv=None) -> int:
     print(f"\nall configs done in {time.time() - t0:.0f} s" + (f"; {len(failed)} FAILED" if failed else ""))
     print(f"{'config':8} {'params':>7} {'steps':>6} {'best step':>9} {'val mean5':>9}  road sidewalk car ped building"
           "  synth mIoU  [test mean5]")
-    for name, _ in configs:
+    names = [n for n, _, r in configs for n in ([n, f"{n}_scratch"] if r["twin"] else [n])]
+    for name in names:
         f = out / f"{name}.json"
         if not f.is_file():
             print(f"{name:8} (no log)")

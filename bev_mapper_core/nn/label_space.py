@@ -42,7 +42,8 @@ def joint_cover(spaces: Sequence[LabelSpace]) -> tuple[torch.Tensor, tuple[int, 
 
 
 def marginal_nll(logits: torch.Tensor, target: torch.Tensor, cover: torch.Tensor,
-                 weight: torch.Tensor | None = None, ignore_index: int = IGNORE) -> torch.Tensor:
+                 weight: torch.Tensor | None = None, ignore_index: int = IGNORE,
+                 hard_fraction: float = 1.0) -> torch.Tensor:
     """Partial-label loss: mean over labelled pixels of ``-log sum_{j in cover[t]} p_j``.
 
     Args:
@@ -50,6 +51,8 @@ def marginal_nll(logits: torch.Tensor, target: torch.Tensor, cover: torch.Tensor
         target: ``(B, H, W)`` integer class codes (rows of ``cover``), ``ignore_index`` ignored.
         cover: ``(K, L)`` bool, the fine labels each code covers.
         weight: ``(K,)`` per-code weights (a weighted mean, as ``F.cross_entropy``), or None.
+        hard_fraction: online hard example mining (OHEM): below 1, only that fraction of the
+            labelled pixels, those of the highest loss, count (a weighted mean over them).
 
     The gradient w.r.t. a covered logit ``z_j`` is ``p_j (1 - 1/S)`` <= 0 (``S`` the covered
     probability sum), so descent never lowers a covered label; with singleton covers this is
@@ -65,7 +68,13 @@ def marginal_nll(logits: torch.Tensor, target: torch.Tensor, cover: torch.Tensor
     mask = cover[t].permute(0, 3, 1, 2)  # (B, H, W, L) -> (B, L, H, W)
     nll = -logp.masked_fill(~mask, float("-inf")).logsumexp(1)  # (B, H, W)
     w = valid.float() if weight is None else weight.to(logits.device).float()[t] * valid
-    return (nll.masked_fill(~valid, 0.0) * w).sum() / w.sum().clamp(min=1e-6)
+    nll = nll.masked_fill(~valid, 0.0)
+    if hard_fraction < 1.0:
+        k = max(1, int(hard_fraction * int(valid.sum())))
+        hard = torch.zeros_like(valid).flatten()
+        hard[nll.detach().masked_fill(~valid, -1.0).flatten().topk(k).indices] = True
+        w = w * hard.view_as(valid)
+    return (nll * w).sum() / w.sum().clamp(min=1e-6)
 
 
 def coarse_predict(logits: torch.Tensor, space: LabelSpace) -> torch.Tensor:

