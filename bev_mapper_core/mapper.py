@@ -54,15 +54,19 @@ class MapperConfig:
             without the head ignore it.
         segmenter: the 2-D segmenter that turns RGB images into label images, for ``segipm``
             and for label-input models on RGB input (chained, e.g. the shipped label Bi-Mapper
-            with ``input_kind`` ``rgb``): ``auto`` (the shipped segmenter; Bi-Mapper: only when
-            no end-to-end RGB weights are given or shipped), ``none``, or a safetensors path.
+            with ``input_kind`` ``rgb``): ``auto`` (the default shipped segmenter, ``camvid``;
+            Bi-Mapper: only when no end-to-end RGB weights are given or shipped), ``camvid`` (from
+            ImageNet, synthetic town and CamVid: non-commercial, the better on real frames),
+            ``open`` (from ImageNet and the synthetic town only: commercial use allowed),
+            ``none``, or a safetensors path.
             Label input ignores it.
         backend: inference runtime of learned methods: ``auto`` (the default: the fastest
             installed, OpenVINO, else onnxruntime, else torch), ``torch`` (the reference),
             ``onnxruntime`` or ``openvino`` (the model exported to ONNX once per weights and
             calibration, cached; optional extras); see
             :mod:`~bev_mapper_core.nn.backends`. Bi-Mapper, S2G2 and FocusBEV use it (FocusBEV
-            for its image -> BEV feature part); segipm's segmenter runs torch.
+            for its image -> BEV feature part), and the segmenter stage of segipm and chained
+            Bi-Mapper (``auto``: onnxruntime first there, its fastest).
         label_map: how the ids of the label images (``input_kind`` labels) map onto this
             package's :class:`~bev_mapper_core.labels.classes.Label`: ``native`` (they are Label
             ids), a preset of another segmenter (``cityscapes_ids``, ``cityscapes_train_ids``,
@@ -92,7 +96,8 @@ class MapperConfig:
         if not isinstance(self.ipm_occlusion, bool):
             raise ConfigError(f"ipm_occlusion must be true or false, got {self.ipm_occlusion!r}")
         if not isinstance(self.segmenter, str) or not self.segmenter:
-            raise ConfigError(f"segmenter must be 'auto', 'none' or a weights path, got {self.segmenter!r}")
+            raise ConfigError(f"segmenter must be 'auto', 'camvid', 'open', 'none' or a weights path, got "
+                              f"{self.segmenter!r}")
         if self.method not in _REGISTRY:
             raise ConfigError(f"unknown method {self.method!r}; available: {list(available_methods())}")
         if self.backend not in BACKENDS:

@@ -53,12 +53,12 @@ METHODS: MappingProxyType[str, MethodSpec] = MappingProxyType({
     ),
     "segmenter": MethodSpec(
         mapper=None, trainer=f"{_PKG}.segmenter.train:SegmenterMethod",
-        weights=("segmenter.safetensors",),
+        weights=("segmenter.safetensors", "segmenter_open.safetensors", "segmenter_w320.safetensors"),
         summary="per-camera 2-D segmenter: RGB image -> pixel labels (input of segipm and chained label models)",
     ),
     "segipm": MethodSpec(
         mapper=f"{_PKG}.segipm.mapper:SegIpmMapper", trainer=None,
-        weights=("segmenter.safetensors",),
+        weights=("segmenter.safetensors", "segmenter_open.safetensors"),
         summary="two-stage RGB baseline: the 2-D segmenter, then IPM",
     ),
     "bimapper": MethodSpec(

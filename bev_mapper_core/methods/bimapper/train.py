@@ -205,7 +205,8 @@ class BiMapperMethod(TrainMethod):
                 help="PON uncertainty loss on hidden cells (FocusBEV 0.001)"),
         CliFlag("--encoder-init", "encoder_init",
                 help="the encoders' start: auto (the shipped segmenter's trunk on RGB where the sizes fit), none, "
-                     "segmenter, or a segmenter weights path"),
+                     "segmenter, a segmenter weights path, or imagenet (EfficientNet-Lite: --config keys encoder_variant lite0, "
+                     "width_mult 1.0, depth_mult 1.0)"),
         CliFlag("--init-weights", "init_weights", help="fine-tune: start from this weights file"),
         CliFlag("--visibility-only", "visibility_only", action="store_true",
                 help="train only the visibility head; the class outputs stay the initial file's"),

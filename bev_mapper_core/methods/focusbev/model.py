@@ -41,7 +41,7 @@ from bev_mapper_core.geometry.rig import Rig, scaled_camera
 from bev_mapper_core.labels.classes import BEV_CLASS_NAMES, NUM_LABELS, resolve_classes
 from bev_mapper_core.nn.config import MAX_CHANNELS, MAX_DOWNSAMPLE, MAX_WIDTH_PX, RGB_MEAN, RGB_STD, DictConfig
 from bev_mapper_core.nn.decoder import BevDecoder
-from bev_mapper_core.nn.efficientnet import EfficientNet, downsampled_size
+from bev_mapper_core.nn.efficientnet import EfficientNet, EfficientNetConfig, downsampled_size
 from bev_mapper_core.nn.inputs import preprocess_one_camera
 from bev_mapper_core.nn.mono_geometry import check_same_camera, one_camera_input_size
 from bev_mapper_core.nn.resnet import FPN, RESNET_DEPTHS, ResNet
@@ -50,7 +50,7 @@ from ..segmenter.trunk import trunk_config
 from .blocks import ColumnTransformer, EgoMotionFusion, depth_bins, depth_ranges, feature_grid, polar_grids, polar_to_cartesian
 
 #: the image trunks FocusBEV can use (see :class:`FocusBEVConfig`)
-BACKBONES = ("resnet", "efficientnet")
+BACKBONES = ("resnet", "efficientnet", "lite0")
 
 
 class TrunkPyramid(nn.Module):
@@ -86,7 +86,8 @@ class FocusBEVConfig(DictConfig):
             ``efficientnet`` (the shipped segmenter's EfficientNet trunk,
             :func:`~bev_mapper_core.methods.segmenter.trunk.trunk_config`: training starts from
             its weights, which have seen synthetic and real images; strides 4, 8, 16 feed the FPN,
-            whose stride-32 level is then an extra convolution).
+            whose stride-32 level is then an extra convolution), or ``lite0`` (EfficientNet-Lite0
+            with the trunk's stage count, which ``encoder_init imagenet`` starts from ImageNet).
         backbone_depth: ResNet depth (18, 34, 50, 101; paper 50).
         backbone_width: ResNet stem width (paper 64).
         fpn_levels: pyramid levels from stride 8 (paper: PON's, 5).
@@ -193,8 +194,12 @@ class FocusBEV(nn.Module):
         C = config.channels
         if config.backbone == "resnet":
             self.backbone = ResNet(config.backbone_depth, config.backbone_width, config.in_channels)
-        else:
+        elif config.backbone == "efficientnet":
             self.backbone = TrunkPyramid(EfficientNet(trunk_config(config.in_channels)))
+        else:  # lite0: EfficientNet-Lite0 at the trunk's stage count (output stride 16), ImageNet-startable
+            stages = trunk_config().num_stages
+            self.backbone = TrunkPyramid(EfficientNet(EfficientNetConfig.variant(
+                "lite0", num_stages=stages, in_channels=config.in_channels)))
         self.fpn = FPN(self.backbone.out_channels, C, config.fpn_levels)
         self.fgrid = feature_grid(grid, config.bev_downsample)
         if max_depth(config, grid) <= config.min_depth:

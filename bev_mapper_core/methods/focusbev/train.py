@@ -68,8 +68,9 @@ class FocusBEVTraining:
         encoder_init: the start of an ``efficientnet`` backbone: ``auto`` (the shipped
             segmenter's trunk on RGB input, none on label input), ``none`` (from scratch),
             ``segmenter`` or a segmenter weights path
-            (:func:`~bev_mapper_core.methods.segmenter.trunk.encoder_source`). The ResNet
-            backbone has no pretrained weights: with it only ``auto`` and ``none`` apply.
+            (:func:`~bev_mapper_core.methods.segmenter.trunk.encoder_source`); of a ``lite0``
+            backbone: ``imagenet`` (``auto`` on RGB input) or ``none``. The ResNet backbone has
+            no pretrained weights: with it only ``auto`` and ``none`` apply.
     """
 
     uncertainty_weight: float = FocusBEVLossConfig.uncertainty_weight
@@ -120,10 +121,11 @@ class FocusBEVMethod(TrainMethod):
     cli_flags = (
         CliFlag("--input-width", "input_width", min_value=32),
         CliFlag("--backbone", "backbone", choices=BACKBONES,
-                help="resnet (the paper's, from scratch) or efficientnet (the shipped segmenter's trunk)"),
+                help="resnet (the paper's, from scratch), efficientnet (the shipped segmenter's trunk) or lite0 "
+                     "(EfficientNet-Lite0, from ImageNet)"),
         CliFlag("--encoder-init", "encoder_init",
                 help="efficientnet backbone's start: auto (the shipped segmenter on RGB), none, segmenter, or a "
-                     "segmenter weights path"),
+                     "segmenter weights path; lite0's: imagenet (auto on RGB) or none"),
         CliFlag("--backbone-depth", "backbone_depth", min_value=18, help="ResNet depth: 18, 34, 50 or 101"),
         CliFlag("--backbone-width", "backbone_width", min_value=4, help="ResNet stem width (paper 64)"),
         CliFlag("--fpn-levels", "fpn_levels", min_value=1),
@@ -146,12 +148,19 @@ class FocusBEVMethod(TrainMethod):
     def build_model(self) -> FocusBEV:
         model = FocusBEV(self.cfg.model, self.rig, self.grid)
         self.encoder_source = None
-        if self.cfg.model.backbone == "efficientnet":
-            self.encoder_source = init_encoder(model.backbone.trunk, self.cfg.loss.encoder_init,
+        init = self.cfg.loss.encoder_init
+        if self.cfg.model.backbone == "efficientnet" and init != "imagenet":
+            self.encoder_source = init_encoder(model.backbone.trunk, init, self.cfg.model.input_kind, self.rig.name)
+        elif self.cfg.model.backbone == "lite0" and init in ("imagenet", "none", "auto"):
+            # auto: ImageNet on RGB input (the segmenter's trunk is no Lite0), none on labels
+            spec = "imagenet" if init == "auto" and self.cfg.model.input_kind == "rgb" else init
+            self.encoder_source = init_encoder(model.backbone.trunk, spec if spec == "imagenet" else "none",
                                                self.cfg.model.input_kind, self.rig.name)
-        elif self.cfg.loss.encoder_init not in ("auto", "none"):
-            raise ConfigError(f"encoder_init {self.cfg.loss.encoder_init!r} initializes an efficientnet backbone; "
-                              "the resnet backbone has no pretrained weights (use --backbone efficientnet)")
+        elif init not in ("auto", "none"):
+            need = "lite0" if init == "imagenet" else "efficientnet"
+            raise ConfigError(f"encoder_init {init!r} initializes {'a' if need == 'lite0' else 'an'} {need} backbone; "
+                              f"the {self.cfg.model.backbone} backbone has no pretrained weights for it "
+                              f"(use --backbone {need})")
         return model
 
     @override

@@ -259,8 +259,9 @@ class S2G2Method(TrainMethod):
                 help="BatchNorm of unlabeled frames: running statistics (default) or one batch with the labeled "
                      "frames (the paper)"),
         CliFlag("--encoder-init", "encoder_init",
-                help="auto | none | segmenter | PATH: pretrained feature extractor, a segmenter's EfficientNet "
-                     "trunk (auto: the shipped segmenter's on RGB input)"),
+                help="auto | none | segmenter | imagenet | PATH: pretrained feature extractor, a segmenter's "
+                     "EfficientNet trunk (auto: the shipped segmenter's on RGB input), or imagenet: EfficientNet-Lite "
+                     "(--config keys encoder_variant lite0, width_mult 1.0, depth_mult 1.0)"),
         CliFlag("--augment", "augment", action="boolean",
                 help="photometric augmentation (colour, exposure, blur, noise) of every training image (RGB input)"),
         CliFlag("--frozen-encoder", "frozen_encoder", action="store_true",

@@ -42,7 +42,8 @@ class SegIpmMapper(Mapper):
 
     def __init__(self, rig: Rig, grid: BevGrid, config: MapperConfig) -> None:
         self.preflight(config, rig.name)
-        self.stage = SegmenterStage(segmenter_path(config, rig.name), inference_device(config))
+        self.stage = SegmenterStage(segmenter_path(config, rig.name), inference_device(config), config.backend,
+                                    config.threads)
         self.ipm = IpmMapper(rig, grid, replace(config, method="ipm", input_kind="labels"))
         super().__init__(rig, grid, config)
 

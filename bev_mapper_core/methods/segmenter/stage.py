@@ -1,7 +1,22 @@
-"""The segmenter as a stage in front of label models: which file (``MapperConfig.segmenter``:
-``auto`` = the shipped file, or a path) and :class:`SegmenterStage`, RGB camera images -> label
-images of the same size. ``segipm`` puts IPM behind it; Bi-Mapper's label weights run on RGB
-cameras behind it (chained input); S2G2 starts its encoder from the shipped file.
+"""The segmenter as a stage in front of label models: which file (``MapperConfig.segmenter``)
+and :class:`SegmenterStage`, RGB camera images -> label images of the same size. ``segipm`` puts
+IPM behind it; Bi-Mapper's label weights run on RGB cameras behind it (chained input).
+
+Two segmenters ship (issue #37), named in :data:`SHIPPED_SEGMENTERS`:
+
+* ``camvid`` (``segmenter.safetensors``, the default: ``auto``): EfficientNet-Lite0 from ImageNet,
+  trained on the synthetic town and CamVid, which makes it **non-commercial** (CamVid is
+  CC BY-NC 4.0); much the better on real frames (docs/RESULTS.md, "Pretrained trunk");
+* ``open`` (``segmenter_open.safetensors``): the same network from the same ImageNet checkpoint
+  (Apache-2.0), trained on the synthetic town only: every input allows commercial use.
+
+``segmenter_w320.safetensors``, the segmenter shipped before, stays as the trunk that S2G2,
+FocusBEV and Bi-Mapper's RGB encoders start from (``encoder_init auto``; their shipped weights
+were trained from it, and their encoders have its sizes): :data:`TRUNK_SEGMENTER`.
+
+The stage runs the network with the configured backend (:data:`STAGE_AUTO_ORDER` for ``auto``:
+onnxruntime first, the fastest on the segmenter, bench/bench_backends.py) through the package's
+:class:`~bev_mapper_core.nn.backends.BackendRunner`; the labels equal torch's (tested).
 """
 
 from __future__ import annotations
@@ -12,20 +27,36 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
+from torch.nn import functional as F
 
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.mapper import MapperConfig
+
+from bev_mapper_core.nn.backends import BackendRunner, installed_backends
+from bev_mapper_core.nn.runtime import inference_threads
 
 from .. import METHODS, WEIGHTS_DIR
 from .model import DECISION_WIDTH_FACTOR, Segmenter
 from .weights import load_segmenter
 
+#: The shipped segmenters by name (``MapperConfig.segmenter``, ``--segmenter``): file in WEIGHTS_DIR.
+SHIPPED_SEGMENTERS: dict[str, str] = {"camvid": METHODS["segmenter"].weights[0],
+                                      "open": METHODS["segmenter"].weights[1]}
+#: What ``auto`` means: the shipped segmenter that scores best on real frames (CamVid test 69.9
+#: against 33.5 mean IoU of the five common classes, docs/RESULTS.md); non-commercial.
+DEFAULT_SEGMENTER = "camvid"
 #: The shipped segmenter used for rigs without their own (a segmenter works per camera image).
-GENERAL_SEGMENTER = METHODS["segmenter"].weights[0]
+GENERAL_SEGMENTER = SHIPPED_SEGMENTERS[DEFAULT_SEGMENTER]
+#: The segmenter whose trunk the other RGB methods start from (``encoder_init auto``).
+TRUNK_SEGMENTER = "segmenter_w320.safetensors"
+#: ``backend: auto`` for the segmenter stage: the fastest that gives torch's labels, measured
+#: on the shipped segmenter at 480x360, 1 thread (bench/bench_backends.py --segmenter):
+#: onnxruntime 34 ms, OpenVINO 38 ms, torch 85 ms.
+STAGE_AUTO_ORDER = ("onnxruntime", "openvino")
 
 
 def shipped_segmenter(rig_name: str) -> Path | None:
-    """The shipped segmenter for a rig: ``segmenter_<rig>.safetensors``, else the general one."""
+    """The shipped segmenter for a rig: ``segmenter_<rig>.safetensors``, else the default one."""
     for name in (f"segmenter_{rig_name}.safetensors", GENERAL_SEGMENTER):
         if (WEIGHTS_DIR / name).is_file():
             return WEIGHTS_DIR / name
@@ -33,10 +64,11 @@ def shipped_segmenter(rig_name: str) -> Path | None:
 
 
 def segmenter_path(config: MapperConfig, rig_name: str) -> Path:
-    """The segmenter file ``config.segmenter`` names for this rig.
+    """The segmenter file ``config.segmenter`` names for this rig: ``auto`` (the rig's own or the
+    default, :data:`DEFAULT_SEGMENTER`), a name of :data:`SHIPPED_SEGMENTERS`, or a path.
 
     Raises:
-        ConfigError: ``none``, or ``auto`` with no shipped segmenter.
+        ConfigError: ``none``, or ``auto`` / a name with no shipped file.
     """
     spec = config.segmenter
     if spec == "none":
@@ -47,20 +79,67 @@ def segmenter_path(config: MapperConfig, rig_name: str) -> Path:
             raise ConfigError("no segmenter shipped; train one (bev-train --method segmenter) and pass "
                               "segmenter=<file>")
         return path
+    if spec in SHIPPED_SEGMENTERS:
+        path = WEIGHTS_DIR / SHIPPED_SEGMENTERS[spec]
+        if not path.is_file():
+            raise ConfigError(f"the shipped segmenter {spec!r} ({path.name}) is missing from this installation")
+        return path
     return Path(spec)
 
 
+def stage_backend(name: str) -> str:
+    """The backend the segmenter stage runs for ``MapperConfig.backend`` ``name`` (``auto``:
+    the first installed of :data:`STAGE_AUTO_ORDER`, else torch).
+    """
+    if name != "auto":
+        return name
+    have = installed_backends()
+    return next((b for b in STAGE_AUTO_ORDER if b in have), "torch")
+
+
+class _Labels(torch.nn.Module):
+    """The exported part: normalised input ``(B, 3, h, w)`` -> ``(B, H, W)`` uint8 labels decided
+    at ``size`` = ``(H, W)``.
+    """
+
+    def __init__(self, model: Segmenter, size: tuple[int, int]) -> None:
+        super().__init__()
+        self.model, self.size = model, tuple(size)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.model(x, size=self.size).argmax(dim=1).to(torch.uint8)
+
+
 class SegmenterStage:
-    """RGB camera images -> label images of the same size, with a segmenter file.
+    """RGB camera images -> label images of the same size, with a segmenter file, run by
+    ``backend`` (``torch``, ``onnxruntime``, ``openvino`` or ``auto``: :func:`stage_backend`)
+    with ``threads`` intra-op threads (0: :func:`~bev_mapper_core.nn.runtime.inference_threads`).
 
     Raises (constructor):
         WeightsError: the file is not valid segmenter weights.
+        ConfigError: a backend that is not installed.
     """
 
-    def __init__(self, path: Path, device: torch.device | str = "cpu") -> None:
+    def __init__(self, path: Path, device: torch.device | str = "cpu", backend: str = "torch",
+                 threads: int = 0) -> None:
         self.device = torch.device(device)
         self.path = path
         self.model: Segmenter = load_segmenter(path, self.device)
+        self.backend = stage_backend(backend)
+        if self.backend not in installed_backends():
+            raise ConfigError(f"backend {self.backend!r} is not installed (installed: {installed_backends()})")
+        self.threads = threads or inference_threads()
+        self._runners: dict[tuple, BackendRunner] = {}  # (input shape, label size) -> its exported part
+
+    def _labels(self, x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+        """Normalised input ``(B, 3, h, w)`` -> ``(B, *size)`` uint8 labels, by the backend."""
+        key = (tuple(x.shape), tuple(size))
+        runner = self._runners.get(key)
+        if runner is None:
+            runner = self._runners[key] = BackendRunner(self.backend, self.device, self.threads)
+            runner.reset(_Labels(self.model, size))
+        with torch.inference_mode():
+            return runner(x)[0]
 
     def segment(self, images: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         """``{camera: (H, W, 3) uint8}`` -> ``{camera: (H, W) uint8 label ids}``; cameras of one
@@ -79,9 +158,15 @@ class SegmenterStage:
             batch = [images[n] if k == 1 else cv2.resize(images[n], (W // k, H // k), interpolation=cv2.INTER_AREA)
                      for n in names]  # a full-resolution camera: a k x k box mean first, cheap on uint8
             x = torch.from_numpy(np.stack(batch)).to(self.device)  # (B, H/k, W/k, 3)
-            labels = self.model.segment(x, size=(H, W)).cpu().numpy()  # (B, H, W)
+            h, w = self.model.decision_size((H, W))
+            with torch.inference_mode():
+                labels = self._labels(self.model.preprocess(x), (h, w))  # (B, h, w), as Segmenter.segment
+            if (h, w) != (H, W):
+                labels = F.interpolate(labels[:, None], size=(H, W), mode="nearest")[:, 0]  # (B, 1, H, W) -> (B, H, W)
+            labels = labels.cpu().numpy()
             out.update({n: np.ascontiguousarray(labels[i]) for i, n in enumerate(names)})
         return out
 
 
-__all__ = ["GENERAL_SEGMENTER", "SegmenterStage", "segmenter_path", "shipped_segmenter"]
+__all__ = ["DEFAULT_SEGMENTER", "GENERAL_SEGMENTER", "SHIPPED_SEGMENTERS", "STAGE_AUTO_ORDER", "TRUNK_SEGMENTER",
+           "SegmenterStage", "segmenter_path", "shipped_segmenter", "stage_backend"]

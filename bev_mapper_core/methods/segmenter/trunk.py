@@ -1,10 +1,14 @@
-"""The shipped segmenter's EfficientNet trunk as the pretrained start of another method's image
-encoder (issue #26: every RGB method starts from the backbone that has seen synthetic and real
-images).
+"""Where another method's image encoder starts: the trunk of a segmenter (issue #26: every RGB
+method starts from a backbone that has seen synthetic and real images), or the ImageNet
+EfficientNet-Lite checkpoint (issue #37, ``imagenet``).
 
-:func:`trunk_config` is the segmenter's trunk architecture (from :class:`~.model.SegmenterConfig`'s
-defaults: one source), :func:`encoder_source` resolves a method's ``encoder_init`` setting to a
-segmenter file, and :func:`init_encoder` copies that file's trunk into the method's encoder.
+:func:`trunk_config` is the trunk architecture of the segmenter the methods' encoders were built
+for (:data:`~.stage.TRUNK_SEGMENTER`, :class:`~.model.SegmenterConfig`'s defaults: one source),
+:func:`encoder_source` resolves a method's ``encoder_init`` setting to a segmenter file, and
+:func:`init_encoder` copies that file's trunk, or the ImageNet weights, into the method's encoder.
+An ``imagenet`` start needs a Lite encoder of a published variant's multipliers
+(``encoder_variant lite0`` for S2G2 and Bi-Mapper with their width and depth multipliers unset
+or 1.0; FocusBEV's ``backbone lite0``).
 """
 
 from __future__ import annotations
@@ -15,13 +19,15 @@ import torch
 
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.nn.efficientnet import EfficientNetConfig
+from bev_mapper_core.nn.pretrained import CHECKPOINTS, checkpoint_path, load_lite_imagenet
 
+from .. import WEIGHTS_DIR
 from .model import SegmenterConfig
-from .stage import shipped_segmenter
+from .stage import TRUNK_SEGMENTER
 from .weights import load_segmenter_trunk
 
 #: what ``encoder_init`` may say (besides a segmenter weights path)
-ENCODER_INITS = ("auto", "none", "segmenter")
+ENCODER_INITS = ("auto", "none", "segmenter", "imagenet")
 
 
 def trunk_config(in_channels: int = 3) -> EfficientNetConfig:
@@ -40,11 +46,12 @@ def check_encoder_init(spec) -> None:
 
 
 def encoder_source(spec: str, input_kind: str, rig_name: str) -> Path | None:
-    """The segmenter file whose trunk initializes a method's encoder (``None``: from scratch);
-    the shipped one is the rig's (:func:`~.stage.shipped_segmenter`).
+    """The segmenter file whose trunk initializes a method's encoder (``None``: from scratch, or
+    ``imagenet``, which :func:`init_encoder` reads); the shipped one is
+    :data:`~.stage.TRUNK_SEGMENTER`, whose trunk has :func:`trunk_config`'s sizes.
 
-    ``auto``: the shipped segmenter on RGB input, none on label input; ``none``; ``segmenter``:
-    the shipped one; else a segmenter weights path.
+    ``auto``: the shipped trunk on RGB input, none on label input; ``none``; ``segmenter``:
+    the shipped trunk; ``imagenet``: see :func:`init_encoder`; else a segmenter weights path.
 
     Raises:
         ConfigError: a segmenter asked for on label input (its first layer reads RGB), no shipped
@@ -54,12 +61,15 @@ def encoder_source(spec: str, input_kind: str, rig_name: str) -> Path | None:
     if spec == "none" or (spec == "auto" and input_kind != "rgb"):
         return None
     if input_kind != "rgb":
-        raise ConfigError(f"encoder_init {spec!r}: a segmenter's trunk reads RGB images, the model's input is "
-                          f"{input_kind!r} (use auto or none)")
+        raise ConfigError(f"encoder_init {spec!r}: a segmenter's trunk and ImageNet weights: both read RGB images, the "
+                          f"model's input is {input_kind!r} (use auto or none)")
+    if spec == "imagenet":
+        return None
     if spec in ("auto", "segmenter"):
-        path = shipped_segmenter(rig_name)
-        if path is None:
-            raise ConfigError("encoder_init: no segmenter ships with the package; use --encoder-init none or a path")
+        path = WEIGHTS_DIR / TRUNK_SEGMENTER
+        if not path.is_file():
+            raise ConfigError(f"encoder_init: the shipped trunk {TRUNK_SEGMENTER} is missing; use --encoder-init "
+                              "none, imagenet or a path")
         return path
     path = Path(spec)
     if not path.is_file():
@@ -69,13 +79,20 @@ def encoder_source(spec: str, input_kind: str, rig_name: str) -> Path | None:
 
 def init_encoder(encoder: torch.nn.Module, spec: str, input_kind: str, rig_name: str) -> Path | None:
     """Copy the trunk of :func:`encoder_source`'s segmenter into ``encoder`` (an
-    :class:`~bev_mapper_core.nn.efficientnet.EfficientNet` of :func:`trunk_config`'s sizes); the
-    file used, or ``None`` (left as initialized).
+    :class:`~bev_mapper_core.nn.efficientnet.EfficientNet` of :func:`trunk_config`'s sizes), or
+    with ``imagenet`` the ImageNet EfficientNet-Lite checkpoint of ``encoder``'s multipliers
+    (:func:`~bev_mapper_core.nn.pretrained.load_lite_imagenet`); the file used, or ``None``
+    (left as initialized).
 
     Raises:
         ConfigError: see :func:`encoder_source`.
         WeightsError: a bad segmenter file, or a trunk of other sizes than ``encoder``'s.
+        PretrainedError: ``imagenet`` for an encoder that is not a published Lite variant, the
+            checkpoint's package missing, or another file behind its name.
     """
+    if spec == "imagenet" and input_kind == "rgb":
+        variant = load_lite_imagenet(encoder)["variant"]
+        return checkpoint_path(variant) if variant in CHECKPOINTS else None
     path = encoder_source(spec, input_kind, rig_name)
     if path is not None:
         load_segmenter_trunk(encoder, path)

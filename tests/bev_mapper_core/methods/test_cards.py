@@ -48,15 +48,23 @@ def test_every_shipped_weights_file_has_a_full_card():
         assert card["training"]["command"].strip(), name
 
 
-def test_the_shipped_segmenter_card_says_camvid_and_its_license():
+def test_the_shipped_segmenter_cards_say_their_data_and_licenses():
     card = read_card(WEIGHTS_DIR / "segmenter.safetensors")
     real = [d for d in card["training_data"] if d["kind"] == "real"]
-    assert [d["license"].split(" (")[0] for d in real] == ["CC BY-NC 4.0"] and "CamVid" in real[0]["name"]
-    assert "retrain" in card["license"]["use"]
+    assert [d["license"].split(" (")[0] for d in real] == ["Apache-2.0", "CC BY-NC 4.0"]
+    assert "ImageNet" in real[0]["name"] and "CamVid" in real[1]["name"]
+    assert "non-commercial" in card["license"]["weights"] and "segmenter:=open" in card["license"]["use"]
     camvid = {k: v for s in card["scores"] if "CamVid test" in s["data"] for k, v in s["values"].items()}
-    assert camvid["road"] == 90.7 and camvid["mean"] == 58.8
+    assert camvid["road"] == 92.78 and camvid["mean"] == 69.88
     cfg = load_segmenter(WEIGHTS_DIR / "segmenter.safetensors").config
-    assert (cfg.input_width, cfg.width_mult, cfg.depth_mult, cfg.encoder_stages, cfg.decoder_channels) == (320, 1.0, 0.5, 5, 64)
+    assert (cfg.encoder, cfg.input_width, cfg.width_mult, cfg.depth_mult, cfg.encoder_stages) == ("lite", 480, 1.0, 1.0, 7)
+    # the open one: nothing non-commercial in its training data, and it says so
+    card = read_card(WEIGHTS_DIR / "segmenter_open.safetensors")
+    assert all("NC" not in d["license"] for d in card["training_data"])
+    assert card["license"]["weights"] == "Apache-2.0" and "CamVid" not in [d["name"][:6] for d in card["training_data"]]
+    # the former default, kept as the other RGB methods' trunk
+    cfg = load_segmenter(WEIGHTS_DIR / "segmenter_w320.safetensors").config
+    assert (cfg.encoder, cfg.input_width, cfg.depth_mult) == ("efficientnet", 320, 0.5)
 
 
 def _card(classes) -> dict:

@@ -42,7 +42,8 @@ from bev_mapper_core.methods.s2g2.mapper import shipped_s2g2
 from bev_mapper_core.methods.s2g2.model import S2G2, S2G2Config, input_size
 from bev_mapper_core.methods.s2g2.train import S2G2Training
 from bev_mapper_core.methods.s2g2.weights import load_s2g2, read_s2g2_metadata, save_s2g2
-from bev_mapper_core.methods.segmenter.stage import shipped_segmenter
+from bev_mapper_core.methods import WEIGHTS_DIR
+from bev_mapper_core.methods.segmenter.stage import TRUNK_SEGMENTER
 from bev_mapper_core.methods.segmenter.weights import load_segmenter
 from bev_mapper_core.nn.weights import WeightsError
 from bev_mapper_core.training.config import TrainConfig
@@ -504,7 +505,7 @@ def test_unlabeled_frames_from_a_bag(tmp_path):
 def test_encoder_starts_from_the_shipped_segmenters_trunk(tmp_path):
     """The default S2G2 config has the segmenter's trunk sizes: on RGB input its encoder starts as
     the shipped segmenter's encoder, tensor for tensor; from scratch with ``none`` or on labels."""
-    seg = load_segmenter(shipped_segmenter("front1")).state_dict()
+    seg = load_segmenter(WEIGHTS_DIR / TRUNK_SEGMENTER).state_dict()
     base = dict(method="s2g2", rig="front1", input="rgb", classes=",".join(CLASSES), grid="ahead")
 
     def encoder(**over):
@@ -518,7 +519,7 @@ def test_encoder_starts_from_the_shipped_segmenters_trunk(tmp_path):
     assert not all(torch.equal(v, scratch[k]) for k, v in pre.items() if v.is_floating_point())
     labels = encoder(input="labels")  # auto: no RGB trunk for one-hot label input
     assert next(iter(labels.values())).shape[1] == NUM_LABELS
-    with pytest.raises(ConfigError, match="reads RGB images"):
+    with pytest.raises(ConfigError, match="read RGB images"):
         encoder(input="labels", encoder_init="segmenter")
     with pytest.raises(ConfigError, match="do not exist"):
         encoder(encoder_init=str(tmp_path / "nope.safetensors"))

@@ -216,7 +216,7 @@ def test_preflight_checks_every_segmenter_tensor(tmp_path):
 def test_full_resolution_cameras_get_labels_decided_at_twice_the_input_width(tmp_path):
     """Labels are decided at most at twice the model's input width and nearest-upsampled: a
     400 x 225 camera gets exactly what it always got (scores upsampled to it, argmax); a
-    1600 x 900 one the labels decided at 640 x 360, and (from a box-reduced image) mostly the
+    1600 x 900 one the labels decided at twice the input width, and (from a box-reduced image) mostly the
     labels of the old full-size path."""
     from bev_mapper_core.methods.segmenter.model import DECISION_WIDTH_FACTOR
     from bev_mapper_core.methods.segmenter.stage import shipped_segmenter
@@ -224,7 +224,8 @@ def test_full_resolution_cameras_get_labels_decided_at_twice_the_input_width(tmp
     stage = SegmenterStage(shipped_segmenter("surround6"))
     model = stage.model
     most = DECISION_WIDTH_FACTOR * model.config.input_width
-    assert model.decision_size((225, 400)) == (225, 400) and model.decision_size((900, 1600)) == (360, most)
+    big_hw = (round(900 * most / 1600), most)
+    assert model.decision_size((225, 400)) == (225, 400) and model.decision_size((900, 1600)) == big_hw
     rng = np.random.default_rng(3)
     base = rng.integers(0, 255, (45, 80, 3), dtype=np.uint8)  # blobs, so that labels vary smoothly
     small = np.ascontiguousarray(np.repeat(np.repeat(base, 5, 0), 5, 1))  # (225, 400, 3)
@@ -234,8 +235,8 @@ def test_full_resolution_cameras_get_labels_decided_at_twice_the_input_width(tmp
     big = np.ascontiguousarray(np.repeat(np.repeat(base, 20, 0), 20, 1))  # (900, 1600, 3)
     got = stage.segment({"c": big})["c"]
     assert got.shape == (900, 1600) and got.dtype == np.uint8
-    decided = model.segment(torch.from_numpy(big[None]), size=(360, most))[0].numpy()
-    # nearest upsampling of the labels decided at 640 x 360 (from the image, not its box mean)
+    decided = model.segment(torch.from_numpy(big[None]), size=big_hw)[0].numpy()
+    # nearest upsampling of the labels decided at twice the input width (from the image, not its box mean)
     up = torch.nn.functional.interpolate(torch.from_numpy(decided)[None, None], size=(900, 1600), mode="nearest")
     assert (got == up[0, 0].numpy()).mean() > 0.97  # the k x k box mean first changes little
     with torch.inference_mode():

