@@ -31,7 +31,6 @@ from torch.nn import functional as F
 
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.mapper import MapperConfig
-
 from bev_mapper_core.nn.backends import BackendRunner, installed_backends
 from bev_mapper_core.nn.runtime import inference_threads
 

@@ -18,6 +18,7 @@ from bev_mapper_core.geometry.grid import BevGrid, grid_preset
 from bev_mapper_core.geometry.rig import preset_rig
 from bev_mapper_core.labels.classes import NUM_LABELS, S2G2_CLASSES, Label, label_lut
 from bev_mapper_core.mapper import MapperConfig, available_methods, create_mapper
+from bev_mapper_core.methods import WEIGHTS_DIR
 from bev_mapper_core.methods.bimapper.config import BiMapperConfig
 from bev_mapper_core.methods.bimapper.model import BiMapper
 from bev_mapper_core.methods.bimapper.weights import save_weights
@@ -42,7 +43,6 @@ from bev_mapper_core.methods.s2g2.mapper import shipped_s2g2
 from bev_mapper_core.methods.s2g2.model import S2G2, S2G2Config, input_size
 from bev_mapper_core.methods.s2g2.train import S2G2Training
 from bev_mapper_core.methods.s2g2.weights import load_s2g2, read_s2g2_metadata, save_s2g2
-from bev_mapper_core.methods import WEIGHTS_DIR
 from bev_mapper_core.methods.segmenter.stage import TRUNK_SEGMENTER
 from bev_mapper_core.methods.segmenter.weights import load_segmenter
 from bev_mapper_core.nn.weights import WeightsError

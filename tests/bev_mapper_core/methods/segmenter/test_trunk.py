@@ -14,8 +14,8 @@ torch = pytest.importorskip("torch")
 from bags.cli.train.train import train_parser  # noqa: E402
 from bev_mapper_core.errors import ConfigError  # noqa: E402
 from bev_mapper_core.geometry.rig import preset_rig  # noqa: E402
+from bev_mapper_core.methods import WEIGHTS_DIR  # noqa: E402
 from bev_mapper_core.methods.segmenter.model import Segmenter, SegmenterConfig  # noqa: E402
-from bev_mapper_core.methods import WEIGHTS_DIR
 from bev_mapper_core.methods.segmenter.stage import TRUNK_SEGMENTER  # noqa: E402
 from bev_mapper_core.methods.segmenter.trunk import trunk_config  # noqa: E402
 from bev_mapper_core.methods.segmenter.weights import load_segmenter  # noqa: E402
