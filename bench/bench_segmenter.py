@@ -69,7 +69,7 @@ def main() -> None:
         cells = []
         for b in backends:
             stage = SegmenterStage(WEIGHTS_DIR / name, backend=b, threads=1)
-            cells.append(_median_ms(lambda: stage.segment({"f": frame}), a.frames))
+            cells.append(_median_ms(lambda s=stage: s.segment({"f": frame}), a.frames))
         print(f"{label:20}" + "".join(f"{c:14.1f}" for c in cells), flush=True)
     torch.set_num_threads(default_threads)
     if a.skip_maps:
@@ -84,7 +84,7 @@ def main() -> None:
                                    weights=str(WEIGHTS_DIR / "bimapper_surround6_labels.safetensors")
                                    if method == "bimapper" else None)
                 mapper = create_mapper(rig, grid, cfg)
-                cells.append(_median_ms(lambda: mapper.map(cams), a.frames))
+                cells.append(_median_ms(lambda m=mapper: m.map(cams), a.frames))
             name_ = "chained Bi-Mapper" if method == "bimapper" else method
             print(f"{name_ + ', ' + label:34}" + "".join(f"{c:14.1f}" for c in cells), flush=True)
 
