@@ -76,7 +76,8 @@ _DECLARATIONS: dict[str, tuple] = {
     "unknown_below": (_T.PARAMETER_DOUBLE, "Bi-Mapper with a visibility head: cells predicted seen with "
                       "probability below this are unknown (0 = all in-frustum cells known)"),
     "segmenter": (_T.PARAMETER_STRING, "RGB input: 2-D segmenter of segipm and of label weights run on RGB "
-                  "(auto = the shipped one, none, or a safetensors file)"),
+                  "(auto = camvid, the default; camvid: trained with CamVid, non-commercial; open: commercial use "
+                  "allowed; none; or a safetensors file)"),
     "classes": (_T.PARAMETER_STRING_ARRAY,
                 f"classes to publish, of {list(BEV_CLASS_NAMES)} or the weights' ([] = all)"),
     "grid.x_min": (_T.PARAMETER_DOUBLE, "grid extent along x (m)"),

@@ -105,9 +105,9 @@ def add_replay_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--unknown-below", type=float, default=MapperConfig.unknown_below,
                    help="Bi-Mapper with a visibility head: cells predicted seen with probability below "
                         "this are unknown (0 = every in-frustum cell known; default: %(default)s)")
-    p.add_argument("--segmenter", default=MapperConfig.segmenter, metavar="auto|none|FILE",
-                   help="RGB input: the 2-D segmenter of segipm and of label weights run on RGB "
-                        "(auto = the shipped one; default: %(default)s)")
+    p.add_argument("--segmenter", default=MapperConfig.segmenter, metavar="auto|camvid|open|none|FILE",
+                   help="RGB input: the 2-D segmenter of segipm and of label weights run on RGB (auto = camvid, "
+                        "trained with CamVid: non-commercial; open: commercial use allowed; default: %(default)s)")
     p.add_argument("--temporal-window", type=int, default=TemporalConfig.window, metavar="N",
                    help="fuse the method's output over the last N frames, aligned by the bag's odometry, in "
                         "log-odds (any method; 1 = off; default: %(default)s)")

@@ -91,8 +91,10 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("inputs", nargs="+", type=Path, metavar="IMAGE_OR_DIR",
                    help="PNG or JPEG images, or folders of them")
     p.add_argument("--out", type=Path, required=True, help="output directory (created if missing)")
-    p.add_argument("--segmenter", default="auto", metavar="auto|FILE",
-                   help=f"segmenter weights file; auto (default): the shipped {METHODS['segmenter'].weights[0]}")
+    p.add_argument("--segmenter", default="auto", metavar="auto|camvid|open|FILE",
+                   help=f"segmenter: auto (default) = camvid, the shipped {METHODS['segmenter'].weights[0]} "
+                        "(trained with CamVid: non-commercial); open: the shipped one whose training data all "
+                        "allow commercial use; or a weights file")
     p.add_argument("--skip-bad", action="store_true",
                    help="skip (and count) images that cannot be read instead of stopping at the first")
 
