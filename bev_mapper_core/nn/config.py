@@ -27,6 +27,19 @@ RGB_MEAN = (0.485, 0.456, 0.406)
 RGB_STD = (0.229, 0.224, 0.225)
 
 
+#: The input scaling the ImageNet EfficientNet-Lite checkpoints were trained with: ``(x - 127) / 128``
+#: on 0..255 RGB (:mod:`~bev_mapper_core.nn.pretrained`); every model with a Lite encoder reads it.
+LITE_MEAN = (127.0 / 255,) * 3
+
+
+LITE_STD = (128.0 / 255,) * 3
+
+
+def rgb_stats(lite: bool) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """``(mean, std)`` of a model's RGB normalisation: Lite's for a Lite encoder, else ImageNet's."""
+    return (LITE_MEAN, LITE_STD) if lite else (RGB_MEAN, RGB_STD)
+
+
 class DictConfig:
     """``to_dict`` / ``from_dict`` of a frozen config dataclass (JSON-ready: tuples as lists;
     unknown keys refused), as the weights files store it.

@@ -34,6 +34,7 @@ import torch
 from torch import nn
 
 from ..errors import BevMapperError
+from .config import LITE_MEAN, LITE_STD
 from .efficientnet import LITE_VARIANTS, EfficientNet, EfficientNetConfig
 
 
@@ -68,9 +69,6 @@ CHECKPOINTS: dict[str, Checkpoint] = {
                         "9656183eaeafe8cbf0cf560089305d34668787f6a26377ccbe5be192ed3f855d"),
 }
 
-#: The input scaling the Lite checkpoints were trained with: ``(x - 127) / 128`` on 0..255 RGB.
-LITE_MEAN = (127.0 / 255,) * 3
-LITE_STD = (128.0 / 255,) * 3
 
 #: Size and class count of the reference classifier head (1x1 conv to 1280, 1000 ImageNet classes).
 HEAD_CHANNELS = 1280

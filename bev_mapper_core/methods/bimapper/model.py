@@ -29,7 +29,7 @@ from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.geometry.grid import BevGrid
 from bev_mapper_core.geometry.rig import Rig
 from bev_mapper_core.labels.classes import NUM_LABELS, label_lut, resolve_classes
-from bev_mapper_core.nn.config import RGB_MEAN, RGB_STD
+from bev_mapper_core.nn.config import rgb_stats
 from bev_mapper_core.nn.decoder import BevDecoder
 from bev_mapper_core.nn.efficientnet import downsampled_size
 from bev_mapper_core.nn.inputs import preprocess_images
@@ -89,8 +89,9 @@ class BiMapper(nn.Module):
                     lut = torch.from_numpy(label_lut(resolve_classes(config.classes)).astype(np.float32))  # (L, K)
                     self.ipm_proj.weight[:, :NUM_LABELS, 0, 0] = PRIOR_LOGIT_SCALE * lut.t()
                     self.ipm_proj.bias.fill_(-PRIOR_LOGIT_SCALE / 2)
-        self.register_buffer("rgb_mean", torch.tensor(RGB_MEAN).view(1, 1, 3, 1, 1), persistent=False)
-        self.register_buffer("rgb_std", torch.tensor(RGB_STD).view(1, 1, 3, 1, 1), persistent=False)
+        mean, std = rgb_stats(config.encoder_config(3).lite)  # a Lite encoder reads ImageNet-Lite's scaling
+        self.register_buffer("rgb_mean", torch.tensor(mean).view(1, 1, 3, 1, 1), persistent=False)
+        self.register_buffer("rgb_std", torch.tensor(std).view(1, 1, 3, 1, 1), persistent=False)
 
     # ------------------------------------------------------------ calibration
     def _raw_hw(self, geo: BiMapperGeometry, rig: Rig) -> tuple[int, int] | None:

@@ -39,7 +39,7 @@ from bev_mapper_core.geometry.grid import BevGrid
 from bev_mapper_core.geometry.projection import ground_tables
 from bev_mapper_core.geometry.rig import Rig, scaled_camera
 from bev_mapper_core.labels.classes import BEV_CLASS_NAMES, NUM_LABELS, resolve_classes
-from bev_mapper_core.nn.config import MAX_CHANNELS, MAX_DOWNSAMPLE, MAX_WIDTH_PX, RGB_MEAN, RGB_STD, DictConfig
+from bev_mapper_core.nn.config import MAX_CHANNELS, MAX_DOWNSAMPLE, MAX_WIDTH_PX, DictConfig, rgb_stats
 from bev_mapper_core.nn.decoder import BevDecoder
 from bev_mapper_core.nn.efficientnet import EfficientNet, EfficientNetConfig, downsampled_size
 from bev_mapper_core.nn.inputs import preprocess_one_camera
@@ -218,8 +218,9 @@ class FocusBEV(nn.Module):
                                    for (hl, wl), d in zip(self.level_hw, self.depths)) if config.cycle else None
         self.temporal = EgoMotionFusion(C, config.window, self.fgrid) if config.window > 1 else None
         self.head = BevDecoder(C, config.decoder_channels, self.num_classes, self.fgrid.shape, grid.shape)
-        self.register_buffer("rgb_mean", torch.tensor(RGB_MEAN), persistent=False)
-        self.register_buffer("rgb_std", torch.tensor(RGB_STD), persistent=False)
+        mean, std = rgb_stats(config.backbone == "lite0")  # a Lite trunk reads ImageNet-Lite's scaling
+        self.register_buffer("rgb_mean", torch.tensor(mean), persistent=False)
+        self.register_buffer("rgb_std", torch.tensor(std), persistent=False)
         grids, valid, frustum = self._tables(rig)
         self.register_buffer("polar_grid", grids, persistent=False)
         self.register_buffer("polar_valid", valid, persistent=False)

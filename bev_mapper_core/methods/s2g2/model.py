@@ -45,7 +45,7 @@ from bev_mapper_core.geometry.grid import BevGrid
 from bev_mapper_core.geometry.projection import ground_tables
 from bev_mapper_core.geometry.rig import Rig
 from bev_mapper_core.labels.classes import BEV_CLASS_NAMES, NUM_LABELS, resolve_classes
-from bev_mapper_core.nn.config import MAX_CHANNELS, MAX_DOWNSAMPLE, MAX_WIDTH_PX, RGB_MEAN, RGB_STD, DictConfig
+from bev_mapper_core.nn.config import MAX_CHANNELS, MAX_DOWNSAMPLE, MAX_WIDTH_PX, DictConfig, rgb_stats
 from bev_mapper_core.nn.decoder import BevDecoder
 from bev_mapper_core.nn.efficientnet import EfficientNet, EfficientNetConfig, downsampled_size
 from bev_mapper_core.nn.inputs import preprocess_one_camera
@@ -173,8 +173,9 @@ class S2G2(nn.Module):
         self.active = BevDecoder(C, config.decoder_channels, self.num_classes, self.bev_hw, grid.shape)
         self.passive = copy.deepcopy(self.active)  # starts equal to the active branch
         self.passive.requires_grad_(False)
-        self.register_buffer("rgb_mean", torch.tensor(RGB_MEAN), persistent=False)
-        self.register_buffer("rgb_std", torch.tensor(RGB_STD), persistent=False)
+        mean, std = rgb_stats(config.encoder_config().lite)  # a Lite encoder reads ImageNet-Lite's scaling
+        self.register_buffer("rgb_mean", torch.tensor(mean), persistent=False)
+        self.register_buffer("rgb_std", torch.tensor(std), persistent=False)
         self.register_buffer("frustum", self._frustum(rig), persistent=False)
 
     # ------------------------------------------------------------ calibration

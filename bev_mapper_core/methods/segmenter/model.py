@@ -8,7 +8,7 @@ encoder-decoder sized for CPUs:
   strides 2, 4, 8, 16 (``encoder_stages`` 4) or up to 32; ``encoder`` ``lite`` is its Lite form,
   which can start from the ImageNet checkpoint (:meth:`Segmenter.init_imagenet`,
   :mod:`~bev_mapper_core.nn.pretrained`) and then reads its input scaled as that checkpoint was
-  trained (:data:`~bev_mapper_core.nn.pretrained.LITE_MEAN`).
+  trained (:data:`~bev_mapper_core.nn.config.LITE_MEAN`).
 * **Decoder**: a feature pyramid (Lin et al. 2017, as in semantic FPN, Kirillov et al. 2019): a
   1x1 lateral per endpoint of stride >= ``decoder_stride``, top-down nearest upsampling and
   addition, one 3x3 conv + BN + ReLU at ``decoder_stride``, and a 1x1 classifier over
@@ -31,9 +31,9 @@ from torch.nn import functional as F
 
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.labels.classes import NUM_LABELS, Label
-from bev_mapper_core.nn.config import MAX_CHANNELS, MAX_WIDTH_PX, RGB_MEAN, RGB_STD
+from bev_mapper_core.nn.config import MAX_CHANNELS, MAX_WIDTH_PX, rgb_stats
 from bev_mapper_core.nn.efficientnet import EfficientNet, EfficientNetConfig
-from bev_mapper_core.nn.pretrained import LITE_MEAN, LITE_STD, load_lite_imagenet
+from bev_mapper_core.nn.pretrained import load_lite_imagenet
 
 #: Labels are decided at most this many times the model's input width (its logits are at half
 #: of it); wider cameras get them nearest-upsampled (:meth:`Segmenter.segment`).
@@ -136,11 +136,9 @@ class Segmenter(nn.Module):
         self.lateral = nn.ModuleList(nn.Conv2d(c, C, 1) for c in chans)
         self.fuse = nn.Sequential(nn.Conv2d(C, C, 3, padding=1, bias=False), nn.BatchNorm2d(C), nn.ReLU(inplace=True))
         self.classifier = nn.Conv2d(C, NUM_LABELS, 1)
-        lite = config.encoder == "lite"
-        self.register_buffer("rgb_mean", torch.tensor(LITE_MEAN if lite else RGB_MEAN).view(1, 3, 1, 1),
-                             persistent=False)
-        self.register_buffer("rgb_std", torch.tensor(LITE_STD if lite else RGB_STD).view(1, 3, 1, 1),
-                             persistent=False)
+        mean, std = rgb_stats(config.encoder == "lite")
+        self.register_buffer("rgb_mean", torch.tensor(mean).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("rgb_std", torch.tensor(std).view(1, 3, 1, 1), persistent=False)
 
     def init_imagenet(self) -> dict:
         """Start the encoder from the ImageNet EfficientNet-Lite checkpoint of its multipliers

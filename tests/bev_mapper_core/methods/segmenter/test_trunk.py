@@ -95,6 +95,12 @@ def test_imagenet_start_of_every_rgb_encoder():
     assert torch.equal(s.model.encoder.state_dict()["stem.1.weight"], ref["_conv_stem.weight"])
     b = build(TINY_S6, encoder_variant="lite0", depth_mult=1.0, encoder_init="imagenet")
     assert torch.equal(b.model.cam_encoder.trunk.state_dict()["stem.1.weight"], ref["_conv_stem.weight"])
+    # a Lite encoder reads its input scaled as the checkpoint was trained, (x - 127) / 128
+    from bev_mapper_core.nn.config import LITE_MEAN, RGB_MEAN
+
+    for model in (f.model, s.model, b.model):
+        assert torch.allclose(model.rgb_mean.flatten(), torch.tensor(LITE_MEAN)), type(model).__name__
+    assert torch.allclose(build(TINY_F1).model.rgb_mean.flatten(), torch.tensor(RGB_MEAN))  # the others as before
     with pytest.raises(PretrainedError, match="not Lite.*lite0: width 1.0, depth 1.0"):
         build(TINY_S6, encoder_init="imagenet")
     with pytest.raises(ConfigError, match="a lite0 backbone"):
