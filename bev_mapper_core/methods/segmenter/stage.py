@@ -15,7 +15,7 @@ FocusBEV and Bi-Mapper's RGB encoders start from (``encoder_init auto``; their s
 were trained from it, and their encoders have its sizes): :data:`TRUNK_SEGMENTER`.
 
 The stage runs the network with the configured backend (:data:`STAGE_AUTO_ORDER` for ``auto``:
-onnxruntime first, the fastest on the segmenter, bench/bench_backends.py) through the package's
+onnxruntime first, the fastest on the segmenter, bench/bench_segmenter.py) through the package's
 :class:`~bev_mapper_core.nn.backends.BackendRunner`; the labels equal torch's (tested).
 """
 
@@ -49,8 +49,8 @@ GENERAL_SEGMENTER = SHIPPED_SEGMENTERS[DEFAULT_SEGMENTER]
 #: The segmenter whose trunk the other RGB methods start from (``encoder_init auto``).
 TRUNK_SEGMENTER = "segmenter_w320.safetensors"
 #: ``backend: auto`` for the segmenter stage: the fastest that gives torch's labels, measured
-#: on the shipped segmenter at 480x360, 1 thread (bench/bench_backends.py --segmenter):
-#: onnxruntime 34 ms, OpenVINO 38 ms, torch 85 ms.
+#: on the shipped segmenter at 480x360, 1 thread (bench/bench_segmenter.py, docs/SPEED.md):
+#: onnxruntime 36.5 ms, OpenVINO 40.8 ms, torch 86.6 ms.
 STAGE_AUTO_ORDER = ("onnxruntime", "openvino")
 
 
