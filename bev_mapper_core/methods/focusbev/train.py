@@ -153,9 +153,9 @@ class FocusBEVMethod(TrainMethod):
             self.encoder_source = init_encoder(model.backbone.trunk, init, self.cfg.model.input_kind, self.rig.name)
         elif self.cfg.model.backbone == "lite0" and init in ("imagenet", "none", "auto"):
             # auto: ImageNet on RGB input (the segmenter's trunk is no Lite0), none on labels
-            spec = "imagenet" if init == "auto" and self.cfg.model.input_kind == "rgb" else init
-            self.encoder_source = init_encoder(model.backbone.trunk, spec if spec == "imagenet" else "none",
-                                               self.cfg.model.input_kind, self.rig.name)
+            rgb = self.cfg.model.input_kind == "rgb"
+            spec = "imagenet" if init == "imagenet" or (init == "auto" and rgb) else "none"
+            self.encoder_source = init_encoder(model.backbone.trunk, spec, self.cfg.model.input_kind, self.rig.name)
         elif init not in ("auto", "none"):
             need = "lite0" if init == "imagenet" else "efficientnet"
             raise ConfigError(f"encoder_init {init!r} initializes {'a' if need == 'lite0' else 'an'} {need} backbone; "
