@@ -94,8 +94,19 @@ class BagReader:
         return dict(self._src.custom_data)
 
     def image_topic(self, camera: str, kind: str = "rgb") -> str:
-        """The image topic of ``camera`` (``/cameras/<camera>/image_raw`` unless the hints say)."""
-        return self.hints.image_topics[kind].format(camera=camera)
+        """The image topic of ``camera`` (``/cameras/<camera>/image_raw`` unless the hints say);
+        where the bag lacks it but has its compressed transport (``<topic>/compressed``,
+        image_transport's convention), that one.
+        """
+        topic = self.hints.image_topics[kind].format(camera=camera)
+        if topic not in self._src.topics and T.compressed_topic(topic) in self._src.topics:
+            return T.compressed_topic(topic)
+        return topic
+
+    def is_compressed(self, topic: str) -> bool:
+        """Whether ``topic`` carries ``sensor_msgs/CompressedImage`` (JPEG / PNG), whatever its name."""
+        s = self._src.topics.get(topic)
+        return s is not None and s.msgtype == T.COMPRESSED_IMAGE_TYPE
 
     def camera_info_topic(self, camera: str) -> str:
         """The CameraInfo topic of ``camera`` (``/cameras/<camera>/camera_info`` unless the hints say)."""
