@@ -5,7 +5,9 @@ Topics with type, message count and rate; the cameras found, each with its calib
 frame to the ego frame; the GT layers and their grid; the duration. Works on rosbag2
 directories (mcap, sqlite3) and plain ``.mcap`` / ``.db3`` files; a damaged bag is described
 up to the damage, with a note. Topics whose type differs from the one their name calls for
-(``/odom`` carrying images, ...) are listed and not decoded. Exit status 1 for a damaged bag
+(``/odom`` carrying images, ...) are listed and not decoded. A camera's images may be
+``sensor_msgs/CompressedImage`` on its image topic or on ``<image topic>/compressed`` (said as
+``(compressed)``); GT layers of classes this package does not define are listed as skipped. Exit status 1 for a damaged bag
 or topics of the wrong type (after printing the description).
 """
 
@@ -183,6 +185,7 @@ def describe(path: Path) -> dict:
             "cameras": cams,
             "ego_frame": reader.ego_frame,
             "gt_layers": gt,
+            "skipped_gt_layers": list(reader.unknown_gt_classes),
             "gt_grid": grid.to_dict() if grid is not None else None,
             "ground_visibility": T.GROUND_VISIBILITY in reader.topics,
             "any_visibility": T.ANY_VISIBILITY in reader.topics,
@@ -235,6 +238,8 @@ def format_info(d: dict) -> str:
         lines.append(f"full-truth layers ({len(truth)}): {', '.join(truth) or 'none'}")
     else:
         lines.append("GT layers:  none")
+    if d.get("skipped_gt_layers"):
+        lines.append(f"GT layers of unknown classes (skipped by replay): {', '.join(d['skipped_gt_layers'])}")
     lines.append(f"odometry:   {'yes' if d['odometry'] else 'no'}")
     for p in d["wrong_types"]:
         lines.append(f"WRONG TYPE: {p}")
