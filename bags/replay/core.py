@@ -47,6 +47,7 @@ from pathlib import Path
 
 from bev_mapper_core.errors import BevMapperError
 from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.geometry.rig import PRESETS
 from bev_mapper_core.labels.classes import known_class_names
 from bev_mapper_core.mapper import create_mapper
 
@@ -96,7 +97,7 @@ def replay(options: ReplayOptions, progress: Callable | None = None) -> ReplayRe
         try:
             mapper = create_mapper(rig, grid, options.mapper)
         except BevMapperError as exc:
-            if "rig" not in str(exc) or hints is not None:
+            if "rig" not in str(exc) or hints is not None or rig.name in PRESETS:  # a preset is no guess
                 raise
             raise type(exc)(f"{exc} (the bag's rig was taken as {rig.name!r}: {RIG_FLAGS_HINT})") from None
         out.mkdir(parents=True, exist_ok=True)
