@@ -11,7 +11,8 @@ is what the user adds, resolved from:
 * ``--params-file FILE``: the node's own parameter file (``config/<rig>.yaml`` or yours), read
   by the node's own parser (:func:`bev_mapper_ros.config.node_config_from_params`, which
   imports no ROS): rig name, cameras, ``extrinsics.<camera>``, the topic patterns
-  ``image_topic`` / ``camera_info_topic``, ``base_frame`` and the grid.
+  ``image_topic`` (with ``compressed: true`` its ``/compressed`` transport, as the node
+  subscribes) / ``camera_info_topic``, ``base_frame`` and the grid.
 
 The bag's own data wins where it has it: its CameraInfo over a preset's intrinsics, its
 ``/tf_static`` over given extrinsics. The flags' rig name wins over the bag's metadata key.
