@@ -261,13 +261,40 @@ def make_image(
 
 
 # ------------------------------------------------------------- CompressedImage
+#: Words of a ``CompressedImage.format`` naming each codec the adapters decode (image_transport
+#: writes ``"jpeg"``, ``"png"`` or ``"rgb8; jpeg compressed bgr8"``; some recorders ``"jpg"``).
+FORMAT_WORDS = {"jpeg": ("jpeg", "jpg"), "png": ("png",)}
+
+
+def format_problem(fmt: Any, codec: str) -> str | None:
+    """Why a ``CompressedImage.format`` string does not describe data of ``codec`` (``'jpeg'`` or
+    ``'png'``, from the data's signature), else ``None``: it must be a string naming that codec and
+    no other (``compressedDepth``, whose data is not a plain PNG, is refused). An empty string is
+    accepted: the codec is the data's.
+    """
+    if not isinstance(fmt, str):
+        return f"format must be a string, got {short_repr(fmt)}"
+    text = fmt.strip().lower()
+    if not text:
+        return None
+    if "compresseddepth" in text:
+        return f"format {fmt!r} is image_transport's compressedDepth, not a colour or label image"
+    named = [c for c, words in FORMAT_WORDS.items() if any(w in text for w in words)]
+    if not named:
+        return f"format {fmt!r} names no codec the adapters decode ({', '.join(FORMAT_WORDS)})"
+    if named != [codec]:
+        return f"format {fmt!r} does not match the data, which is {codec.upper()}"
+    return None
+
+
 def compressed_to_array(msg: Any, expected_size: Any = None, *,
-                        limits: AdapterLimits = DEFAULT_LIMITS) -> np.ndarray:
+                        limits: AdapterLimits = DEFAULT_LIMITS, check_format: bool = False) -> np.ndarray:
     """Decode a ``sensor_msgs/CompressedImage`` (jpeg/png) to RGB ``(H, W, 3)``, RGBA
     ``(H, W, 4)`` (PNG with alpha) or mono ``(H, W)``.
 
-    16-bit PNGs decode to uint16. The format string is only used in error messages: the codec
-    is identified from the data's signature. The size claimed by the PNG/JPEG header is checked
+    16-bit PNGs decode to uint16. The codec is identified from the data's signature; the format
+    string is used in error messages, and with ``check_format`` it must name that codec
+    (:func:`format_problem`, checked before decoding). The size claimed by the PNG/JPEG header is checked
     (:func:`check_image_size`) *before* decoding, so nothing larger than ``expected_size`` (when
     given) or ``limits.max_image_pixels`` is ever allocated.
 
@@ -276,12 +303,14 @@ def compressed_to_array(msg: Any, expected_size: Any = None, *,
         expected_size: ``(width, height)`` the image must have (e.g. the camera model's
             ``image_size``); None accepts any size within ``limits``.
         limits: size bounds (default :data:`~msg_adapters.limits.DEFAULT_LIMITS`).
+        check_format: refuse a ``format`` string that names another codec than the data's, or none.
 
     Raises:
-        EncodingError: no data, neither PNG nor JPEG, a truncated or invalid header, a size
+        EncodingError: no data, neither PNG nor JPEG, a refused format (``check_format``), a truncated or invalid header, a size
             refused before decoding, or any decoder failure (corrupt or truncated data).
     """
-    fmt = short_repr(getattr(msg, "format", None))
+    raw_fmt = getattr(msg, "format", None)
+    fmt = short_repr(raw_fmt)
     buf = byte_buffer(field(msg, "data", EncodingError, "compressed image"), "data", EncodingError,
                       f"compressed image ({fmt})")
     if buf.size == 0:
@@ -291,6 +320,10 @@ def compressed_to_array(msg: Any, expected_size: Any = None, *,
     except EncodingError as exc:
         raise EncodingError(f"cannot decode compressed image ({fmt}): {exc}") from None
     what = f"compressed {header.format.upper()} image ({fmt})"
+    if check_format:
+        problem = format_problem(raw_fmt, header.format)
+        if problem:
+            raise EncodingError(f"{what}: {problem}")
     check_image_size(header.width, header.height, what, expected_size, limits)
     try:
         img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
@@ -308,6 +341,23 @@ def compressed_to_array(msg: Any, expected_size: Any = None, *,
         code = cv2.COLOR_BGR2RGB if img.shape[2] == 3 else cv2.COLOR_BGRA2RGBA
         img = cv2.cvtColor(img, code, dst=img)  # in place: no second full-size buffer
     return img
+
+
+def compressed_to_rgb(msg: Any, expected_size: Any = None, *, limits: AdapterLimits = DEFAULT_LIMITS,
+                      check_format: bool = False) -> np.ndarray:
+    """Decode a ``sensor_msgs/CompressedImage`` to ``(H, W, 3)`` uint8 RGB, as :func:`image_to_rgb`
+    does an Image: through :func:`compressed_to_array` (its checks; ``expected_size``, ``limits`` and
+    ``check_format`` as there), an 8-bit grey image repeated into R, G and B, RGBA without alpha.
+
+    Raises:
+        EncodingError: as :func:`compressed_to_array`, or a 16-bit PNG.
+    """
+    arr = compressed_to_array(msg, expected_size, limits=limits, check_format=check_format)
+    if arr.dtype != np.uint8:
+        raise EncodingError(f"cannot show a {arr.dtype} compressed image as RGB; expected 8-bit data")
+    if arr.ndim == 2:
+        return np.repeat(arr[:, :, None], 3, axis=2)  # (H, W) -> (H, W, 3)
+    return np.ascontiguousarray(arr[..., :3])  # (H, W, 4) -> (H, W, 3): alpha dropped
 
 
 def make_compressed_image(

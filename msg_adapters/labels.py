@@ -78,11 +78,12 @@ def image_to_labels(msg: Any, expected_size: Any = None, *, limits: AdapterLimit
 
 
 def compressed_to_labels(msg: Any, expected_size: Any = None, *, limits: AdapterLimits = DEFAULT_LIMITS,
-                         label_map: LabelMap | None = None) -> np.ndarray:
+                         label_map: LabelMap | None = None, check_format: bool = False) -> np.ndarray:
     """Decode a compressed label image (PNG) and map it to ``(H, W)`` uint8 Label ids.
 
     ``expected_size``, ``limits`` and ``label_map`` as in :func:`image_to_labels`; the size in
-    the PNG/JPEG header is checked before decoding (:func:`~msg_adapters.image.compressed_to_array`).
+    the PNG/JPEG header (and with ``check_format`` the ``format`` string) is checked before
+    decoding (:func:`~msg_adapters.image.compressed_to_array`).
 
     Raises:
         EncodingError: the decoded image is not what the label map takes (8-bit single-channel
@@ -90,7 +91,7 @@ def compressed_to_labels(msg: Any, expected_size: Any = None, *, limits: Adapter
             refuses.
     """
     lm = _map(label_map)
-    img = compressed_to_array(msg, expected_size, limits=limits)
+    img = compressed_to_array(msg, expected_size, limits=limits, check_format=check_format)
     channels = 1 if img.ndim == 2 else img.shape[2]
     want = 1 if lm.encoding == "mono8" else 3
     if channels != want or img.dtype != np.uint8:

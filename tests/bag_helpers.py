@@ -16,12 +16,36 @@ SMALL_DRIVE_FRAMES = 4
 
 
 def synth_small(out: pathlib.Path, *, frames: int = SMALL_DRIVE_FRAMES, storage: str = "mcap",
-                seed: int = 5) -> pathlib.Path:
-    """``bev-bag synth``: surround6 at half image scale on the small grid."""
+                seed: int = 5, compressed: bool = False) -> pathlib.Path:
+    """``bev-bag synth``: surround6 at half image scale on the small grid (``compressed``: its
+    images as CompressedImage on ``<image topic>/compressed``).
+    """
     argv = ["synth", str(out), "--frames", str(frames), "--seed", str(seed), "--scale", "0.5",
-            "--storage", storage, *SMALL_GRID_ARGS]
+            "--storage", storage, *SMALL_GRID_ARGS, *(["--compressed"] if compressed else [])]
     assert main(argv) == 0
     return out
+
+
+def rewrite_bag(src: pathlib.Path, dst: pathlib.Path, edit) -> pathlib.Path:
+    """A copy of the bag ``src`` at ``dst`` (MCAP), each message as ``edit(topic, msgtype, cdr)``
+    returns it: ``(topic, msgtype, cdr)`` to write (renamed, retyped or changed bytes), or ``None``
+    to leave it out. Metadata and latched topics are kept.
+    """
+    from bags.io.reader import BagReader  # noqa: PLC0415
+    from bags.io.writer import BagWriter  # noqa: PLC0415
+
+    with BagReader(src) as r, BagWriter(dst) as w:
+        for key, value in r.custom_data.items():
+            w.set_custom_data(key, value)
+        latched = r.latched_topics
+        for m in r.messages(raw=True):
+            out = edit(m.topic, m.msgtype, bytes(m.msg))
+            if out is None:
+                continue
+            topic, msgtype, data = out
+            w.add_topic(topic, msgtype, latched=m.topic in latched)
+            w.write_raw(topic, data, m.log_ns)
+    return dst
 
 
 def replay_ipm(bag: pathlib.Path, out: pathlib.Path, *extra: str) -> int:

@@ -5,7 +5,9 @@ Topics with type, message count and rate; the cameras found, each with its calib
 frame to the ego frame; the GT layers and their grid; the duration. Works on rosbag2
 directories (mcap, sqlite3) and plain ``.mcap`` / ``.db3`` files; a damaged bag is described
 up to the damage, with a note. Topics whose type differs from the one their name calls for
-(``/odom`` carrying images, ...) are listed and not decoded. Exit status 1 for a damaged bag
+(``/odom`` carrying images, ...) are listed and not decoded. A camera's images may be
+``sensor_msgs/CompressedImage`` on its image topic or on ``<image topic>/compressed`` (said as
+``(compressed)``); GT layers of classes this package does not define are listed as skipped. Exit status 1 for a damaged bag
 or topics of the wrong type (after printing the description).
 """
 
@@ -91,13 +93,10 @@ def _calibration(reader: BagReader) -> tuple[list[dict], list[str]]:
         pass  # reported by the time scan
     cams = []
     for n in reader.uncalibrated_cameras:
-        cams.append({"name": n, "calibration": None, "extrinsics": None,
-                     "images": [k for k in T.IMAGE_KINDS if T.image_topic(n, k) in reader.topics],
+        cams.append({"name": n, "calibration": None, "extrinsics": None, **_images(reader, n),
                      "problem": "images but no camera_info topic"})
     for n in names:
-        cam: dict[str, Any] = {"name": n, "calibration": None, "extrinsics": None}
-        kinds = [k for k in T.IMAGE_KINDS if T.image_topic(n, k) in reader.topics]
-        cam["images"] = kinds
+        cam: dict[str, Any] = {"name": n, "calibration": None, "extrinsics": None, **_images(reader, n)}
         msg = infos.get(n)
         if msg is None:
             cam["problem"] = "no CameraInfo message"
@@ -123,18 +122,26 @@ def _calibration(reader: BagReader) -> tuple[list[dict], list[str]]:
     return cams, problems
 
 
+def _images(reader: BagReader, camera: str) -> dict[str, list[str]]:
+    """``images``: the image kinds the bag has of ``camera`` (as Image or CompressedImage, on the
+    image topic or its ``/compressed`` transport); ``compressed``: those of them compressed.
+    """
+    kinds = [k for k in T.IMAGE_KINDS if reader.image_topic(camera, k) in reader.topics]
+    return {"images": kinds, "compressed": [k for k in kinds if reader.is_compressed(reader.image_topic(camera, k))]}
+
+
 #: A camera with fewer images of a kind than this share of the camera with the most is said to
 #: be thinned out (``bev-bag info``'s problems).
 THIN_SHARE = 0.9
 
 
-def _thin_cameras(names: list[str], counts: dict[str, int]) -> list[str]:
+def _thin_cameras(reader: BagReader, names: list[str], counts: dict[str, int]) -> list[str]:
     """Problems: a camera with no images, or far fewer than the others, of a kind some camera has
     (replay then maps sets without it: ``metrics.json`` ``sync``).
     """
     out = []
     for kind in T.IMAGE_KINDS:
-        n = {c: counts.get(T.image_topic(c, kind), 0) for c in names}
+        n = {c: counts.get(reader.image_topic(c, kind), 0) for c in names}
         most = max(n.values(), default=0)
         for c, k in n.items():
             if most and k < THIN_SHARE * most:
@@ -156,7 +163,7 @@ def describe(path: Path) -> dict:
                            "rate_hz": None if rate is None else round(rate, 3)})
         cams, problems = _calibration(reader)
         counts = {t["topic"]: t["count"] for t in topics}
-        problems += _thin_cameras([c["name"] for c in cams if c["calibration"]], counts)
+        problems += _thin_cameras(reader, [c["name"] for c in cams if c["calibration"]], counts)
         wrong_types = reader.type_problems
         gt = list(reader.gt_classes)
         grid = None
@@ -178,6 +185,7 @@ def describe(path: Path) -> dict:
             "cameras": cams,
             "ego_frame": reader.ego_frame,
             "gt_layers": gt,
+            "skipped_gt_layers": list(reader.unknown_gt_classes),
             "gt_grid": grid.to_dict() if grid is not None else None,
             "ground_visibility": T.GROUND_VISIBILITY in reader.topics,
             "any_visibility": T.ANY_VISIBILITY in reader.topics,
@@ -211,8 +219,9 @@ def format_info(d: dict) -> str:
                 if cal else f"NO CALIBRATION ({c.get('problem', '?')})")
         ext = "extrinsics in /tf_static" if c["extrinsics"] else "NO extrinsics in /tf_static"
         frame = c.get("frame_id", "?")
+        images = [f"{k} (compressed)" if k in c.get("compressed", ()) else k for k in c["images"]]
         lines.append(f"  {c['name']:<12} {text}; frame {frame}; {ext}; "
-                     f"images: {', '.join(c['images']) or 'none'}")
+                     f"images: {', '.join(images) or 'none'}")
     if not d["cameras"]:
         lines.append("  none (no /cameras/<name>/camera_info topics)")
     lines.append("")
@@ -229,6 +238,8 @@ def format_info(d: dict) -> str:
         lines.append(f"full-truth layers ({len(truth)}): {', '.join(truth) or 'none'}")
     else:
         lines.append("GT layers:  none")
+    if d.get("skipped_gt_layers"):
+        lines.append(f"GT layers of unknown classes (skipped by replay): {', '.join(d['skipped_gt_layers'])}")
     lines.append(f"odometry:   {'yes' if d['odometry'] else 'no'}")
     for p in d["wrong_types"]:
         lines.append(f"WRONG TYPE: {p}")

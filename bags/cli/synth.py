@@ -38,6 +38,8 @@ class SynthBagOptions:
         scale: image scale applied to every camera of the rig (0.25 = quarter size).
         storage: ``'mcap'`` or ``'sqlite3'``.
         force: overwrite an existing bag at ``out``.
+        compressed: images as ``sensor_msgs/CompressedImage`` on ``<image topic>/compressed``
+            (RGB as JPEG, label images as PNG).
         grid: the BEV grid of the GT layers.
         synth: generator settings (frames, seed, rate, jitter, ...).
     """
@@ -47,6 +49,7 @@ class SynthBagOptions:
     scale: float = 1.0
     storage: str = "mcap"
     force: bool = False
+    compressed: bool = False
     grid: BevGrid = field(default_factory=BevGrid)
     synth: SynthConfig = field(default_factory=SynthConfig)
 
@@ -85,10 +88,12 @@ def synth_bag(options: SynthBagOptions) -> DriveSummary:
         # the style the drive was rendered in (``mixed`` resolved): what its RGB images look like
         "bev_mapper.style": resolve_style(options.synth.style, options.synth.seed),
     }
+    if options.compressed:
+        custom["bev_mapper.compressed"] = "rgb: jpeg, labels: png"
     classes = gt_classes(rig.name)
     frames = generate_drive(rig, options.grid, options.synth, classes)
     return write_drive(options.out, rig, options.grid, frames, classes=classes, storage=options.storage,
-                       force=options.force, custom_data=custom)
+                       force=options.force, custom_data=custom, compressed=options.compressed)
 
 
 def gt_classes(rig_name: str) -> tuple:
@@ -121,6 +126,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--style", default=sc.style, choices=STYLE_CHOICES, help=style_help())
     p.add_argument("--storage", choices=STORAGES, default=o.storage, help="rosbag2 storage plugin")
     p.add_argument("--force", action="store_true", help="overwrite an existing bag at OUT")
+    p.add_argument("--compressed", action="store_true",
+                   help="images as sensor_msgs/CompressedImage on <image topic>/compressed (image_transport's "
+                        "convention): RGB as JPEG, label images as PNG (JPEG would change the label ids)")
     add_grid_args(p, "BEV grid of the GT layers (default surround)")
 
 
@@ -130,7 +138,7 @@ def options_from_args(args: argparse.Namespace) -> SynthBagOptions:
     synth = SynthConfig(frames=args.frames, seed=args.seed, rate_hz=args.rate_hz,
                         jitter_ms=args.jitter_ms, style=args.style)
     return SynthBagOptions(out=args.out, rig=args.rig, scale=args.scale, storage=args.storage,
-                           force=args.force, grid=grid, synth=synth)
+                           force=args.force, compressed=args.compressed, grid=grid, synth=synth)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -42,28 +42,41 @@ DECODE_ERRORS = (AdapterError, AttributeError, TypeError, ValueError, OverflowEr
                  IndexError, KeyError)
 
 
-def expected_type(topic: str) -> str | None:
-    """The message type a topic's name calls for, or ``None`` for topics the tool ignores."""
+def expected_types(topic: str) -> tuple[str, ...] | None:
+    """The message types a topic's name allows, or ``None`` for topics the tool ignores: a
+    camera's image topic carries ``sensor_msgs/Image`` or ``sensor_msgs/CompressedImage``, its
+    ``.../compressed`` transport ``CompressedImage`` only.
+    """
     if topic in (T.TF_STATIC, T.TF):
-        return T.TF_TYPE
+        return (T.TF_TYPE,)
     if topic == T.ODOM:
-        return T.ODOM_TYPE
+        return (T.ODOM_TYPE,)
     if (topic in (T.GROUND_VISIBILITY, T.ANY_VISIBILITY) or T.parse_gt_topic(topic)
             or T.parse_truth_topic(topic)):
-        return T.GRID_TYPE
+        return (T.GRID_TYPE,)
     parsed = T.parse_camera_topic(topic)
     if parsed:
-        return T.CAMERA_INFO_TYPE if parsed[1] == "camera_info" else T.IMAGE_TYPE
+        if parsed[1] == "camera_info":
+            return (T.CAMERA_INFO_TYPE,)
+        return (T.COMPRESSED_IMAGE_TYPE,) if T.is_compressed_topic(topic) else T.IMAGE_TYPES
     return None
+
+
+def expected_type(topic: str) -> str | None:
+    """The message type a topic's name calls for (the first of :func:`expected_types`), or
+    ``None`` for topics the tool ignores.
+    """
+    want = expected_types(topic)
+    return want[0] if want else None
 
 
 def type_problems(types: dict[str, str]) -> list[str]:
     """``'<topic> carries <type>, expected <type>'`` for every topic of the wrong type."""
     out = []
     for topic, msgtype in sorted(types.items()):
-        want = expected_type(topic)
-        if want is not None and msgtype != want:
-            out.append(f"topic {topic} carries {msgtype or 'an unknown type'}, expected {want}")
+        want = expected_types(topic)
+        if want is not None and msgtype not in want:
+            out.append(f"topic {topic} carries {msgtype or 'an unknown type'}, expected {' or '.join(want)}")
     return out
 
 

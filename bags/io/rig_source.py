@@ -11,7 +11,8 @@ is what the user adds, resolved from:
 * ``--params-file FILE``: the node's own parameter file (``config/<rig>.yaml`` or yours), read
   by the node's own parser (:func:`bev_mapper_ros.config.node_config_from_params`, which
   imports no ROS): rig name, cameras, ``extrinsics.<camera>``, the topic patterns
-  ``image_topic`` / ``camera_info_topic``, ``base_frame`` and the grid.
+  ``image_topic`` (with ``compressed: true`` its ``/compressed`` transport, as the node
+  subscribes) / ``camera_info_topic``, ``base_frame`` and the grid.
 
 The bag's own data wins where it has it: its CameraInfo over a preset's intrinsics, its
 ``/tf_static`` over given extrinsics. The flags' rig name wins over the bag's metadata key.
@@ -131,8 +132,11 @@ def _from_params_file(path: Path, node_name: str, rig_flag: str) -> RigHints:
         cfg = node_config_from_params(params)
     except BevMapperError as exc:
         raise RigFlagError(f"--params-file {path}: {exc}") from None
-    topics = {k: (cfg.image_topic if cfg.image_topic and k == cfg.mapper.input_kind else v)
-              for k, v in DEFAULT_TOPICS.items()}
+    kind = cfg.mapper.input_kind
+    topics = dict(DEFAULT_TOPICS)
+    topics[kind] = cfg.image_topic or topics[kind]
+    if cfg.compressed:  # the node's subscription: <image_topic>/compressed
+        topics[kind] = T.compressed_topic(topics[kind])
     has_grid = any(k.startswith("grid.") for k in params)
     return RigHints(name=cfg.rig, cameras=cfg.cameras, extrinsics=dict(cfg.extrinsics), image_topics=topics,
                     camera_info_topic=cfg.camera_info_topic, base_frame=cfg.base_frame,

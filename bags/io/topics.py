@@ -18,6 +18,12 @@ TRUTH_PREFIX = "/bev/truth/"
 CAMERA_PREFIX = "/cameras/"
 
 IMAGE_TYPE = "sensor_msgs/msg/Image"
+#: image_transport's ``compressed`` transport: JPEG or PNG bytes (:func:`compressed_topic`).
+COMPRESSED_IMAGE_TYPE = "sensor_msgs/msg/CompressedImage"
+#: The image types a camera's image topic may carry.
+IMAGE_TYPES = (IMAGE_TYPE, COMPRESSED_IMAGE_TYPE)
+#: image_transport's suffix of the compressed transport: ``<image topic>/compressed``.
+COMPRESSED_SUFFIX = "/compressed"
 CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
 TF_TYPE = "tf2_msgs/msg/TFMessage"
 ODOM_TYPE = "nav_msgs/msg/Odometry"
@@ -30,6 +36,16 @@ IMAGE_KINDS = {"rgb": "image_raw", "labels": "labels"}
 def image_topic(camera: str, kind: str = "rgb") -> str:
     """``/cameras/<camera>/image_raw`` (kind ``rgb``) or ``/cameras/<camera>/labels``."""
     return f"{CAMERA_PREFIX}{camera}/{IMAGE_KINDS[kind]}"
+
+
+def compressed_topic(image_topic_name: str) -> str:
+    """``<image topic>/compressed``: where image_transport publishes the topic's JPEG/PNG messages."""
+    return image_topic_name + COMPRESSED_SUFFIX
+
+
+def is_compressed_topic(topic: str) -> bool:
+    """Whether ``topic`` is image_transport's compressed transport of an image topic."""
+    return topic.endswith(COMPRESSED_SUFFIX)
 
 
 def camera_info_topic(camera: str) -> str:
@@ -48,10 +64,15 @@ def truth_topic(class_name: str) -> str:
 
 
 def parse_camera_topic(topic: str) -> tuple[str, str] | None:
-    """``('front', 'rgb' | 'labels' | 'camera_info')`` for a camera topic, else ``None``."""
+    """``('front', 'rgb' | 'labels' | 'camera_info')`` for a camera topic, else ``None``; an
+    image topic's compressed transport (``/cameras/front/image_raw/compressed``) is its camera's
+    image topic of that kind too.
+    """
     if not topic.startswith(CAMERA_PREFIX):
         return None
     parts = topic[len(CAMERA_PREFIX):].split("/")
+    if len(parts) == 3 and "/" + parts[2] == COMPRESSED_SUFFIX and parts[1] != "camera_info":
+        parts = parts[:2]
     if len(parts) != 2:
         return None
     camera, leaf = parts

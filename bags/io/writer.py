@@ -27,6 +27,7 @@ from msg_adapters import (
     RosbagsFactory,
     StampedTransform,
     make_camera_info,
+    make_compressed_image,
     make_image,
     make_occupancy_grid,
     make_odometry,
@@ -190,19 +191,42 @@ class DriveSummary:
     last_stamp_ns: int
 
 
+#: ``write_drive(compressed=True)``: the codec of each image kind (label images lossless: JPEG
+#: changes label ids) and the JPEG quality of the RGB images.
+COMPRESSED_FORMATS = {"rgb": "jpeg", "labels": "png"}
+JPEG_QUALITY = 90
+
+
+def camera_image_topic(camera: str, kind: str, compressed: bool) -> str:
+    """The topic :func:`write_drive` writes a camera's images of ``kind`` on: the image topic, or
+    its ``/compressed`` transport.
+    """
+    topic = T.image_topic(camera, kind)
+    return T.compressed_topic(topic) if compressed else topic
+
+
+def _image_message(factory, array, kind: str, compressed: bool, stamp_ns: int, frame_id: str):
+    """An Image (rgb8 / mono8) or a CompressedImage (:data:`COMPRESSED_FORMATS`) of ``array``."""
+    if compressed:
+        return make_compressed_image(factory, array, COMPRESSED_FORMATS[kind], stamp_ns, frame_id,
+                                     quality=JPEG_QUALITY)
+    return make_image(factory, array, "rgb8" if kind == "rgb" else "mono8", stamp_ns, frame_id)
+
+
 def _frame_messages(f, rig: Rig, grid: BevGrid, classes, factory, ego_frame, odom_frame,
-                    truth: bool = True):
-    """(log_ns, topic, msg) of one synthetic frame; ``truth``: also the full-truth layers."""
+                    truth: bool = True, compressed: bool = False):
+    """(log_ns, topic, msg) of one synthetic frame; ``truth``: also the full-truth layers;
+    ``compressed``: the images as CompressedImage on ``<image topic>/compressed``.
+    """
     out = []
     for cam in rig.cameras:
         cf = f.cameras.get(cam.name)
         if cf is None:  # camera dropped out in this frame
             continue
         s = int(cf.stamp_ns)
-        out.append((s, T.image_topic(cam.name, "rgb"),
-                    make_image(factory, cf.rgb, "rgb8", s, cam.frame_id)))
-        out.append((s, T.image_topic(cam.name, "labels"),
-                    make_image(factory, cf.labels, "mono8", s, cam.frame_id)))
+        for kind, array in (("rgb", cf.rgb), ("labels", cf.labels)):
+            out.append((s, camera_image_topic(cam.name, kind, compressed),
+                        _image_message(factory, array, kind, compressed, s, cam.frame_id)))
         out.append((s, T.camera_info_topic(cam.name),
                     make_camera_info(factory, cam.model, s, cam.frame_id)))
     s = int(f.stamp_ns)
@@ -243,6 +267,7 @@ def write_drive(
     odom_frame: str = "odom",
     custom_data: dict[str, str] | None = None,
     truth: bool = True,
+    compressed: bool = False,
 ) -> DriveSummary:
     """Write synthetic drive frames (``SynthFrame``-like objects) as a rosbag2 directory.
 
@@ -254,7 +279,9 @@ def write_drive(
     full truth, whose ``gt`` holds what is in every cell whether seen or not:
     ``/bev/truth/<class>`` (100 present, 0 absent, no -1) and ``/bev/visibility/any`` (100 where
     the cell is seen, i.e. where ``/bev/gt/<class>`` is not -1). Log times equal the header
-    stamps.
+    stamps. ``compressed``: the images as ``sensor_msgs/CompressedImage`` on image_transport's
+    ``<image topic>/compressed`` instead (RGB as JPEG, label images as PNG:
+    :data:`COMPRESSED_FORMATS`).
 
     Raises:
         BagExistsError: ``path`` exists and ``force`` is false.
@@ -265,8 +292,9 @@ def write_drive(
         fac = bw.factory
         bw.add_topic(T.TF_STATIC, T.TF_TYPE, latched=True)
         for cam in rig.cameras:
-            bw.add_topic(T.image_topic(cam.name, "rgb"), T.IMAGE_TYPE)
-            bw.add_topic(T.image_topic(cam.name, "labels"), T.IMAGE_TYPE)
+            for kind in ("rgb", "labels"):
+                bw.add_topic(camera_image_topic(cam.name, kind, compressed),
+                             T.COMPRESSED_IMAGE_TYPE if compressed else T.IMAGE_TYPE)
             bw.add_topic(T.camera_info_topic(cam.name), T.CAMERA_INFO_TYPE)
         bw.add_topic(T.ODOM, T.ODOM_TYPE)
         bw.add_topic(T.TF, T.TF_TYPE)
@@ -280,7 +308,7 @@ def write_drive(
             bw.set_custom_data(key, value)
         for f in frames:
             try:
-                msgs = _frame_messages(f, rig, grid, classes, fac, ego_frame, odom_frame, truth)
+                msgs = _frame_messages(f, rig, grid, classes, fac, ego_frame, odom_frame, truth, compressed)
             except BevMapperError as exc:
                 raise BagError(f"frame {n}: {exc}") from None
             if first is None:

@@ -47,10 +47,13 @@ from pathlib import Path
 
 from bev_mapper_core.errors import BevMapperError
 from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.geometry.rig import PRESETS
+from bev_mapper_core.labels.classes import known_class_names
 from bev_mapper_core.mapper import create_mapper
 
 from ..errors import BagContentError
 from ..files import partial_name
+from ..io import topics as T
 from ..io.reader import BagReader
 from ..io.rig_source import RIG_FLAGS_HINT
 from ..io.writer import BagWriter
@@ -81,6 +84,10 @@ def replay(options: ReplayOptions, progress: Callable | None = None) -> ReplayRe
         rig = reader.rig()
         grid = reader.grid()
         notes: list[str] = []
+        if reader.unknown_gt_classes:
+            notes.append(f"GT layers of unknown classes skipped (not scored): "
+                         f"{', '.join(T.gt_topic(c) for c in reader.unknown_gt_classes)} (known classes: "
+                         f"{', '.join(known_class_names())})")
         if grid is None:
             grid = options.grid or (hints and hints.grid) or BevGrid()
             notes.append(f"the bag has no GT layers: mapping onto {grid.describe()}, no metrics")
@@ -90,7 +97,7 @@ def replay(options: ReplayOptions, progress: Callable | None = None) -> ReplayRe
         try:
             mapper = create_mapper(rig, grid, options.mapper)
         except BevMapperError as exc:
-            if "rig" not in str(exc) or hints is not None:
+            if "rig" not in str(exc) or hints is not None or rig.name in PRESETS:  # a preset is no guess
                 raise
             raise type(exc)(f"{exc} (the bag's rig was taken as {rig.name!r}: {RIG_FLAGS_HINT})") from None
         out.mkdir(parents=True, exist_ok=True)

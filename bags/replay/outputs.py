@@ -339,6 +339,7 @@ def metrics_document(run: ReplayRun, scorer: ReplayScorer, tally: MappingTally, 
         "calibration": res["calibration"],
     }
     doc.update(run.reader.issues.to_metrics())
+    doc["skipped_gt_layers"] = [T.gt_topic(c) for c in run.reader.unknown_gt_classes]  # unknown classes
     doc["sync"] = run.reader.sync_report.to_metrics()
     doc["rig"] = {"name": run.rig.name, "cameras": list(run.rig.names)}
     doc["temporal"] = tally.temporal

@@ -154,6 +154,11 @@ def bev_class(name: str) -> BevClass:
                       f"Cam2BEV's {[c.name for c in CAM2BEV_CLASSES]} and S2G2's {[c.name for c in S2G2_CLASSES]}")
 
 
+def known_class_names() -> tuple[str, ...]:
+    """Every BEV class name :func:`bev_class` knows: the standard set, then Cam2BEV's and S2G2's others."""
+    return tuple(dict.fromkeys(c.name for c in BEV_CLASSES + CAM2BEV_CLASSES + S2G2_CLASSES))
+
+
 def resolve_classes(names) -> tuple[BevClass, ...]:
     """Classes for a list of names (``None`` = all standard classes)."""
     if names is None:

@@ -16,7 +16,7 @@ from ..errors import ConfigError
 from ..geometry.grid import BevGrid
 from ..geometry.rig import Rig
 from ..mapper import Mapper, MapperConfig
-from ..methods import WEIGHTS_DIR, shipped_weights
+from ..methods import WEIGHTS_DIR, alternatives, shipped_weights
 from .backends import resolve_backend
 from .mono_geometry import check_one_camera
 from .weights import WeightsError
@@ -69,8 +69,8 @@ class MonocularMapper(Mapper):
         if not path.is_file():
             shipped = sorted(p.name for p in WEIGHTS_DIR.glob(f"{cls.name}_*.safetensors"))
             raise ConfigError(f"no {cls.title} weights given and none shipped for rig {rig_name!r} / input "
-                              f"{config.input_kind!r} (shipped: {', '.join(shipped) or 'none'}): train them "
-                              f"({cls.train_hint}) and pass weights=<file>, or use method 'ipm'")
+                              f"{config.input_kind!r} (shipped: {', '.join(shipped) or 'none'}); "
+                              f"{alternatives(cls.name, config.input_kind, rig_name, 1)}")
         return path
 
     @classmethod
@@ -88,7 +88,8 @@ class MonocularMapper(Mapper):
         resolve_backend(config.backend)
         if cameras is not None and len(cameras) != 1:
             raise ConfigError(f"{cls.title} is monocular: rig {rig_name!r} has {len(cameras)} cameras "
-                              f"{list(cameras)}; use a one-camera rig (e.g. front1), or method bimapper / ipm")
+                              f"{list(cameras)}; use a one-camera rig (e.g. front1), or another method: "
+                              f"{alternatives(cls.name, config.input_kind, rig_name, len(cameras))}")
         path = cls.weights_path(config, rig_name)
         meta = cls.read_metadata(path)
         if meta["input_kind"] != config.input_kind:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import array
 import importlib.util
 
+import cv2
 import numpy as np
 import pytest
 from import_check import ros_modules_loaded_by
@@ -164,6 +165,39 @@ def test_compressed_roundtrip(factory, fmt):
     )
     with pytest.raises(ma.EncodingError, match="cannot decode"):
         ma.compressed_to_array(bad)
+
+
+@pytest.mark.parametrize("fmt, codec, problem", [
+    ("jpeg", "jpeg", None), ("JPG", "jpeg", None), ("rgb8; jpeg compressed bgr8", "jpeg", None),
+    ("png", "png", None), ("mono8; png compressed ", "png", None), ("", "png", None),
+    ("png", "jpeg", "does not match the data, which is JPEG"), ("theora", "jpeg", "names no codec"),
+    ("16UC1; compressedDepth png", "png", "compressedDepth"), ("jpeg png", "png", "does not match"),
+    (None, "png", "must be a string"),
+])
+def test_format_problem(fmt, codec, problem):
+    got = ma.format_problem(fmt, codec)
+    assert got is None if problem is None else problem in got
+
+
+def test_compressed_to_rgb_gives_rgb_of_grey_and_rgba_and_checks_the_format(factory):
+    grey = np.arange(48 * 32, dtype=np.uint8).reshape(32, 48)
+    msg = ma.make_compressed_image(factory, grey, "png", 5, "cam")
+    rgb = ma.compressed_to_rgb(msg, (48, 32), check_format=True)
+    assert rgb.shape == (32, 48, 3) and all((rgb[..., i] == grey).all() for i in range(3))
+    rgba = np.dstack([grey, grey // 2, grey // 3, np.full_like(grey, 7)])
+    data = cv2.imencode(".png", cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGRA))[1].reshape(-1)
+    msg = factory.msg("sensor_msgs/msg/CompressedImage", header=ma.make_header(factory, 0, "c"), format="png",
+                      data=factory.uint8_seq(data))
+    np.testing.assert_array_equal(ma.compressed_to_rgb(msg), rgba[..., :3])
+    msg.format = "jpeg"
+    assert ma.compressed_to_rgb(msg).shape == (32, 48, 3)  # the format is not checked unless asked
+    with pytest.raises(ma.EncodingError, match="format 'jpeg' does not match the data, which is PNG"):
+        ma.compressed_to_rgb(msg, check_format=True)
+    sixteen = cv2.imencode(".png", grey.astype(np.uint16) * 200)[1].reshape(-1)
+    msg = factory.msg("sensor_msgs/msg/CompressedImage", header=ma.make_header(factory, 0, "c"), format="png",
+                      data=factory.uint8_seq(sixteen))
+    with pytest.raises(ma.EncodingError, match="uint16 compressed image as RGB"):
+        ma.compressed_to_rgb(msg)
 
 
 # ---------------------------------------------------------------- CameraInfo

@@ -26,7 +26,11 @@ _POSE = struct.Struct("<7d")
 _CDR_LE = (b"\x00\x01",)
 
 IMAGE_TYPE = "sensor_msgs/msg/Image"
+COMPRESSED_IMAGE_TYPE = "sensor_msgs/msg/CompressedImage"
 GRID_TYPE = "nav_msgs/msg/OccupancyGrid"
+#: Types of which one message that does not deserialize is one lost camera image, not damage to
+#: the bag: :func:`fast_deserializer` hands it out as :class:`Undecodable`.
+SKIPPABLE_TYPES = frozenset({IMAGE_TYPE, COMPRESSED_IMAGE_TYPE})
 
 
 class _Fields:
@@ -69,6 +73,18 @@ class MapMetaData(_Fields):
 
 class OccupancyGrid(_Fields):
     """``nav_msgs/OccupancyGrid`` with ``data`` a read-only int8 view of the message bytes."""
+
+
+class Undecodable:
+    """A message of :data:`SKIPPABLE_TYPES` that does not deserialize (e.g. truncated): ``reason``
+    says why. It has no header: the reader counts it as a decode error and skips it.
+    """
+
+    def __init__(self, msgtype: str, reason: str) -> None:
+        self.msgtype, self.reason = msgtype, reason
+
+    def __repr__(self) -> str:
+        return f"Undecodable({self.msgtype!r}, {self.reason!r})"
 
 
 def _align(pos: int, n: int) -> int:
@@ -159,13 +175,21 @@ def fast_deserializer(deserialize: Callable[[bytes, str], Any]) -> Callable[[byt
     """``deserialize(raw, msgtype)`` with Images and OccupancyGrids decoded by this module
     (``deserialize`` itself for every other type and whatever these decoders refuse). ``raw``
     may be a memoryview (e.g. of a memory-mapped file): the decoders' arrays are views of it,
-    ``deserialize`` gets a copy as bytes.
+    ``deserialize`` gets a copy as bytes. An image (:data:`SKIPPABLE_TYPES`) that ``deserialize``
+    refuses too comes back as :class:`Undecodable`, so that one bad image costs that image only.
     """
     def decode(raw: bytes | memoryview, msgtype: str) -> Any:
         fast = DECODERS.get(msgtype)
         msg = fast(raw) if fast is not None else None
-        if msg is None:
-            return deserialize(raw if type(raw) is bytes else bytes(raw), msgtype)
-        return msg
+        if msg is not None:
+            return msg
+        data = raw if type(raw) is bytes else bytes(raw)
+        if msgtype not in SKIPPABLE_TYPES:
+            return deserialize(data, msgtype)
+        try:
+            return deserialize(data, msgtype)
+        except Exception as exc:  # noqa: BLE001 - rosbags raises several kinds for bad bytes
+            return Undecodable(msgtype, f"message of {len(data)} bytes does not deserialize "
+                                        f"({type(exc).__name__}: {exc})")
 
     return decode

@@ -17,10 +17,14 @@ import numpy as np
 from bev_mapper_core.labels.label_maps import LabelMap
 from msg_adapters import (
     AdapterError,
+    EncodingError,
     FrameSynchronizer,
     OdometryState,
     SyncConfig,
     SyncedSet,
+    compressed_image_header,
+    compressed_to_labels,
+    compressed_to_rgb,
     header_stamp_ns,
     image_to_labels,
     image_to_rgb,
@@ -31,6 +35,7 @@ from msg_adapters import (
 from ...errors import BagContentError, BagCorruptError
 from .. import topics as T
 from ..input_checks import DECODE_ERRORS, StampDrift
+from ..raw.cdr import Undecodable
 from ..sync_report import SyncReport
 from .frame import BagFrame
 from .layers import LayerDecoder
@@ -53,6 +58,32 @@ def _nearest(buf: deque, stamp: int, tol: int):
         if abs(s - stamp) <= tol and (best is None or abs(s - stamp) < abs(best[0] - stamp)):
             best = (s, m)
     return best
+
+
+def decode_image(msg: Any, kind: str, compressed: bool, size: tuple[int, int] | None,
+                 label_map: LabelMap | None) -> np.ndarray:
+    """One camera image of ``kind`` (``rgb``: ``(H, W, 3)`` uint8 RGB; ``labels``: ``(H, W)``
+    uint8 Label ids), from a ``sensor_msgs/Image`` or, ``compressed``, a ``CompressedImage``
+    (the adapters' decoders, the node's: its ``format`` must name the data's codec, its header's
+    size must be ``size`` before anything is decoded, and label images must be PNG: JPEG changes
+    label ids). ``size``: the camera's calibrated ``(width, height)`` (``None``: not checked).
+
+    Raises:
+        AdapterError (and what :data:`DECODE_ERRORS` lists): the image cannot be used.
+    """
+    if compressed:
+        if kind == "rgb":
+            arr = compressed_to_rgb(msg, size, check_format=True)
+        else:
+            if compressed_image_header(msg.data).format != "png":
+                raise EncodingError("compressed label images must be PNG: JPEG changes label ids")
+            arr = compressed_to_labels(msg, size, label_map=label_map, check_format=True)
+    else:
+        arr = image_to_rgb(msg) if kind == "rgb" else image_to_labels(msg, label_map=label_map)
+    h, w = arr.shape[:2]
+    if size is not None and (w, h) != size:
+        raise AdapterError(f"image is {w}x{h}, the camera is calibrated for {size[0]}x{size[1]}")
+    return arr
 
 
 def read_frames(reader: BagReader, *, rgb: bool, labels: bool, gt: bool, odom: bool, sync: SyncConfig,
@@ -88,7 +119,9 @@ def read_frames(reader: BagReader, *, rgb: bool, labels: bool, gt: bool, odom: b
     gt_buf = {c: deque() for c in gt_topics.values()}
     odom_buf: deque = deque()
     ready: deque[SyncedSet] = deque()
+    compressed = {stream: reader.is_compressed(topic) for topic, stream in stream_of.items()}
     ctx = dict(cams=cams, kinds=kinds, classes=classes, grid=grid, gt_buf=gt_buf, layers=grid and LayerDecoder(grid),
+               compressed=compressed,
                odom_buf=odom_buf, tol=sync.slop_ns, sizes=reader._camera_sizes(), label_map=label_map, sync=sync_,
                gt_half=gt_half)
     drift = StampDrift()
@@ -97,6 +130,9 @@ def read_frames(reader: BagReader, *, rgb: bool, labels: bool, gt: bool, odom: b
         for m in reader.messages(topics, fast=True):
             if m.topic == T.TF:
                 odom_buf.extend(asm.tf_poses(m.msg))
+                continue
+            if isinstance(m.msg, Undecodable):  # e.g. a truncated image message: that image is lost
+                reader.issues.decode_error(m.topic, m.msg.reason)
                 continue
             try:  # stamp_problem's rule, the stamp read once
                 stamp, bad = header_stamp_ns(m.msg), None
@@ -222,12 +258,7 @@ class FrameAssembler:
                 for k in kinds:
                     msg = s.messages[f"{c}/{k}"]
                     try:
-                        arr = (image_to_rgb(msg) if k == "rgb"
-                               else image_to_labels(msg, label_map=ctx["label_map"]))
-                        h, w = arr.shape[:2]
-                        if c in sizes and (w, h) != sizes[c]:
-                            raise AdapterError(f"image is {w}x{h}, camera {c!r} is calibrated "
-                                               f"for {sizes[c][0]}x{sizes[c][1]}")
+                        arr = decode_image(msg, k, ctx["compressed"][f"{c}/{k}"], sizes.get(c), ctx["label_map"])
                         images[k][c] = np.array(arr, copy=True)
                     except DECODE_ERRORS as exc:
                         log.warning("frame %d camera %s: %s", index, c, exc)

@@ -19,10 +19,10 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
-from bev_mapper_core.errors import BevMapperError
+from bev_mapper_core.errors import BevMapperError, ConfigError
 from bev_mapper_core.geometry.grid import BevGrid
 from bev_mapper_core.geometry.rig import Rig, RigCamera, preset_rig
-from bev_mapper_core.labels.classes import BEV_CLASS_NAMES
+from bev_mapper_core.labels.classes import BEV_CLASS_NAMES, bev_class
 from bev_mapper_core.labels.label_maps import LabelMap
 from msg_adapters import SyncConfig, TfTree, camera_info_to_model, grid_from_info
 
@@ -94,8 +94,19 @@ class BagReader:
         return dict(self._src.custom_data)
 
     def image_topic(self, camera: str, kind: str = "rgb") -> str:
-        """The image topic of ``camera`` (``/cameras/<camera>/image_raw`` unless the hints say)."""
-        return self.hints.image_topics[kind].format(camera=camera)
+        """The image topic of ``camera`` (``/cameras/<camera>/image_raw`` unless the hints say);
+        where the bag lacks it but has its compressed transport (``<topic>/compressed``,
+        image_transport's convention), that one.
+        """
+        topic = self.hints.image_topics[kind].format(camera=camera)
+        if topic not in self._src.topics and T.compressed_topic(topic) in self._src.topics:
+            return T.compressed_topic(topic)
+        return topic
+
+    def is_compressed(self, topic: str) -> bool:
+        """Whether ``topic`` carries ``sensor_msgs/CompressedImage`` (JPEG / PNG), whatever its name."""
+        s = self._src.topics.get(topic)
+        return s is not None and s.msgtype == T.COMPRESSED_IMAGE_TYPE
 
     def camera_info_topic(self, camera: str) -> str:
         """The CameraInfo topic of ``camera`` (``/cameras/<camera>/camera_info`` unless the hints say)."""
@@ -149,18 +160,28 @@ class BagReader:
 
     @property
     def gt_classes(self) -> tuple[str, ...]:
-        """Classes with a ``/bev/gt/<class>`` topic: standard order first, then the rest sorted."""
-        found = {c for c in map(T.parse_gt_topic, self._src.topics) if c}
+        """Classes with a ``/bev/gt/<class>`` topic: standard order first, then the rest sorted;
+        only classes this package defines (:func:`~bev_mapper_core.labels.classes.bev_class`): the
+        others are :attr:`unknown_gt_classes`, never read.
+        """
+        found = {c for c in map(T.parse_gt_topic, self._src.topics) if c} - set(self.unknown_gt_classes)
         return tuple(c for c in BEV_CLASS_NAMES if c in found) + tuple(
             sorted(found - set(BEV_CLASS_NAMES))
         )
 
     @property
+    def unknown_gt_classes(self) -> tuple[str, ...]:
+        """``/bev/gt/<class>`` layers of classes this package does not define (e.g. another
+        recorder's ``walkway``), sorted: nothing can be scored against them, so they are skipped.
+        """
+        return tuple(sorted(c for c in map(T.parse_gt_topic, self._src.topics) if c and not _known_class(c)))
+
+    @property
     def truth_classes(self) -> tuple[str, ...]:
         """Classes with a ``/bev/truth/<class>`` topic, in the order of :attr:`gt_classes` (then
-        the rest sorted).
+        the rest sorted); only classes this package defines, as there.
         """
-        found = {c for c in map(T.parse_truth_topic, self._src.topics) if c}
+        found = {c for c in map(T.parse_truth_topic, self._src.topics) if c and _known_class(c)}
         gt = self.gt_classes
         return tuple(c for c in gt if c in found) + tuple(sorted(found - set(gt)))
 
@@ -345,6 +366,15 @@ class BagReader:
         """
         yield from read_frames(self, rgb=rgb, labels=labels, gt=gt, odom=odom, sync=sync,
                                lookahead_ns=lookahead_ns, label_map=label_map, gt_half=gt_half)
+
+
+def _known_class(name: str) -> bool:
+    """Whether ``name`` is a BEV class of this package (any of its class sets)."""
+    try:
+        bev_class(name)
+    except ConfigError:
+        return False
+    return True
 
 
 def _as_bytes(raw: bytes, msgtype: str) -> bytes:

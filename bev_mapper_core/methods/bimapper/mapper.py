@@ -26,7 +26,7 @@ from bev_mapper_core.nn.backends import backend_runner, resolve_backend
 from bev_mapper_core.nn.runtime import inference_device, inference_threads
 from bev_mapper_core.nn.weights import WeightsError
 
-from .. import WEIGHTS_DIR, shipped_weights
+from .. import WEIGHTS_DIR, alternatives, shipped_weights
 from ..ipm.mapper import LineOfSight
 from ..ipm.occlusion import OcclusionModel, learned_footprints
 from ..segmenter.stage import SegmenterStage, segmenter_path
@@ -75,10 +75,14 @@ class BiMapperMapper(Mapper):
             path = default_weights_path(rig_name, "labels")
         if not path.is_file():
             shipped = sorted(p.name for p in WEIGHTS_DIR.glob("bimapper_*.safetensors"))
+            chain = ""
+            if config.input_kind == "rgb" and default_weights_path(rig_name, "labels").is_file():
+                chain = (f"; segmenter 'auto' (not {config.segmenter!r}) runs the shipped label weights of rig "
+                         f"{rig_name!r} on RGB, the segmenter in front")
             raise ConfigError(
                 f"no Bi-Mapper weights given and none shipped for rig {rig_name!r} / input "
-                f"{config.input_kind!r} (shipped: {', '.join(shipped) or 'none'}); set the rig, "
-                f"train weights and pass weights=<file>, or use method 'ipm'"
+                f"{config.input_kind!r} (shipped: {', '.join(shipped) or 'none'}){chain}; "
+                f"{alternatives('bimapper', config.input_kind, rig_name)}"
             )
         return path
 

@@ -26,6 +26,7 @@ from bev_mapper_core.geometry.rig import Rig
 from bev_mapper_core.labels.classes import label_lut
 from bev_mapper_core.mapper import BevPrediction, Mapper, MapperConfig
 
+from .. import alternatives
 from .columns import ColumnOcclusion, column_raster, rig_columns
 from .occlusion import NEAR_EDGE_SLACK_CELLS, OcclusionModel, ray_raster
 
@@ -220,11 +221,11 @@ class IpmMapper(Mapper):
     @classmethod
     def preflight(cls, config: MapperConfig, rig_name: str, grid: BevGrid | None = None,
                   cameras: tuple[str, ...] | None = None) -> None:
-        """IPM needs label images."""
+        """IPM needs label images (a refusal names the methods that run on the input instead)."""
         if config.input_kind != "labels":
             raise ConfigError(
-                "IPM maps semantic label images only (input_kind 'labels'); RGB input needs a "
-                "learned method such as 'bimapper'"
+                f"IPM maps semantic label images only (input_kind 'labels'), not {config.input_kind!r}; "
+                f"{alternatives('ipm', config.input_kind, rig_name, None if cameras is None else len(cameras))}"
             )
 
     def set_rig(self, rig: Rig) -> None:

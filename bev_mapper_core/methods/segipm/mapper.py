@@ -22,6 +22,7 @@ from bev_mapper_core.geometry.rig import Rig
 from bev_mapper_core.mapper import BevPrediction, Mapper, MapperConfig
 from bev_mapper_core.nn.runtime import inference_device
 
+from .. import alternatives
 from ..ipm.mapper import IpmMapper
 from ..segmenter.stage import SegmenterStage, segmenter_path
 from ..segmenter.weights import load_segmenter
@@ -37,7 +38,8 @@ class SegIpmMapper(Mapper):
                   cameras: tuple[str, ...] | None = None) -> None:
         """RGB input and a segmenter file whose every tensor fits (a node never starts with one it cannot run)."""
         if config.input_kind != "rgb":
-            raise ConfigError("segipm maps RGB images (input_kind 'rgb'); for label images use method 'ipm'")
+            raise ConfigError(f"segipm maps RGB images (input_kind 'rgb'), not {config.input_kind!r}; "
+                              f"{alternatives('segipm', config.input_kind, rig_name)}")
         load_segmenter(segmenter_path(config, rig_name))  # every tensor checked (cached for the constructor)
 
     def __init__(self, rig: Rig, grid: BevGrid, config: MapperConfig) -> None:

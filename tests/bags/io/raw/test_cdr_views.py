@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from rosbags.typesys import Stores, get_typestore
 
-from bags.io.raw.cdr import GRID_TYPE, IMAGE_TYPE, decode_image, decode_occupancy_grid, fast_deserializer
+from bags.io.raw.cdr import GRID_TYPE, IMAGE_TYPE, Undecodable, decode_image, decode_occupancy_grid, fast_deserializer
 from bev_mapper_core.geometry.grid import BevGrid
 from msg_adapters import RosbagsFactory, make_image, make_occupancy_grid
 
@@ -69,8 +69,14 @@ def test_what_the_decoders_are_unsure_of_goes_to_rosbags():
     assert decode_occupancy_grid(raw) is None  # an Image is no OccupancyGrid
     decode = fast_deserializer(STORE.deserialize_cdr)
     _same(decode(big, IMAGE_TYPE), STORE.deserialize_cdr(big, IMAGE_TYPE))  # rosbags decodes it
-    with pytest.raises(Exception, match="size mismatch"):  # and refuses what it always refused
-        decode(raw + bytes(8), IMAGE_TYPE)
+    # and refuses what it always refused: an image as an Undecodable (one lost image, counted by
+    # the reader), any other message by raising (damage)
+    bad = decode(raw + bytes(8), IMAGE_TYPE)
+    assert isinstance(bad, Undecodable) and "size mismatch" in bad.reason
+    grid = _raw(make_occupancy_grid(FACTORY, BevGrid(-1, 1, -1, 1, 0.5), np.zeros((4, 4), np.float32), None, 5, "b"),
+                GRID_TYPE)
+    with pytest.raises(Exception, match="size mismatch"):
+        decode(grid + bytes(8), GRID_TYPE)
     info = FACTORY.msg("sensor_msgs/msg/RegionOfInterest", x_offset=1, y_offset=2, height=3, width=4,
                        do_rectify=True)
     assert decode(_raw(info, "sensor_msgs/msg/RegionOfInterest"), "sensor_msgs/msg/RegionOfInterest") == info
