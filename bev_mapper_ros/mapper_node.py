@@ -48,8 +48,8 @@ from msg_adapters import (
     RclpyFactory,
     camera_info_key,
     camera_info_to_model,
-    compressed_to_array,
     compressed_to_labels,
+    compressed_to_rgb,
     header_stamp_ns,
     image_to_labels,
     image_to_rgb,
@@ -347,7 +347,7 @@ class MapperNode(Node):
             labels = self.cfg.mapper.input_kind == "labels"
             if self.cfg.compressed:
                 img = (compressed_to_labels(msg, (w, h), label_map=self.label_map) if labels
-                       else compressed_to_array(msg, expected_size=(w, h)))
+                       else compressed_to_rgb(msg, expected_size=(w, h), check_format=True))
             elif labels:
                 img = image_to_labels(msg, expected_size=(w, h), label_map=self.label_map)
             else:
