@@ -9,7 +9,10 @@ extent)``: canvas ``(u, v)`` = ``(column, row)`` of the package's grid (column a
 row along +y left), the corner of cell ``(0, 0)`` at ``(0, 0)``.
 
 * Polygons (:func:`fill_polygons`): clipped to the patch, vertices rounded to integers, filled with
-  ``cv2.fillPoly``, holes cleared afterwards: the devkit's ``mask_for_polygons``. Cell ``(r, c)``
+  ``cv2.fillPoly``, holes cleared afterwards (also over polygons filled before, as the devkit's
+  ``mask_for_polygons`` does): the devkit's rasteriser. A hole the patch border cuts is a notch of
+  the clipped polygon in the devkit; here it is cleared from that polygon alone, which differs
+  from the devkit only on the cells of the notch's edges. Cell ``(r, c)``
   is thus set when the point ``(c, r)`` of the canvas (the cell's lower corner, not its centre)
   lies in the polygon, as the devkit does.
 * Lines (:func:`draw_lines`): clipped to the patch, vertices truncated to integers
@@ -215,11 +218,29 @@ def fill_polygons(patch: Patch, polygons: Iterable[MapPolygon], out: np.ndarray 
         ext = clip_polygon(patch.to_canvas(poly.exterior, scale), w, h)
         if len(ext) < 3:
             continue
-        cv2.fillPoly(mask, [np.round(ext).astype(np.int32)], 1)
-        holes = [clip_polygon(patch.to_canvas(hole, scale), w, h) for hole in poly.holes if len(hole)]
-        holes = [np.round(x).astype(np.int32) for x in holes if len(x) >= 3]
-        if holes:
-            cv2.fillPoly(mask, holes, 0)
+        inner, cut = [], []  # holes inside the patch; holes the patch border cuts (notches after clipping)
+        for hole in poly.holes:
+            c = patch.to_canvas(hole, scale)
+            clipped = clip_polygon(c, w, h)
+            if len(clipped) >= 3:
+                (inner if len(clipped) == len(c) and np.array_equal(clipped, c) else cut).append(
+                    np.round(clipped).astype(np.int32))
+        ext = np.round(ext).astype(np.int32)
+        if cut:  # a notch of this polygon: it does not erase what other polygons filled
+            own = np.zeros_like(mask)
+            cv2.fillPoly(own, [ext], 1)
+            cv2.fillPoly(own, cut, 0)
+            for ring in cut:  # the notch's edges are the polygon's boundary: filled, as fillPoly fills edges
+                nxt = np.roll(ring, -1, axis=0)
+                on_border = ((ring[:, 0] == nxt[:, 0]) & np.isin(ring[:, 0], (0, w))) | (
+                    (ring[:, 1] == nxt[:, 1]) & np.isin(ring[:, 1], (0, h)))
+                for a, b in zip(ring[~on_border], nxt[~on_border]):
+                    cv2.line(own, tuple(map(int, a)), tuple(map(int, b)), 1)
+            np.bitwise_or(mask, own, out=mask)
+        else:
+            cv2.fillPoly(mask, [ext], 1)
+        if inner:  # the devkit clears a hole after filling its polygon, also over earlier polygons
+            cv2.fillPoly(mask, inner, 0)
     return mask
 
 
