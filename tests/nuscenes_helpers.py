@@ -12,6 +12,7 @@ at (-12, -6) with visibility 1 and no lidar points (left out by the default filt
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from pathlib import Path
@@ -45,8 +46,10 @@ def _rect(x0, y0, x1, y1):
     return [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]
 
 
-def write_map(root: Path, location: str = "boston-seaport", version: str = "1.3") -> Path:
-    """The map expansion ``maps/expansion/<location>.json`` (see the module docstring)."""
+def write_map(root: Path, location: str = "boston-seaport", version: str = "1.3", clutter: int = 0) -> Path:
+    """The map expansion ``maps/expansion/<location>.json`` (see the module docstring); ``clutter``
+    adds that many random walkway octagons and as many lane dividers over 1 km x 1 km, for a map of
+    a real one's size (``bench/bench_import.py``)."""
     tok = _Tok()
     m = {k: [] for k in ("polygon", "line", "node", "drivable_area", "road_segment", "road_block", "lane",
                          "ped_crossing", "walkway", "stop_line", "carpark_area", "road_divider", "lane_divider",
@@ -97,6 +100,14 @@ def write_map(root: Path, location: str = "boston-seaport", version: str = "1.3"
                               "lane_divider_segments": []})
     m["lane_divider"].append({"token": tok("ld"), "line_token": line([(203, 82), (214, 84), (226, 109)]),
                               "lane_divider_segments": []})
+    rng = np.random.default_rng(0)
+    for _ in range(clutter):
+        cx, cy = rng.uniform(-200, 800, 2)
+        r = rng.uniform(1, 6)
+        ang = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+        m["walkway"].append({"token": tok("ww"), "polygon_token": polygon(np.c_[cx + r * np.cos(ang), cy + r * np.sin(ang)])})
+        pts = np.cumsum(rng.uniform(-5, 5, (6, 2)), axis=0) + (cx, cy)
+        m["lane_divider"].append({"token": tok("ld"), "line_token": line(pts), "lane_divider_segments": []})
     path = root / "maps" / "expansion" / f"{location}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(m))
@@ -114,7 +125,8 @@ def _jpeg(seed: int) -> bytes:
 
 
 def write_nuscenes(root: Path, version: str = "v1.0-mini", *, samples: int = 4, scenes: int = 2,
-                   sweeps: bool = True, with_map: bool = True, image_size: tuple[int, int] = (IMG_W, IMG_H)) -> Path:
+                   sweeps: bool = True, with_map: bool = True, image_size: tuple[int, int] = (IMG_W, IMG_H),
+                   clutter: int = 0) -> Path:
     """Write the miniature dataset into ``root`` (see the module docstring); ``scenes`` beyond two
     repeat scene-0061's drive under the names scene-1000, scene-1001, ... Returns ``root``."""
     root = Path(root)
@@ -222,14 +234,20 @@ def write_nuscenes(root: Path, version: str = "v1.0-mini", *, samples: int = 4, 
     for name, records in t.items():
         (folder / f"{name}.json").write_text(json.dumps(records))
     if with_map:
-        write_map(root)
+        write_map(root, clutter=clutter)
     return root
 
 
-def _sized_jpeg(seed: int, w: int, h: int) -> bytes:
+@functools.lru_cache(maxsize=16)
+def _sized(seed: int, w: int, h: int) -> bytes:
     rng = np.random.default_rng(seed)
     img = rng.integers(0, 255, (h, w, 3), dtype=np.uint8)
     img = cv2.GaussianBlur(img, (0, 0), 3)  # photo-like entropy, not noise
     ok, enc = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 90])
     assert ok
     return enc.tobytes()
+
+
+def _sized_jpeg(seed: int, w: int, h: int) -> bytes:
+    """A JPEG of ``w`` x ``h``: one of 12 encoded once each (the files differ by name only)."""
+    return _sized(seed % 12, w, h)
