@@ -13,7 +13,7 @@ from pathlib import Path
 
 from .grid_args import add_grid_args, grid_from_args
 
-HELP = "import a public dataset's drives (nuScenes) into bags, with ground-truth layers"
+HELP = "import a public dataset's drives (nuScenes, Argoverse 2) into bags, with ground-truth layers"
 
 _NUSCENES_EPILOG = """\
 One MCAP bag per scene, OUT/<scene>/: the six cameras' JPEGs as sensor_msgs/CompressedImage on
@@ -53,10 +53,34 @@ def configure(p: argparse.ArgumentParser) -> None:
     add_grid_args(n, "BEV grid of the GT layers (default surround)")
     n.set_defaults(_dataset_run=_run_nuscenes)
 
+    a = sub.add_parser("av2", help="an Argoverse 2 sensor log (needs pyarrow: pip install 'bev_mapper_ros[av2]')",
+                       description="Import one Argoverse 2 sensor log into a bag: the ring cameras' JPEGs, "
+                       "calibration, poses, the vector map's drivable areas, crossings, lane dividers and "
+                       "road outline, and the cuboids. Argoverse 2 is CC BY-NC-SA 4.0.")
+    a.add_argument("logdir", type=Path, help="the log's folder (<split>/<log_id>/)")
+    a.add_argument("--out", type=Path, required=True, help="folder of the bag (OUT/<log_id>/)")
+    a.add_argument("--force", action="store_true", help="replace an existing bag")
+    add_grid_args(a, "BEV grid of the GT layers (default surround)")
+    a.set_defaults(_dataset_run=_run_av2)
+
 
 def run(args: argparse.Namespace) -> int:
     """Run ``bev-bag import``."""
     return args._dataset_run(args)
+
+
+def _run_av2(args: argparse.Namespace) -> int:
+    from bags.importers.av2 import LICENSE, import_av2_log
+
+    t0 = time.monotonic()
+    out = args.out / args.logdir.resolve().name
+    counts, notes = import_av2_log(args.logdir, out, grid=grid_from_args(args), force=args.force)
+    for n in notes + [f"skipped {w}" for w in counts.skipped]:
+        print(f"note: {n}", file=sys.stderr)
+    print(f"{out.name}: {counts.key_frames} key frames, {counts.images} images -> {out} "
+          f"in {time.monotonic() - t0:.1f} s")
+    print(f"license: {LICENSE}")
+    return 0
 
 
 def _run_nuscenes(args: argparse.Namespace) -> int:
