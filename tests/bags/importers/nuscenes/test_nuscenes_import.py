@@ -182,5 +182,4 @@ def test_round_trip_into_replay(imported, tmp_path, capsys):
         pytest.skip("this checkout's bag reader does not read <image_topic>/compressed yet")
     assert status == 0, err
     metrics = json.loads((tmp_path / "r" / "metrics.json").read_text())
-    assert metrics["frames"] == 4 if "frames" in metrics else True
     assert metrics["complete"] is True
