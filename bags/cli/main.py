@@ -29,6 +29,7 @@ SUBCOMMANDS: dict[str, str] = {
     "play": "bags.cli.play",
     "evaluate": "bags.cli.evaluate",
     "segment": "bags.cli.segment",
+    "import": "bags.cli.import_drives",
 }
 
 
