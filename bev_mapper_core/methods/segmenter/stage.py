@@ -104,6 +104,9 @@ class _Labels(torch.nn.Module):
     def __init__(self, model: Segmenter, size: tuple[int, int]) -> None:
         super().__init__()
         self.model, self.size = model, tuple(size)
+        # the label size is baked into the exported graph: as a buffer it is part of the export
+        # cache's key (which hashes parameters and buffers), so two sizes never share a file
+        self.register_buffer("label_size", torch.tensor(self.size, dtype=torch.int64), persistent=False)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.model(x, size=self.size).argmax(dim=1).to(torch.uint8)

@@ -51,6 +51,11 @@ def test_exported_stage_gives_torchs_labels(backend, tmp_path, monkeypatch):
         assert got[name].shape == labels.shape and got[name].dtype == np.uint8
         assert (got[name] == labels).mean() > 0.999, name  # argmax ties aside, the same labels
     assert len(list(tmp_path.rglob("*.onnx"))) == 2  # one export per input shape
+    # the same model input at another label size (a 160x90 camera is upsampled to the input of a
+    # 400x225 one): its own export, its own size (they once shared a cached file)
+    small = {"s": np.ascontiguousarray(np.repeat(np.repeat(base[0, :9, :16], 5, 0), 5, 1))}  # 80 x 45
+    for stage in (SegmenterStage(path, backend=backend, threads=1), SegmenterStage(path, backend="torch")):
+        assert stage.segment(small)["s"].shape == (45, 80)
 
 
 def test_stage_backend_auto_prefers_the_measured_fastest():
