@@ -15,6 +15,7 @@ import torch
 
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.nn.efficientnet import EfficientNetConfig
+from bev_mapper_core.nn.weights import weights_file_problem
 
 from .model import SegmenterConfig
 from .stage import shipped_segmenter
@@ -62,8 +63,9 @@ def encoder_source(spec: str, input_kind: str, rig_name: str) -> Path | None:
             raise ConfigError("encoder_init: no segmenter ships with the package; use --encoder-init none or a path")
         return path
     path = Path(spec)
-    if not path.is_file():
-        raise ConfigError(f"encoder_init: segmenter weights {spec} do not exist")
+    problem = weights_file_problem(path)
+    if problem is not None:
+        raise ConfigError(f"encoder_init: segmenter weights {spec} {problem}")
     return path
 
 
