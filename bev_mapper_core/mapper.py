@@ -193,6 +193,29 @@ class Mapper(ABC):
     def reset(self) -> None:
         """Forget temporal state (memory banks); called on time jumps. No-op by default."""
 
+    # a learned mapper's runner of its exported part (``nn.backends.BackendRunner``), if it has one
+    _runner = None
+
+    def export_in_background(self) -> None:
+        """From now on, a learned mapper on an exported backend maps with torch until its model
+        is exported (in a child process) and loaded, then switches (issue #41: a node maps from
+        its first frame). Others: nothing changes.
+        """
+        if self._runner is not None:
+            self._runner.background = True
+
+    @property
+    def backend_state(self) -> str:
+        """What runs the model now (``openvino``, ``torch (until the openvino model is ready)``,
+        ...); ``""`` for methods without an inference backend (IPM).
+        """
+        return self._runner.state if self._runner is not None else ""
+
+    def close(self) -> None:
+        """Stop background work (an export under way: its process and partial file go)."""
+        if self._runner is not None:
+            self._runner.close()
+
     @abstractmethod
     def map(
         self,

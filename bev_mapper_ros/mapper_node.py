@@ -20,10 +20,21 @@ is logged as an error, exit status 0.
 
 from __future__ import annotations
 
+import os
 import signal
 import sys
 import threading
 import time
+
+#: SIGINT / SIGTERM received while the imports below run (rclpy, numpy, the core: ~0.5 s) in a
+#: process started as the node (``python -m bev_mapper_ros.mapper_node`` or the ``mapper_node``
+#: script): :func:`main` then stops at once with exit status 0, instead of Python's
+#: KeyboardInterrupt traceback (exit -2) or SIGTERM's default death (issue #41).
+_EARLY_STOP = threading.Event()
+if threading.current_thread() is threading.main_thread() and (
+        __name__ == "__main__" or os.path.basename(sys.argv[0] if sys.argv else "") == "mapper_node"):
+    for _sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(_sig, lambda signum, frame: _EARLY_STOP.set())
 
 import numpy as np
 import rclpy
@@ -42,6 +53,7 @@ from bev_mapper_core.errors import BevMapperError
 from bev_mapper_core.labels.classes import bev_picture
 from bev_mapper_core.labels.label_maps import label_map
 from bev_mapper_core.mapper import create_mapper, mapper_class, output_classes, preflight
+from bev_mapper_core.nn.export_process import cancel_exports
 from bev_mapper_core.temporal import TemporalFusion
 from msg_adapters import (
     FrameSynchronizer,
@@ -323,7 +335,9 @@ class MapperNode(Node):
             return False
         rig = self.calibration.rig()
         if self.mapper is None:
-            self.mapper = create_mapper(rig, self.cfg.grid, self.cfg.mapper)
+            mapper = create_mapper(rig, self.cfg.grid, self.cfg.mapper)
+            mapper.export_in_background()  # torch maps until the fast backend's model is ready (issue #41)
+            self.mapper = mapper
             if tuple(self.mapper.class_names) != tuple(self.class_names):
                 raise BevMapperError(f"the mapper produces {list(self.mapper.class_names)}, "
                                      f"not the announced {list(self.class_names)}")
@@ -400,6 +414,7 @@ class MapperNode(Node):
         finally:
             with self.stats.lock:
                 self.stats.mapping_since_s = None
+        self._note_backend()
         if self.mapper.uses_ego_pose:  # the method's own memory
             self.ego.watch.count_memory(pred.note, pose)
             with self.stats.lock:
@@ -430,6 +445,25 @@ class MapperNode(Node):
             self._throttled_warning("clock_back", f"the node's clock jumped back {self.clock_watch.last_jump_s:.1f} s "
                                                   "(a bag looping with /clock?): that set's latency is not measured")
         self.stats.record_mapped(time.monotonic(), processing_ms, latency_ms, missing)
+
+    def _note_backend(self) -> None:
+        """Say what runs the model whenever that changes (torch while the fast backend's model is
+        exported, then that backend), in the log and in /diagnostics (``backend``).
+        """
+        state = self.mapper.backend_state
+        with self.stats.lock:
+            old, self.stats.backend = self.stats.backend, state
+        if state == old or not state:
+            return
+        if state.startswith("torch (until"):
+            self.get_logger().info(f"inference: mapping with {state}: its export runs in the background "
+                                   "(once per weights and calibration; later starts reuse the cache)")
+        elif state.startswith("torch ("):
+            self.get_logger().warning(f"inference: {state}; mapping goes on with torch")
+        elif old.startswith("torch (until"):
+            self.get_logger().info(f"inference: switched from torch to {state}")
+        else:
+            self.get_logger().info(f"inference: {state}")
 
     # -------------------------------------------------------------- diagnostics
     def _publish_diagnostics(self) -> None:
@@ -474,9 +508,14 @@ class MapperNode(Node):
         return level, text
 
     def stop(self) -> None:
-        """Stop the worker: its current frame is finished or abandoned, quietly."""
+        """Stop the worker: its current frame is finished or abandoned, quietly; an export under
+        way is stopped (its child process and partial file go).
+        """
         self._stopping.set()
+        cancel_exports()  # no torch import: an IPM node stays torch-free
         self.worker.stop()
+        if self.mapper is not None:
+            self.mapper.close()
 
     def destroy_node(self) -> None:
         """Stop the worker before the node goes away."""
@@ -495,6 +534,8 @@ class _StopSignals:
         self.event = threading.Event()
         for sig in self.SIGNALS:
             signal.signal(sig, self._handler)
+        if _EARLY_STOP.is_set():  # one arrived while the modules were imported
+            self.event.set()
 
     def _handler(self, signum, frame) -> None:
         self.event.set()
@@ -522,8 +563,11 @@ def main(args=None) -> int:
     if wants_help(argv):
         sys.stdout.write(parameter_help())
         return 0
+    signals = _StopSignals()  # from here on, a signal means: stop cleanly
     try:
         check_command_line(argv)
+        if signals.event.is_set():
+            return 0
         rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     except CommandLineError as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -531,13 +575,15 @@ def main(args=None) -> int:
     except Exception as exc:  # noqa: BLE001 - rcl's argument errors (RCLError)
         print(f"error: {rcl_message(exc)}", file=sys.stderr)
         return 2
-    signals = _StopSignals()  # from here on, a signal means: stop cleanly
     try:
         node = MapperNode()
     except (BevMapperError, ParameterException, NameValidationException) as exc:
         print(f"error: {exc}", file=sys.stderr)
         rclpy.try_shutdown()
         return 2
+    except BaseException:
+        rclpy.try_shutdown()
+        raise
     try:
         _spin(node, signals.event)
     finally:

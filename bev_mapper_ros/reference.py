@@ -43,6 +43,9 @@ DIAGNOSTIC_KEYS: dict[str, str] = {
     "cameras_missing": "cameras missing from the last mapped set, comma-separated",
     "waiting_for": "cameras still without CameraInfo or extrinsics, comma-separated",
     "last_error": "the last bad input or error message",
+    "backend": "what runs a learned model now: the exported backend (`openvino`, `onnxruntime`), `torch`, or "
+               "`torch (until the openvino model is ready)` while its export runs in the background at start-up, "
+               "`torch (openvino failed: ...)` after a failed export; empty for IPM",
     "rate_hz": "sets mapped per second over the last `diagnostics_window_s`",
     "processing_ms": "mean time to decode, map and publish a set over the window",
     "clock_offset_s": "node clock minus the stamp of the last image",

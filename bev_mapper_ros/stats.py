@@ -72,6 +72,7 @@ class NodeStats:
     clock_skew_s: float | None = None  # node clock - stamp of the last image
     temporal_frames: int = 0  # frames fused into the last published set (temporal fusion on)
     temporal_note: str = ""  # why the last set was mapped without its history ('' = it was not)
+    backend: str = ""  # what runs the model now (Mapper.backend_state; '' = no inference backend)
     # (monotonic s, processing ms, latency ms or None) of recent mapped sets
     recent: deque = field(default_factory=lambda: deque(maxlen=2000), repr=False)
     # (monotonic s, dropped sets so far), one per diagnostics message
@@ -146,11 +147,13 @@ def diagnostic_values(stats: NodeStats, now_s: float, cfg, dropped: int) -> tupl
             "cameras_missing": ",".join(stats.cameras_missing),
             "waiting_for": ",".join(stats.waiting_for),
             "last_error": stats.last_error,
+            "backend": stats.backend,
         }
         waiting_for, missing = stats.waiting_for, stats.cameras_missing
         first_in, last_in, last_mapped, skew = (stats.first_input_s, stats.last_input_s, stats.last_mapped_s,
                                                 stats.clock_skew_s)
         mapping_since = stats.mapping_since_s
+        backend = stats.backend
         first_mapped = stats.recent[0][0] if stats.recent else None
     span = min(window, now_s - first_mapped) if first_mapped is not None else window
     values["rate_hz"] = round(len(recent) / span, 1) if span > 0 and recent else 0.0
@@ -173,9 +176,9 @@ def diagnostic_values(stats: NodeStats, now_s: float, cfg, dropped: int) -> tupl
     elif first_in is not None:
         idle = now_s - (last_mapped if last_mapped is not None else first_in)
         if idle > cfg.stale_error_s and last_mapped is None and mapping_since is not None:
-            # the first set is being mapped: a fast backend exports the model on first use (tens of s)
+            # the first set is being mapped (the model is being built; exports run in the background)
             problems.append((WARN, f"preparing: the first set has been mapping for {now_s - mapping_since:.1f} s "
-                                   "(on first use an exported backend converts the model; see the log)"))
+                                   "(the model is being loaded; see the log)"))
         elif idle > cfg.stale_error_s:
             why = f": waiting for calibration of {', '.join(waiting_for)}" if waiting_for else ""
             problems.append((ERROR, f"nothing mapped for {idle:.1f} s although images arrive{why}"))
@@ -192,7 +195,9 @@ def diagnostic_values(stats: NodeStats, now_s: float, cfg, dropped: int) -> tupl
     if first_in is None:
         problems.append((WARN, "no camera image received yet"))
     if not problems:
-        return OK, f"mapping at {values['rate_hz']:.1f} Hz", values
+        # e.g. "mapping at 10.0 Hz with torch (until the openvino model is ready)"
+        note = f" with {backend}" if backend.startswith("torch (") else ""
+        return OK, f"mapping at {values['rate_hz']:.1f} Hz{note}", values
     level = max(lv for lv, _ in problems)
     problems.sort(key=lambda p: -p[0])
     return level, "; ".join(text for _, text in problems), values

@@ -44,7 +44,7 @@ Label names are the :class:`Label` members in lower case (:data:`LABEL_NAMES`: `
 does not name become UNLABELED; an rgb8 colour must match exactly (no nearest colour: label
 images must travel losslessly, raw or PNG, never JPEG). The file is read with limits
 (a regular file of at most :data:`MAX_FILE_BYTES`, :data:`MAX_YAML_DEPTH` levels and
-:data:`MAX_YAML_NODES` nodes, no YAML aliases, no duplicate keys; ids in ASCII decimal only); every defect is a
+:data:`MAX_YAML_NODES` nodes, no YAML anchors or aliases, no duplicate keys; ids in ASCII decimal only); every defect is a
 :class:`~bev_mapper_core.errors.ConfigError`.
 """
 
@@ -313,7 +313,7 @@ def label_map(spec: str) -> LabelMap:
 
 def read_yaml_document(path: Path, where: str):
     """The YAML document of a label-map file (a regular file of at most ``MAX_FILE_BYTES``,
-    UTF-8, safe loader, no aliases, no duplicate keys, at most :data:`MAX_YAML_DEPTH` levels and
+    UTF-8, safe loader, no anchors or aliases, no duplicate keys, at most :data:`MAX_YAML_DEPTH` levels and
     :data:`MAX_YAML_NODES` nodes; integers only in ASCII decimal, other number forms stay text);
     the one reader of label-map YAML, also for dataset folders. Bounded: a hostile file is
     refused within a fraction of a second.
@@ -387,7 +387,7 @@ def _loader_class(where: str):
 
 
 def _check_events(text: str, where: str) -> None:
-    """Walk the YAML event stream once (no objects built): refuse aliases, nesting deeper than
+    """Walk the YAML event stream once (no objects built): refuse anchors and aliases, nesting deeper than
     :data:`MAX_YAML_DEPTH` and more than :data:`MAX_YAML_NODES` nodes, stopping at the first.
     """
     import yaml  # noqa: PLC0415
@@ -396,6 +396,9 @@ def _check_events(text: str, where: str) -> None:
     for ev in yaml.parse(text, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader)):
         if isinstance(ev, yaml.AliasEvent):
             raise ConfigError(f"{where}: YAML aliases (*name) are not allowed in a label map")
+        if isinstance(ev, yaml.NodeEvent) and ev.anchor is not None:  # the schema has no use for one
+            raise ConfigError(f"{where}: YAML anchors (&{quote(ev.anchor)[1:-1]}, line {ev.start_mark.line + 1}) and "
+                              "aliases are not allowed in a label map: write each entry out")
         if isinstance(ev, (yaml.MappingStartEvent, yaml.SequenceStartEvent)):
             depth += 1
             if depth > MAX_YAML_DEPTH:

@@ -36,7 +36,8 @@ import hashlib
 import importlib.util
 import logging
 import os
-import tempfile
+import threading
+import time
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
@@ -47,6 +48,7 @@ import torch
 from ..errors import ConfigError
 from ..mapper import BACKENDS
 from .export_cache import load_cached
+from .export_process import ChildCannotImport, ExportCancelled, export_in_child
 from .runtime import inference_threads
 
 log = logging.getLogger("bev_mapper.export_cache")
@@ -104,25 +106,20 @@ def model_key(module: torch.nn.Module, inputs: Sequence[torch.Tensor]) -> str:
 
 
 def export_onnx(module: torch.nn.Module, inputs: Sequence[torch.Tensor], path: Path) -> Path:
-    """Export ``module`` (eval mode, CPU) on example ``inputs`` to ``path`` (atomically)."""
+    """Export ``module`` (eval mode, CPU) on example ``inputs`` to ``path`` (the export cache
+    gives a temporary name in its directory and renames it once the file is complete).
+    """
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".onnx", dir=path.parent)
-    os.close(fd)
+    quiet = logging.getLogger("torch.onnx")  # its notes (e.g. on torchvision ops) are not for users
+    level = quiet.level
+    quiet.setLevel(logging.ERROR)
     try:
-        quiet = logging.getLogger("torch.onnx")  # its notes (e.g. on torchvision ops) are not for users
-        level = quiet.level
-        quiet.setLevel(logging.ERROR)
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                program = torch.onnx.export(module, tuple(inputs), dynamo=True, opset_version=18, verbose=False)
-                program.save(tmp)
-        finally:
-            quiet.setLevel(level)
-        os.replace(tmp, path)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            program = torch.onnx.export(module, tuple(inputs), dynamo=True, opset_version=18, verbose=False)
+            program.save(str(path))
     finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+        quiet.setLevel(level)
     return path
 
 
@@ -131,23 +128,36 @@ class ExportedModel:
     call it with numpy arrays shaped as the example inputs; returns a list of numpy outputs.
 
     The exported file comes from the verified cache (:func:`~.export_cache.load_cached`);
-    ``fresh`` exports again whatever the cache holds.
+    ``fresh`` exports again whatever the cache holds. ``isolated``: a needed export runs in a
+    child process (:mod:`.export_process`: stopped at once by ``cancel`` or
+    :func:`~.export_process.cancel_exports`), else in this thread.
 
     Raises (constructor):
+        ExportCancelled: an isolated export was stopped.
         ConfigError: the backend is not installed, the export failed, or the runtime refuses
             even a fresh export.
     """
 
     def __init__(self, module: torch.nn.Module, inputs: Sequence[torch.Tensor], backend: str, threads: int,
-                 fresh: bool = False) -> None:
+                 fresh: bool = False, isolated: bool = False, cancel: threading.Event | None = None) -> None:
         self.backend = resolve_backend(backend)
         if self.backend == "torch":
             raise ConfigError("ExportedModel runs onnxruntime or openvino; torch runs the module itself")
         self.shapes = [tuple(t.shape) for t in inputs]
-        self.threads, self.fresh = threads, fresh
+        self.threads, self.fresh, self.isolated, self._cancel = threads, fresh, isolated, cancel
         # verified cache (export_cache): a stale, damaged or refused file is exported again
-        self._runner, self.path = load_cached(module, inputs, self.backend, cache_dir() / "onnx", export_onnx,
+        self._runner, self.path = load_cached(module, inputs, self.backend, cache_dir() / "onnx", self._export,
                                               self._load, fresh=fresh)
+
+    def _export(self, module: torch.nn.Module, inputs: Sequence[torch.Tensor], part: Path) -> Path:
+        if not self.isolated:
+            return export_onnx(module, inputs, part)
+        try:
+            return export_in_child(module, inputs, part, threads=1, cancel=self._cancel)
+        except ChildCannotImport as exc:
+            log.warning("export cache: the export process cannot rebuild the model (%s); exporting in this process",
+                        exc)
+            return export_onnx(module, inputs, part)
 
     def _load(self, path: Path):
         """The runtime's session (onnxruntime) or compiled model (OpenVINO) of ``path`` and its
@@ -193,24 +203,58 @@ class BackendRunner:
     ``backend``: ``MapperConfig.backend`` resolved (:func:`resolve_backend`); ``device``: the
     model's torch device (exported backends run on the CPU only: elsewhere torch runs);
     ``threads``: the runtime's intra-op threads.
+
+    ``background`` (the node, issue #41): the first call starts the export (or the cached file's
+    check and load) in a thread, the export itself in a child process, and runs torch until the
+    exported model is ready; the call after that switches to it (:attr:`state` says which runs).
+    A failed export leaves the part on torch, said in :attr:`state`; :meth:`close` stops it.
+    Without ``background`` the first call waits for the export (replay, benchmarks, tests).
     """
 
-    def __init__(self, backend: str, device: torch.device, threads: int) -> None:
+    def __init__(self, backend: str, device: torch.device, threads: int, background: bool = False) -> None:
         self.backend, self.device, self.threads = backend, device, threads
+        self.background = background
         self.module: torch.nn.Module | None = None
         self._exported: ExportedModel | None = None
+        self._job: _ExportJob | None = None
+        self._failed = ""
 
     @property
     def eager(self) -> bool:
         """True when torch runs the part itself."""
         return self.backend == "torch" or self.device.type != "cpu"
 
+    @property
+    def state(self) -> str:
+        """What runs the part now: the backend's name, or ``torch (...)`` while its export is
+        under way or after it failed.
+        """
+        if self.eager or self._exported is not None:
+            return "torch" if self.eager else self.backend
+        if self._failed:
+            return f"torch ({self.backend} failed: {self._failed})"
+        if self._job is not None:
+            return f"torch (until the {self.backend} model is ready)"
+        return f"{self.backend} (not loaded yet)"
+
     def reset(self, module: torch.nn.Module) -> None:
         """The part to run from now on, for a (new) calibration: exported again on the next
         call. ``module`` returns a tensor or a tuple of tensors.
         """
+        self.close(wait=False)
         self.module = module
         self._exported = None
+        self._failed = ""
+
+    def close(self, wait: bool = True, timeout: float = 10.0) -> None:
+        """Stop a background export (its child process and partial file go); ``wait``: join
+        its thread (a runtime loading a model finishes that first).
+        """
+        job, self._job = self._job, None
+        if job is not None:
+            job.cancel.set()
+            if wait:
+                job.thread.join(timeout)
 
     def __call__(self, *inputs: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """The part (:meth:`reset`) on ``inputs`` as a tuple of tensors, by the backend (inputs
@@ -218,7 +262,9 @@ class BackendRunner:
         """
         if self.module is None:
             raise RuntimeError("BackendRunner: no part to run yet (reset(module) first)")
-        if self.eager:
+        if not self.eager and self._exported is None and self.background:
+            self._poll_background(inputs)
+        if self.eager or (self._exported is None and self.background):
             out = self.module(*inputs)
             return out if isinstance(out, tuple) else (out,)
         if self._exported is None:
@@ -238,10 +284,67 @@ class BackendRunner:
             outputs = self._exported(*arrays)
         return tuple(torch.from_numpy(o) for o in outputs)
 
+    def _poll_background(self, inputs: Sequence[torch.Tensor]) -> None:
+        """Start the background export on the first call; take its model once it is ready."""
+        if self._failed:
+            return
+        job = self._job
+        if job is None:
+            self._job = _ExportJob(self.module.eval(), [t.detach().clone() for t in inputs], self.backend, self.threads)
+            return
+        if job.thread.is_alive():
+            return
+        self._job = None
+        if job.model is not None:
+            self._exported = job.model
+            log.warning("export cache: switched from torch to %s (ready %.1f s after the first frame)", self.backend,
+                        job.seconds)
+        elif not job.cancel.is_set():
+            self._failed = job.error or "unknown error"
+            log.warning("export cache: staying on torch: %s", self._failed)
+
+    def wait_ready(self, timeout: float) -> bool:
+        """Wait up to ``timeout`` s for a background export to finish (tests, benchmarks);
+        True when it did. The next call switches.
+        """
+        job = self._job
+        if job is None:
+            return True
+        job.thread.join(timeout)
+        return not job.thread.is_alive()
+
+
+class _ExportJob:
+    """One background export of :class:`BackendRunner`: the cache check, the export in a child
+    process when needed, and the runtime's load, in a daemon thread.
+    """
+
+    def __init__(self, module: torch.nn.Module, inputs: list[torch.Tensor], backend: str, threads: int) -> None:
+        self.cancel = threading.Event()
+        self.model: ExportedModel | None = None
+        self.error = ""
+        self.seconds = 0.0
+        self._started = time.perf_counter()
+        self.thread = threading.Thread(target=self._run, args=(module, inputs, backend, threads),
+                                       name="bev-export", daemon=True)
+        self.thread.start()
+
+    def _run(self, module, inputs, backend, threads) -> None:
+        try:
+            model = ExportedModel(module, inputs, backend, threads, isolated=True, cancel=self.cancel)
+            if not self.cancel.is_set():
+                self.model = model
+        except ExportCancelled:
+            pass
+        except Exception as exc:  # noqa: BLE001 - reported through BackendRunner.state, never fatal
+            self.error = " ".join(str(exc).split())[:300] or type(exc).__name__
+        self.seconds = time.perf_counter() - self._started
+
 
 def backend_runner(config, device: torch.device) -> BackendRunner:
     """The :class:`BackendRunner` of a mapper's configuration (``MapperConfig``): its backend
-    resolved, its thread count or :func:`~.runtime.inference_threads`.
+    resolved, its thread count or :func:`~.runtime.inference_threads`; exports wait for the
+    export until :meth:`~bev_mapper_core.mapper.Mapper.export_in_background` says otherwise.
     """
     return BackendRunner(resolve_backend(config.backend), device, config.threads or inference_threads())
 

@@ -19,6 +19,13 @@ overwritten or bit-flipped file, a directory in its place, a runtime that refuse
 "export again", said once in the log (logger ``bev_mapper.export_cache``), never a traceback and
 never a stale model. The ONNX file itself does not depend on the runtime, so both runtimes share
 one export; each records its version in ``runtimes`` when it loads the file.
+
+Files are written under a temporary name in the cache directory and renamed when complete
+(:func:`part_path`: ``.<key>.<pid>.<random>.onnx.part``, records ``.json.part``), so an
+interrupted export leaves no partial model under a model's name; its part file is removed by the
+exporter, or, where the process was killed, by the next export in that directory
+(:func:`remove_stale_parts`: part files of processes that no longer run, and the ``tmp*.onnx`` /
+``tmp*.json`` files of earlier versions once they are :data:`LEGACY_TMP_AGE_S` old).
 """
 
 from __future__ import annotations
@@ -27,9 +34,10 @@ import hashlib
 import json
 import logging
 import os
+import re
 import shutil
-import tempfile
 import time
+import uuid
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TypeVar
@@ -37,6 +45,7 @@ from typing import TypeVar
 import torch
 
 from ..errors import ConfigError
+from .export_process import ExportCancelled
 
 log = logging.getLogger("bev_mapper.export_cache")
 
@@ -46,7 +55,11 @@ CACHE_FORMAT = 1
 OPSET = 18
 #: Largest record read (bytes).
 MAX_RECORD_BYTES = 1 << 16
+#: Age (s) after which a ``tmp*.onnx`` / ``tmp*.json`` of an earlier version is stale.
+LEGACY_TMP_AGE_S = 600.0
 _RUNTIME_MODULES = {"onnxruntime": "onnxruntime", "openvino": "openvino"}
+_PART = re.compile(r"\.[^/]*\.(\d+)\.[0-9a-f]+\.(onnx|json)\.part")
+_LEGACY_TMP = re.compile(r"tmp[A-Za-z0-9_]+\.(onnx|json)")
 
 T = TypeVar("T")
 
@@ -151,14 +164,61 @@ def check_cached(model: Path, made: dict) -> str | None:
     return None
 
 
-def _write_json(path: Path, record: dict) -> None:
-    fd, tmp = tempfile.mkstemp(suffix=".json", dir=path.parent)
+def part_path(final: Path) -> Path:
+    """A temporary name for ``final`` in its directory, unique to this process and call, that
+    :func:`remove_stale_parts` recognises once this process is gone.
+    """
+    return final.parent / f".{final.stem}.{os.getpid()}.{uuid.uuid4().hex[:12]}{final.suffix}.part"
+
+
+def _pid_alive(pid: int) -> bool:
     try:
-        with os.fdopen(fd, "w") as f:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # another user's process: alive
+        return True
+    return True
+
+
+def remove_stale_parts(directory: Path) -> list[Path]:
+    """Remove the part files of exports whose process no longer runs, and the ``tmp*.onnx`` /
+    ``tmp*.json`` files earlier versions left when interrupted (once :data:`LEGACY_TMP_AGE_S`
+    old); returns what was removed. Best effort: an unreadable directory removes nothing.
+    """
+    removed = []
+    try:
+        entries = list(os.scandir(directory))
+    except OSError:
+        return removed
+    now = time.time()
+    for entry in entries:
+        m = _PART.fullmatch(entry.name)
+        try:
+            if m is not None:
+                stale = int(m.group(1)) != os.getpid() and not _pid_alive(int(m.group(1)))
+            elif _LEGACY_TMP.fullmatch(entry.name):
+                stale = now - entry.stat(follow_symlinks=False).st_mtime > LEGACY_TMP_AGE_S
+            else:
+                continue
+            if stale and not entry.is_dir(follow_symlinks=False):
+                os.unlink(entry.path)
+                removed.append(Path(entry.path))
+        except OSError:
+            continue
+    if removed:
+        log.warning("export cache: removed %d partial file(s) of interrupted exports in %s", len(removed), directory)
+    return removed
+
+
+def _write_json(path: Path, record: dict) -> None:
+    tmp = part_path(path)
+    try:
+        with open(tmp, "w") as f:
             json.dump(record, f, indent=1, sort_keys=True)
         os.replace(tmp, path)
     finally:
-        if os.path.exists(tmp):
+        if os.path.lexists(tmp):
             os.unlink(tmp)
 
 
@@ -187,6 +247,7 @@ def load_cached(module: torch.nn.Module, inputs: Sequence[torch.Tensor], backend
     whatever the cache holds (a cached model that failed at run time).
 
     Raises:
+        ExportCancelled: ``export`` was stopped (the program stops); nothing was written.
         ConfigError: the export failed, or the runtime refuses even a fresh export.
     """
     made = made_from(module, inputs)
@@ -203,18 +264,30 @@ def load_cached(module: torch.nn.Module, inputs: Sequence[torch.Tensor], backend
     if reason != "absent":
         log.warning("export cache: %s is not used: %s; exporting again", model, reason)
     _remove(model)
+    directory.mkdir(parents=True, exist_ok=True)
+    remove_stale_parts(directory)
     log.warning("export cache: exporting the model to ONNX for %s (once per weights and calibration; "
                 "later starts reuse %s) ...", backend, model)
     started = time.perf_counter()
+    part = part_path(model)
     try:
-        export(module, inputs, model)
+        export(module, inputs, part)  # complete, or nothing under the model's name
         record = {"format": CACHE_FORMAT, "made_from": made, "backend": backend, "runtimes": {},
-                  "onnx_sha256": file_sha256(model), "onnx_bytes": model.stat().st_size}
+                  "onnx_sha256": file_sha256(part), "onnx_bytes": part.stat().st_size}
+        os.replace(part, model)
         _write_json(record_path(model), record)
         log.warning("export cache: exported in %.1f s", time.perf_counter() - started)
+    except ExportCancelled:
+        raise
     except Exception as exc:  # noqa: BLE001 - the exporter raises many kinds
         raise ConfigError(f"could not export the model to ONNX for backend {backend!r} in {directory} "
                           f"({_short(exc)}); use backend 'torch'") from None
+    finally:
+        if os.path.lexists(part):
+            try:
+                os.unlink(part)
+            except OSError:
+                pass
     try:
         loaded = load(model)
     except Exception as exc:  # noqa: BLE001
@@ -240,5 +313,5 @@ def _note_runtime(model: Path, backend: str) -> None:
         pass
 
 
-__all__ = ["CACHE_FORMAT", "OPSET", "cache_key", "check_cached", "file_sha256", "load_cached", "made_from",
-           "package_version", "record_path", "runtime_version"]
+__all__ = ["CACHE_FORMAT", "LEGACY_TMP_AGE_S", "OPSET", "cache_key", "check_cached", "file_sha256", "load_cached",
+           "made_from", "package_version", "part_path", "record_path", "remove_stale_parts", "runtime_version"]

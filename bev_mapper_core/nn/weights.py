@@ -26,6 +26,7 @@ from bev_mapper_core.geometry.camera import CameraModel
 from bev_mapper_core.geometry.grid import MAX_GRID_CELLS, BevGrid
 from bev_mapper_core.geometry.rig import Rig, RigCamera
 from bev_mapper_core.labels.classes import resolve_classes
+from bev_mapper_core.labels.label_maps import file_kind
 
 from .card import CARD_KEY, CardError, check_card, check_card_fits
 from .config import MAX_WIDTH_PX
@@ -35,6 +36,24 @@ META_KEY = "bev_mapper"
 
 class WeightsError(BevMapperError, ValueError):
     """A weights file is unreadable, corrupt, or does not fit the requested model."""
+
+
+def weights_file_problem(path: str | os.PathLike) -> str | None:
+    """None when ``path`` is a regular file (links followed), else what it is, as the end of a
+    sentence that starts with the path: ``"does not exist"``, ``"is a directory, not a weights
+    file"``, ``"is a FIFO, not a regular file"``, ``"is a device (a link to /dev/zero), not a
+    regular file"``. Looked at with ``stat`` only: a FIFO or a device is never opened (a FIFO
+    never blocks, ``/dev/zero`` is never read).
+    """
+    kind = file_kind(Path(path))
+    if kind == "file":
+        return None
+    if kind is None:
+        return "does not exist" if not os.path.lexists(path) else "does not exist (a broken link)"
+    link = f" (a link to {os.path.realpath(path)})" if os.path.islink(path) else ""
+    if kind == "directory":
+        return f"is a directory{link}, not a weights file"
+    return f"is a {kind}{link}, not a regular file"
 
 
 def check_model_document(meta: dict, path: Path, config_type: type) -> tuple:
@@ -103,8 +122,9 @@ def read_document(path: str | os.PathLike, fmt: str, version: int, what: str) ->
             (:mod:`~bev_mapper_core.nn.card`: the optional ``card`` object).
     """
     path = Path(path)
-    if not path.is_file():
-        raise WeightsError(f"{what} weights {path} do not exist")
+    problem = weights_file_problem(path)
+    if problem is not None:
+        raise WeightsError(f"{what} weights {path} {problem}")
     try:
         with safe_open(str(path), framework="pt") as f:
             raw = (f.metadata() or {}).get(META_KEY)

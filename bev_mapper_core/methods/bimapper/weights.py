@@ -48,6 +48,7 @@ from bev_mapper_core.nn.weights import (
     read_document,
     save_document,
     standin_rig,
+    weights_file_problem,
 )
 
 from .model import BiMapper, BiMapperConfig
@@ -186,8 +187,9 @@ class WeightsFile:
             st = path.stat()
         except OSError:
             st = None
-        if st is None or not path.is_file():
-            raise WeightsError(f"weights file {path} does not exist")
+        problem = weights_file_problem(path)
+        if st is None or problem is not None:
+            raise WeightsError(f"weights file {path} {problem or 'does not exist'}")
         key = (str(path.resolve()), st.st_ino, st.st_mtime_ns, st.st_size)
         with cls._lock:
             entry = cls._cache.get(key)

@@ -20,6 +20,7 @@ import torch
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.nn.efficientnet import EfficientNetConfig
 from bev_mapper_core.nn.pretrained import CHECKPOINTS, checkpoint_path, load_lite_imagenet
+from bev_mapper_core.nn.weights import weights_file_problem
 
 from .. import WEIGHTS_DIR
 from .model import SegmenterConfig
@@ -72,8 +73,9 @@ def encoder_source(spec: str, input_kind: str, rig_name: str) -> Path | None:
                               "none, imagenet or a path")
         return path
     path = Path(spec)
-    if not path.is_file():
-        raise ConfigError(f"encoder_init: segmenter weights {spec} do not exist")
+    problem = weights_file_problem(path)
+    if problem is not None:
+        raise ConfigError(f"encoder_init: segmenter weights {spec} {problem}")
     return path
 
 

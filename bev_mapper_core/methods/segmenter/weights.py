@@ -21,7 +21,13 @@ from pathlib import Path
 import torch
 
 from bev_mapper_core.errors import BevMapperError, ConfigError
-from bev_mapper_core.nn.weights import WeightsError, read_checked_tensors, read_document, save_document
+from bev_mapper_core.nn.weights import (
+    WeightsError,
+    read_checked_tensors,
+    read_document,
+    save_document,
+    weights_file_problem,
+)
 
 from .model import Segmenter, SegmenterConfig
 
@@ -67,8 +73,9 @@ def load_segmenter(path: str | os.PathLike, device: str | torch.device = "cpu") 
             extra, misshapen or non-finite tensors).
     """
     path = Path(path)
-    if not path.is_file():
-        raise WeightsError(f"segmenter weights {path} do not exist")
+    problem = weights_file_problem(path)
+    if problem is not None:
+        raise WeightsError(f"segmenter weights {path} {problem}")
     try:
         st = path.stat()
     except OSError as e:

@@ -297,6 +297,10 @@ HOSTILE_YAML = [
     ("labels:\n" + "".join(f"  x{i}: road\n" for i in range(60_000))[:MAX_FILE_BYTES - 10], "YAML nodes"),
     ("a: &a [1, 1, 1, 1, 1, 1, 1, 1, 1]\nb: &b [*a, *a, *a, *a, *a, *a, *a, *a, *a]\nc: [*b, *b, *b, *b, *b]\n"
      "labels: {1: road}\n", "aliases"),
+    # an anchor without an alias (issue #41): refused, as the schema has none (the map itself parses
+    # as {0: road}, so a bag of this package's ids gives mIoU 0.0; the anchor is named, not ignored)
+    ("labels: &x {0: road}\n", r"YAML anchors \(&x, line 1\)"),
+    ("encoding: mono8\nlabels:\n  0: &r road\n", r"anchors \(&r, line 3\)"),
     ("labels: {1: " + "x" * 1_000_000 + "}\n", "which is no label"),  # a 1 MB name: a short line
     ("labels:\n  ? " + "y" * 1_000_000 + "\n  : road\n", "upstream id"),  # a 1 MB key
 ]

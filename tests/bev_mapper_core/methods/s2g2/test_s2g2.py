@@ -265,7 +265,7 @@ def test_weights_round_trip_and_bad_files(tmp_path):
               metadata={"bev_mapper": json.dumps({**header, "cameras": ["front", "back"]})})
     with pytest.raises(WeightsError, match="exactly one camera"):
         read_s2g2_metadata(tmp_path / "two.safetensors")
-    with pytest.raises(WeightsError, match="do not exist"):
+    with pytest.raises(WeightsError, match="does not exist"):
         read_s2g2_metadata(tmp_path / "nope.safetensors")
 
 
@@ -521,7 +521,7 @@ def test_encoder_starts_from_the_shipped_segmenters_trunk(tmp_path):
     assert next(iter(labels.values())).shape[1] == NUM_LABELS
     with pytest.raises(ConfigError, match="read RGB images"):
         encoder(input="labels", encoder_init="segmenter")
-    with pytest.raises(ConfigError, match="do not exist"):
+    with pytest.raises(ConfigError, match="does not exist"):
         encoder(encoder_init=str(tmp_path / "nope.safetensors"))
     with pytest.raises(WeightsError, match="does not fit this encoder"):
         encoder(width_mult=0.5)

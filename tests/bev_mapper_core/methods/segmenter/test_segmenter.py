@@ -119,7 +119,7 @@ def test_weights_round_trip_and_bad_files(tmp_path):
     save_file(bad, str(tmp_path / "missing.safetensors"), metadata=meta)
     with pytest.raises(WeightsError, match="missing"):
         load_segmenter(tmp_path / "missing.safetensors")
-    with pytest.raises(WeightsError, match="do not exist"):
+    with pytest.raises(WeightsError, match="does not exist"):
         load_segmenter(tmp_path / "nope.safetensors")
 
 
@@ -161,7 +161,7 @@ def test_segipm_refuses_labels_and_missing_segmenters(tmp_path):
         create_mapper(RIG, GRID, MapperConfig(method="segipm", input_kind="labels"))
     with pytest.raises(ConfigError, match="segmenter is 'none'"):
         create_mapper(RIG, GRID, MapperConfig(method="segipm", input_kind="rgb", segmenter="none"))
-    with pytest.raises(WeightsError, match="do not exist"):
+    with pytest.raises(WeightsError, match="does not exist"):
         create_mapper(RIG, GRID, MapperConfig(method="segipm", input_kind="rgb", segmenter=str(tmp_path / "x")))
 
 
