@@ -201,20 +201,32 @@ class Mapper(ABC):
         is exported (in a child process) and loaded, then switches (issue #41: a node maps from
         its first frame). Others: nothing changes.
         """
-        if self._runner is not None:
-            self._runner.background = True
+        for runner in self._backend_parts():
+            runner.background = True
 
     @property
     def backend_state(self) -> str:
         """What runs the model now (``openvino``, ``torch (until the openvino model is ready)``,
         ...); ``""`` for methods without an inference backend (IPM).
         """
-        return self._runner.state if self._runner is not None else ""
+        parts = self._backend_parts()
+        if len(parts) == 2:  # chained: the label model, and the segmenter stage in front of it
+            return f"{parts[0].state}; segmenter {parts[1].state}"
+        return parts[0].state if parts else ""
 
     def close(self) -> None:
         """Stop background work (an export under way: its process and partial file go)."""
-        if self._runner is not None:
-            self._runner.close()
+        for runner in self._backend_parts():
+            runner.close()
+
+    def _backend_parts(self) -> list:
+        """The parts run by an inference backend: the method's own runner, and a segmenter stage
+        in front of it (``stage``: segipm, chained Bi-Mapper), each with ``background``,
+        ``state`` and ``close()``.
+        """
+        parts = [self._runner] if self._runner is not None else []
+        stage = getattr(self, "stage", None)
+        return parts + ([stage] if stage is not None else [])
 
     @abstractmethod
     def map(

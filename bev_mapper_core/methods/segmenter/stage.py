@@ -132,13 +132,39 @@ class SegmenterStage:
             raise ConfigError(f"backend {self.backend!r} is not installed (installed: {installed_backends()})")
         self.threads = threads or inference_threads()
         self._runners: dict[tuple, BackendRunner] = {}  # (input shape, label size) -> its exported part
+        self._background = False
+
+    @property
+    def background(self) -> bool:
+        """Export in the background, mapping with torch meanwhile (the node: issue #41; see
+        :class:`~bev_mapper_core.nn.backends.BackendRunner`); applies to every input size.
+        """
+        return self._background
+
+    @background.setter
+    def background(self, on: bool) -> None:
+        self._background = bool(on)
+        for runner in self._runners.values():
+            runner.background = self._background
+
+    @property
+    def state(self) -> str:
+        """What runs the network now (each input size's runner; the backend before the first frame)."""
+        states = sorted({r.state for r in self._runners.values()})
+        return "; ".join(states) if states else self.backend
+
+    def close(self) -> None:
+        """Stop background exports (their processes and partial files go)."""
+        for runner in self._runners.values():
+            runner.close()
 
     def _labels(self, x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
         """Normalised input ``(B, 3, h, w)`` -> ``(B, *size)`` uint8 labels, by the backend."""
         key = (tuple(x.shape), tuple(size))
         runner = self._runners.get(key)
         if runner is None:
-            runner = self._runners[key] = BackendRunner(self.backend, self.device, self.threads)
+            runner = self._runners[key] = BackendRunner(self.backend, self.device, self.threads,
+                                                        background=self._background)
             runner.reset(_Labels(self.model, size))
         with torch.inference_mode():
             return runner(x)[0]

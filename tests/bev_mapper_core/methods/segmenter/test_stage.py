@@ -65,3 +65,30 @@ def test_stage_backend_auto_prefers_the_measured_fastest():
     want = "onnxruntime" if "onnxruntime" in have else "openvino" if "openvino" in have else "torch"
     assert stage_backend("auto") == want
     assert stage_backend("torch") == "torch"
+
+
+@pytest.mark.slow
+def test_segipm_exports_in_the_background_and_maps_meanwhile(tmp_path, monkeypatch):
+    """The node's start-up (issue #41) reaches the segmenter stage: the first frame is mapped by
+    torch while the export runs, then the stage switches; close() stops an export under way."""
+    if importlib.util.find_spec("onnxruntime") is None:
+        pytest.skip("onnxruntime not installed")
+    from bev_mapper_core.geometry.grid import BevGrid
+    from bev_mapper_core.geometry.rig import preset_rig
+    from bev_mapper_core.mapper import create_mapper
+
+    monkeypatch.setenv("BEV_MAPPER_CACHE", str(tmp_path))
+    rig = preset_rig("front1")
+    mapper = create_mapper(rig, BevGrid(0.0, 16.0, -8.0, 8.0, 0.5),
+                           MapperConfig(method="segipm", input_kind="rgb", backend="onnxruntime", threads=1))
+    mapper.export_in_background()
+    w, h = rig.cameras[0].model.image_size
+    frame = {rig.names[0]: np.full((h, w, 3), 90, np.uint8)}
+    first = mapper.map(frame)
+    assert mapper.backend_state.startswith("torch (until the onnxruntime")
+    (runner,) = mapper.stage._runners.values()
+    assert runner.wait_ready(120)
+    second = mapper.map(frame)
+    assert mapper.backend_state == "onnxruntime"
+    np.testing.assert_array_equal(first.known, second.known)
+    mapper.close()
