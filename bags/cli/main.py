@@ -29,6 +29,7 @@ SUBCOMMANDS: dict[str, str] = {
     "play": "bags.cli.play",
     "evaluate": "bags.cli.evaluate",
     "segment": "bags.cli.segment",
+    "propose-mask": "bags.cli.propose_mask",
 }
 
 
