@@ -271,7 +271,35 @@ class Mapper(ABC):
             out[name] = img
         if not out:
             raise InputError("no camera image to map")
+        return self.mask_ego(out) if self.config.input_kind == "labels" else out
+
+    def mask_ego(self, labels: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """Label images ``(H, W)`` with the pixels of their camera's ego mask set to ``UNLABELED``
+        (copies; images of cameras without a mask are passed through).
+
+        :meth:`check_images` applies it to label input; methods that segment RGB images apply it
+        to the segmenter's labels.
+        """
+        masks = self._ego_pixels()
+        if not masks:
+            return dict(labels)
+        out = {}
+        for name, img in labels.items():
+            m = masks.get(name)
+            if m is not None and img.shape[:2] == m.shape:
+                img = img.copy()
+                img[m] = 0  # Label.UNLABELED
+            out[name] = img
         return out
+
+    def _ego_pixels(self) -> dict[str, np.ndarray]:
+        """Camera name -> its ego mask ``(H, W)`` bool at its image size, kept per calibration."""
+        cached = getattr(self, "_ego_cache", None)
+        if cached is None or cached[0] is not self.rig:
+            sizes = self._image_sizes()
+            cached = self._ego_cache = (self.rig, {c.name: c.ego_mask.at(*sizes[c.name])
+                                                   for c in self.rig.cameras if c.ego_mask is not None})
+        return cached[1]
 
     def _image_sizes(self) -> dict[str, tuple[int, int]]:
         """Camera name -> ``(width, height)`` of its images, kept per calibration (a camera

@@ -65,6 +65,9 @@ class NodeConfig:
         sync_timeout_s: wait this long for missing cameras before emitting a partial set
             (default: ``SyncConfig.timeout_ns``).
         extrinsics: camera name -> ``ego_from_cam`` 4x4 from parameters (used without TF).
+        ego_masks: camera name -> path of its ego-body mask PNG (``ego_mask.<camera>``
+            parameters; nonzero = the ego vehicle's own pixels, ignored by every method; see
+            :mod:`bev_mapper_core.geometry.ego_mask`).
         use_tf: read TF (tf2_ros, when importable): camera extrinsics ``base_frame <- camera
             frame`` (the parameters are the fallback) and, per ``pose_source``, the ego pose.
         tf_extrinsic_jump_m: a TF extrinsic that moves a camera by more than this from the one
@@ -103,6 +106,7 @@ class NodeConfig:
     sync_slop_s: float = _ns_to_s(SyncConfig.slop_ns)
     sync_timeout_s: float = _ns_to_s(SyncConfig.timeout_ns)
     extrinsics: tuple = ()
+    ego_masks: tuple = ()
     use_tf: bool = True
     tf_extrinsic_jump_m: float = 0.5
     pose_source: str = "auto"
@@ -154,6 +158,11 @@ class NodeConfig:
         if unknown:
             raise NodeConfigError(f"extrinsics given for unknown cameras {unknown}")
         object.__setattr__(self, "extrinsics", tuple(sorted(ext.items())))
+        masks = {cam: str(path) for cam, path in dict(self.ego_masks).items() if path}
+        unknown = sorted(set(masks) - set(cams))
+        if unknown:
+            raise NodeConfigError(f"ego masks given for unknown cameras {unknown}")
+        object.__setattr__(self, "ego_masks", tuple(sorted(masks.items())))
 
     def sync_config(self) -> SyncConfig:
         """The synchronizer settings: slop and timeout from here, the rest SyncConfig's defaults."""
@@ -286,6 +295,11 @@ RUNTIME_PARAMETERS: tuple[str, ...] = (
     "diagnostics_period_s", "diagnostics_window_s", "clock_mismatch_s", "drop_warn_ratio", "stale_error_s",
 )
 
+#: Per-camera parameter prefixes, declared for each of the configured cameras on top of
+#: :data:`PARAM_FIELDS`: ``extrinsics.<cam>`` (``[x, y, z, qx, qy, qz, qw]``, default the preset
+#: rig's) and ``ego_mask.<cam>`` (a mask PNG's path, '' = none).
+PER_CAMERA: tuple[str, ...] = ("extrinsics", "ego_mask")
+
 #: Parameters every rclpy node has (``use_sim_time``, ...): known, never reported as unknown.
 ROS_PARAMETERS: tuple[str, ...] = ("use_sim_time", "start_type_description_service")
 
@@ -327,12 +341,12 @@ def unknown_parameter_messages(given, cameras) -> list[str]:
     cameras (``extrinsics.<cam>`` is known for those). ROS's own (:data:`ROS_PARAMETERS`,
     ``qos_overrides.*``) are known.
     """
-    known = [*PARAM_FIELDS, *(f"extrinsics.{c}" for c in cameras), *ROS_PARAMETERS]
+    known = [*PARAM_FIELDS, *(f"{prefix}.{c}" for prefix in PER_CAMERA for c in cameras), *ROS_PARAMETERS]
     out = []
     for name in sorted(set(given) - set(known)):
         if name.startswith("qos_overrides."):
             continue
-        if name.startswith("extrinsics."):
+        if name.split(".", 1)[0] in PER_CAMERA:
             out.append(f"parameter {name!r} ignored: {name.split('.', 1)[1]!r} is not one of the "
                        f"cameras {list(cameras)}")
             continue
@@ -368,7 +382,9 @@ def node_config_from_params(p: dict) -> NodeConfig:
         T = extrinsic_from_list(cam, p.get(f"extrinsics.{cam}"))
         if T is not None:
             ext[cam] = T
+    masks = {cam: str(p.get(f"ego_mask.{cam}") or "") for cam in cameras}
     return NodeConfig(cameras=cameras, mapper=mapper, grid=grid, extrinsics=tuple(ext.items()),
+                      ego_masks=tuple(masks.items()),
                       temporal=TemporalConfig(**kwargs[TemporalConfig]), **node_kw)
 
 

@@ -50,6 +50,7 @@ from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from bev_mapper_core.errors import BevMapperError
+from bev_mapper_core.geometry.ego_mask import EgoMaskError, attach_ego_masks, load_ego_mask, mask_notes
 from bev_mapper_core.labels.classes import bev_picture
 from bev_mapper_core.labels.label_maps import label_map
 from bev_mapper_core.mapper import create_mapper, mapper_class, output_classes, preflight
@@ -126,6 +127,14 @@ class MapperNode(Node):
             max_jump_m=cfg.tf_extrinsic_jump_m, on_problem=self._tf_problem,
         )
         self._sources_logged: dict[str, str] = {}
+        # ego-body masks: loaded once; a camera whose mask is unusable is left out (counted, logged)
+        self._ego_masks, self._mask_load_problems = {}, {}
+        for cam, path in cfg.ego_masks:
+            try:
+                self._ego_masks[cam] = load_ego_mask(path)
+            except EgoMaskError as exc:
+                self._mask_load_problems[cam] = str(exc)
+        self.mask_problems: dict[str, str] = dict(self._mask_load_problems)
         self.sync = FrameSynchronizer(cfg.cameras, cfg.sync_config(), callback=self._on_set)
         self.slot: LatestSlot = LatestSlot()
         self.worker = Worker(self.slot, self._process, self._on_worker_error)
@@ -333,7 +342,7 @@ class MapperNode(Node):
                 self.stats.waiting += 1
             self.get_logger().warning("waiting for " + "; ".join(missing), throttle_duration_sec=THROTTLE_S)
             return False
-        rig = self.calibration.rig()
+        rig = self._masked(self.calibration.rig())
         if self.mapper is None:
             mapper = create_mapper(rig, self.cfg.grid, self.cfg.mapper)
             mapper.export_in_background()  # torch maps until the fast backend's model is ready (issue #41)
@@ -352,8 +361,26 @@ class MapperNode(Node):
         self._mapper_version = self.calibration.version
         return True
 
+    def _masked(self, rig):
+        """``rig`` with the ego masks attached; an unusable mask (missing, not binary, wrong
+        size) is logged here and its camera left out of the frames (:meth:`_decode`).
+        """
+        if not self._ego_masks and not self._mask_load_problems:
+            return rig
+        rig, problems = attach_ego_masks(rig, self._ego_masks)
+        self.mask_problems = {**self._mask_load_problems, **problems}
+        for cam, problem in sorted(self.mask_problems.items()):
+            self.get_logger().error(f"ego_mask.{cam}: {problem}: the camera's images are left out")
+        for note in mask_notes(rig):
+            self.get_logger().warning(note)
+        return rig
+
     def _decode(self, cam: str, msg) -> np.ndarray | None:
         """Decode one camera's image; None (counted, logged) when it is unusable."""
+        problem = self.mask_problems.get(cam)
+        if problem is not None:
+            self._bad_input(f"{cam}: image left out: ego_mask.{cam}: {problem}", f"{cam}:ego_mask")
+            return None
         try:
             w, h = self.mapper.rig[cam].model.image_size
             # the calibrated size is checked before decoding (a compressed image's header first);

@@ -130,6 +130,9 @@ _TYPE_NAMES = {
     _T.PARAMETER_DOUBLE: "double", _T.PARAMETER_STRING_ARRAY: "string array", _T.PARAMETER_DOUBLE_ARRAY: "double array",
 }
 _EXTRINSICS_TEXT = "ego_from_cam [x, y, z, qx, qy, qz, qw], used when TF has none (default: the preset rig's)"
+_EGO_MASK_TEXT = ("PNG of the camera's image size: nonzero pixels are the ego vehicle itself (hood, trunk), "
+                  "ignored by every method ('' = none; bev-bag propose-mask proposes one from a drive). A "
+                  "missing, non-binary or wrong-size mask leaves the camera out (counted, logged)")
 
 
 def descriptor(name: str) -> ParameterDescriptor:
@@ -181,7 +184,8 @@ def _value(node: Node, name: str, empty):
 
 
 def declare_parameters(node: Node) -> list[str]:
-    """Declare every node parameter, then ``extrinsics.<camera>`` for each configured camera.
+    """Declare every node parameter, then ``extrinsics.<camera>`` and ``ego_mask.<camera>`` for
+    each configured camera.
 
     ``rig`` comes first: a preset rig gives the defaults of ``cameras`` and
     ``extrinsics.<camera>`` (:func:`~bev_mapper_ros.config.preset_parameters`), so
@@ -201,6 +205,9 @@ def declare_parameters(node: Node) -> list[str]:
         name = f"extrinsics.{cam}"
         _declare(node, name, preset.get(name), ParameterDescriptor(
             name=name, type=_T.PARAMETER_DOUBLE_ARRAY, read_only=True, description=_EXTRINSICS_TEXT))
+        name = f"ego_mask.{cam}"
+        _declare(node, name, "", ParameterDescriptor(
+            name=name, type=_T.PARAMETER_STRING, read_only=True, description=_EGO_MASK_TEXT))
     return unknown_parameter_messages(given, cams)
 
 
@@ -215,6 +222,7 @@ def read_parameters(node: Node) -> dict:
     out["cameras"] = cameras_of(node)
     for cam in out["cameras"]:
         out[f"extrinsics.{cam}"] = list(_value(node, f"extrinsics.{cam}", []))
+        out[f"ego_mask.{cam}"] = str(_value(node, f"ego_mask.{cam}", "") or "")
     return out
 
 
@@ -250,4 +258,6 @@ def parameter_help(prog: str = "mapper_node") -> str:
         lines.extend(textwrap.wrap(text, 96, initial_indent=" " * 6, subsequent_indent=" " * 6))
     lines.append("  extrinsics.<camera>: double array = []")
     lines.extend(textwrap.wrap(_EXTRINSICS_TEXT, 96, initial_indent=" " * 6, subsequent_indent=" " * 6))
+    lines.append("  ego_mask.<camera>: string = ''")
+    lines.extend(textwrap.wrap(_EGO_MASK_TEXT, 96, initial_indent=" " * 6, subsequent_indent=" " * 6))
     return "\n".join(lines) + "\n"

@@ -33,7 +33,7 @@ from bev_mapper_ros.rig_params import CONFIG_DIR
 from msg_adapters import GridMessageError, SyncConfig, check_grid_info
 
 # ------------------------------------------------------------ node parameters
-_OWNED_ELSEWHERE = {"mapper", "grid", "extrinsics", "temporal"}  # nested dataclasses / per-camera parameters
+_OWNED_ELSEWHERE = {"mapper", "grid", "extrinsics", "ego_masks", "temporal"}  # nested dataclasses / per-camera parameters
 
 
 def _owner_field(name: str):

@@ -30,6 +30,7 @@ SUBCOMMANDS: dict[str, str] = {
     "evaluate": "bags.cli.evaluate",
     "segment": "bags.cli.segment",
     "import": "bags.cli.import_drives",
+    "propose-mask": "bags.cli.propose_mask",
 }
 
 

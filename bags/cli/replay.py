@@ -143,6 +143,10 @@ def add_replay_args(p: argparse.ArgumentParser) -> None:
     rig.add_argument("--params-file", type=Path, default=RigChoice.params_file, metavar="FILE",
                      help="the node's parameter file (e.g. config/surround6.yaml): rig, cameras, image_topic / "
                           "camera_info_topic patterns, extrinsics.<camera>, base_frame, grid")
+    rig.add_argument("--ego-mask", action="append", default=[], metavar="CAM=PNG",
+                     help="the ego vehicle's own pixels in camera CAM (a PNG of its image size, nonzero = ego body), "
+                          "ignored by the method; repeatable; wins over the --params-file's ego_mask.<camera> "
+                          "(bev-bag propose-mask proposes masks from a drive)")
     live = SyncConfig.replay()
     sync = p.add_argument_group("synchronization of the cameras' images into sets")
     sync.add_argument("--sync-slop-ms", type=float, default=None, metavar="MS",
@@ -172,7 +176,25 @@ def options_from_args(args: argparse.Namespace) -> ReplayOptions:
         score_process=args.score_process,
         rig=RigChoice(name=args.rig, params_file=args.params_file),
         sync=sync_from_args(args),
+        ego_masks=ego_masks_from_args(args.ego_mask),
     )
+
+
+def ego_masks_from_args(values: list[str]) -> tuple:
+    """``--ego-mask CAM=PNG`` values -> ``(camera, path)`` pairs.
+
+    Raises:
+        BagError: a value without ``=``, an empty side, or a camera given twice.
+    """
+    out: dict[str, str] = {}
+    for v in values:
+        cam, sep, path = v.partition("=")
+        if not sep or not cam or not path:
+            raise BagError(f"--ego-mask wants CAM=PNG, got {v!r}")
+        if cam in out:
+            raise BagError(f"--ego-mask given twice for camera {cam!r}")
+        out[cam] = path
+    return tuple(out.items())
 
 
 def sync_from_args(args: argparse.Namespace) -> SyncConfig:

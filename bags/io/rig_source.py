@@ -95,6 +95,7 @@ class RigHints:
         camera_info_topic: CameraInfo topic pattern with ``{camera}``.
         base_frame: the ego frame of the extrinsics ('' = the reader's).
         grid: the grid of a bag without GT (``None``: not given).
+        ego_masks: camera -> path of its ego-body mask PNG (the file's ``ego_mask.<camera>``).
         source: the flags, as the messages name them.
     """
 
@@ -107,6 +108,7 @@ class RigHints:
     base_frame: str = ""
     grid: BevGrid | None = None
     source: str = ""
+    ego_masks: dict = field(default_factory=dict)
 
     def with_preset(self, rig: Rig) -> "RigHints":
         """These hints completed by a preset rig: its cameras (when none are given), and the
@@ -118,7 +120,7 @@ class RigHints:
         intr = {c.name: c.model for c in rig.cameras if c.name in cameras}
         intr.update(self.intrinsics)
         return RigHints(self.name, tuple(cameras), ext, intr, dict(self.image_topics), self.camera_info_topic,
-                        self.base_frame, self.grid, self.source)
+                        self.base_frame, self.grid, self.source, dict(self.ego_masks))
 
 
 def _from_params_file(path: Path, node_name: str, rig_flag: str) -> RigHints:
@@ -140,7 +142,8 @@ def _from_params_file(path: Path, node_name: str, rig_flag: str) -> RigHints:
     has_grid = any(k.startswith("grid.") for k in params)
     return RigHints(name=cfg.rig, cameras=cfg.cameras, extrinsics=dict(cfg.extrinsics), image_topics=topics,
                     camera_info_topic=cfg.camera_info_topic, base_frame=cfg.base_frame,
-                    grid=cfg.grid if has_grid else None, source=f"--params-file {path}")
+                    grid=cfg.grid if has_grid else None, source=f"--params-file {path}",
+                    ego_masks=dict(cfg.ego_masks))
 
 
 def read_params_file(path: Path, node_name: str) -> dict:

@@ -46,6 +46,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from bev_mapper_core.errors import BevMapperError
+from bev_mapper_core.geometry.ego_mask import load_ego_mask, mask_notes, with_ego_masks
 from bev_mapper_core.geometry.grid import BevGrid
 from bev_mapper_core.geometry.rig import PRESETS
 from bev_mapper_core.labels.classes import known_class_names
@@ -80,10 +81,13 @@ def replay(options: ReplayOptions, progress: Callable | None = None) -> ReplayRe
     out = Path(options.out)
     check_outputs(out, options.force)
     hints = options.rig.hints()
+    # ego-body masks: read (and checked) before the bag; a bad one is refused, never ignored
+    mask_paths = {**(hints.ego_masks if hints is not None else {}), **dict(options.ego_masks)}
+    masks = {cam: load_ego_mask(path) for cam, path in mask_paths.items()}
     with BagReader(options.bag, hints=hints) as reader:
-        rig = reader.rig()
+        rig = with_ego_masks(reader.rig(), masks)
         grid = reader.grid()
-        notes: list[str] = []
+        notes: list[str] = mask_notes(rig)
         if reader.unknown_gt_classes:
             notes.append(f"GT layers of unknown classes skipped (not scored): "
                          f"{', '.join(T.gt_topic(c) for c in reader.unknown_gt_classes)} (known classes: "

@@ -74,6 +74,9 @@ class ReplayOptions:
         rig: what the bag lacks about its rig (``--rig``, ``--params-file``;
             :mod:`bags.io.rig_source`).
         sync: how the cameras' images are grouped into sets (:meth:`SyncConfig.replay`).
+        ego_masks: ``(camera, PNG path)`` pairs (``--ego-mask CAM=PNG``): the pixels of the ego
+            vehicle itself, ignored by the method (:mod:`bev_mapper_core.geometry.ego_mask`); they
+            win over the ``--params-file``'s ``ego_mask.<camera>``.
     """
 
     bag: Path
@@ -94,6 +97,7 @@ class ReplayOptions:
     score_process: str = "auto"
     rig: RigChoice = field(default_factory=RigChoice)
     sync: SyncConfig = field(default_factory=SyncConfig.replay)
+    ego_masks: tuple = ()
 
     def __post_init__(self) -> None:
         if self.scope not in SCOPES:

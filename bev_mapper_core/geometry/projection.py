@@ -22,8 +22,8 @@ class RemapTable:
     Attributes:
         map_x, map_y: float32 arrays of the target shape; pixel coordinates for ``cv2.remap``
             (-1 where the point is not seen).
-        valid: bool array of the target shape: the point is in front of the camera and inside
-            its image.
+        valid: bool array of the target shape: the point is in front of the camera, inside
+            its image and not on the camera's ego mask (the ego vehicle's own body).
     """
 
     map_x: np.ndarray
@@ -41,13 +41,16 @@ class RemapTable:
 def remap_table(camera: RigCamera, points_ego: np.ndarray, shape: tuple[int, int]) -> RemapTable:
     """Project ego-frame points ``(N, 3)`` into ``camera``; arrange the result as ``shape``.
 
-    ``N`` must equal ``shape[0] * shape[1]`` (points in row-major order of the target).
+    ``N`` must equal ``shape[0] * shape[1]`` (points in row-major order of the target). Points
+    whose pixel lies on ``camera.ego_mask`` are not seen (``valid`` False).
     """
     if points_ego.shape != (shape[0] * shape[1], 3):
         raise ValueError(f"points {points_ego.shape} do not fill target shape {shape}")
     pts_cam = transform_points(camera.cam_from_ego, points_ego)
     uv, in_front = camera.model.project(pts_cam)
     valid = in_front & camera.model.in_image(uv)
+    if camera.ego_mask is not None:
+        valid &= ~camera.ego_mask.covers(uv, camera.model.image_size)
     uv = np.where(valid[:, None], uv, -1.0)
     # (N, 2) -> two (H, W) maps
     map_x = uv[:, 0].reshape(shape).astype(np.float32)

@@ -18,6 +18,7 @@ import numpy as np
 
 from ..errors import CalibrationError, ConfigError
 from .camera import CameraModel
+from .ego_mask import EgoMask
 from .transforms import ego_from_optical, invert_transform, make_transform, quat_to_rot, validate_transform
 
 
@@ -30,12 +31,16 @@ class RigCamera:
         model: intrinsics.
         ego_from_cam: 4x4 transform from the optical frame into ``base_link``.
         frame_id: the optical frame's TF name.
+        ego_mask: the pixels that show the ego vehicle itself (:mod:`.ego_mask`), at the
+            delivered image size; ``None`` = none. Ground tables leave their cells out; a scaled
+            copy of the camera keeps the mask (looked up proportionally).
     """
 
     name: str
     model: CameraModel
     ego_from_cam: tuple
     frame_id: str = ""
+    ego_mask: EgoMask | None = None
 
     def __post_init__(self) -> None:
         if not self.name or "/" in self.name:

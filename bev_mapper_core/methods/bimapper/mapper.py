@@ -188,7 +188,7 @@ class BiMapperMapper(Mapper):
         """Map one synchronized set of images; cameras absent from ``images`` are unseen."""
         images = self.check_images(images)
         if self.stage is not None:  # chained: RGB -> labels first
-            images = self.stage.segment(images)
+            images = self.mask_ego(self.stage.segment(images))
         present = [name in images for name in self.rig.names]
         raws = []
         for name in self.rig.names:
