@@ -64,3 +64,11 @@ def replay_outputs(out: pathlib.Path):
     bag = {p.name: p.read_bytes() for p in sorted((out / BAG_DIR).iterdir())}
     report = (out / "report.html").read_text().replace(str(out), "OUT")
     return metrics, pictures, bag, report[:report.index("<h2>Mapping latency</h2>")]  # then timings
+
+
+def replay_scores(out: pathlib.Path) -> dict:
+    """A replay's metrics.json without its timings and paths (two replays compare equal on it)."""
+    m = json.loads((out / METRICS_FILE).read_text())
+    for key in ("latency_ms", "bag"):
+        m.pop(key)
+    return m

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import hashlib
 import importlib.util
+import io
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -122,8 +123,6 @@ def read_checkpoint(variant: str, path: str | os.PathLike | None = None) -> dict
                               f"({len(data)} bytes, sha256 {digest[:16]}...; expected {ck.size} bytes, "
                               f"sha256 {ck.sha256[:16]}...): {reinstall}")
     try:  # the published bytes; still only tensors and containers are unpickled
-        import io  # noqa: PLC0415
-
         state = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     except Exception as e:  # noqa: BLE001 - any unpickling failure is a damaged file
         raise PretrainedError(f"{path}: cannot be read as a checkpoint ({type(e).__name__}: {e})") from None

@@ -35,9 +35,7 @@ def trunk_config(in_channels: int = 3) -> EfficientNetConfig:
     """The EfficientNet configuration of the shipped segmenter's trunk (width, depth and stages
     of :class:`~.model.SegmenterConfig`'s defaults): an encoder built with it takes the trunk.
     """
-    seg = SegmenterConfig()
-    return EfficientNetConfig(width_mult=seg.width_mult, depth_mult=seg.depth_mult, num_stages=seg.encoder_stages,
-                              in_channels=in_channels)
+    return SegmenterConfig().trunk_config(in_channels)
 
 
 def check_encoder_init(spec) -> None:

@@ -11,7 +11,7 @@ import json
 import cv2
 import numpy as np
 import pytest
-from bag_helpers import replay_ipm, rewrite_bag, synth_small
+from bag_helpers import replay_ipm, replay_scores, rewrite_bag, synth_small
 from rosbags.typesys import Stores, get_typestore
 
 from bags.cli.main import main
@@ -36,13 +36,6 @@ def drives(tmp_path_factory):
             synth_small(root / "compressed", frames=FRAMES, seed=SEED, compressed=True))
 
 
-def _scores(out) -> dict:
-    """metrics.json without its timings and paths."""
-    m = json.loads((out / METRICS_FILE).read_text())
-    for key in ("latency_ms", "bag"):
-        m.pop(key)
-    return m
-
 
 def test_synth_compressed_writes_jpeg_rgb_and_png_labels_on_the_compressed_topics(drives):
     _, bag = drives
@@ -61,9 +54,9 @@ def test_png_label_images_replay_exactly_as_raw_ones(drives, tmp_path):
     raw, bag = drives
     assert replay_ipm(raw, tmp_path / "raw", *NO_OUTPUTS) == 0
     assert replay_ipm(bag, tmp_path / "compressed", *NO_OUTPUTS) == 0
-    got = _scores(tmp_path / "compressed")
+    got = replay_scores(tmp_path / "compressed")
     assert got["frames_scored"] == FRAMES and got["decode_errors"] == 0 and got["complete"]
-    assert got == _scores(tmp_path / "raw")
+    assert got == replay_scores(tmp_path / "raw")
 
 
 def _jpeg_roundtrip(rgb: np.ndarray) -> np.ndarray:
@@ -106,7 +99,7 @@ def test_compressed_images_on_the_image_topic_itself_and_named_by_the_params_fil
     """
     raw, bag = drives
     assert replay_ipm(raw, tmp_path / "raw", *NO_OUTPUTS) == 0
-    want = _scores(tmp_path / "raw")
+    want = replay_scores(tmp_path / "raw")
     plain = rewrite_bag(bag, tmp_path / "plain", lambda t, m, d: (t.removesuffix(T.COMPRESSED_SUFFIX), m, d))
     with BagReader(plain) as r:
         assert r.topics["/cameras/front/labels"].msgtype == T.COMPRESSED_IMAGE_TYPE and not r.type_problems
@@ -117,7 +110,7 @@ def test_compressed_images_on_the_image_topic_itself_and_named_by_the_params_fil
     for name, (src, extra) in runs.items():
         out = tmp_path / name.replace(" ", "_").replace(":", "")
         assert replay_ipm(src, out, *NO_OUTPUTS, *extra) == 0, (name, capsys.readouterr().err)
-        got = _scores(out)
+        got = replay_scores(out)
         assert got["frames_scored"] == FRAMES and got["decode_errors"] == 0, name
         assert {k: v for k, v in got.items() if k != "rig"} == {k: v for k, v in want.items() if k != "rig"}, name
 

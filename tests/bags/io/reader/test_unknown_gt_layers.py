@@ -5,16 +5,13 @@ aborted with ``unknown BEV class``).
 
 from __future__ import annotations
 
-import json
-
 import pytest
-from bag_helpers import replay_ipm, synth_small
+from bag_helpers import replay_ipm, replay_scores, synth_small
 
 from bags.cli.main import main
 from bags.io import topics as T
 from bags.io.reader import BagReader
 from bags.io.writer import BagWriter
-from bags.replay import METRICS_FILE
 
 pytest.importorskip("bev_mapper_core.synth")
 
@@ -41,12 +38,6 @@ def drives(tmp_path_factory):
     return bag, root / "with_walkway"
 
 
-def _scores(out) -> dict:
-    m = json.loads((out / METRICS_FILE).read_text())
-    for key in ("latency_ms", "bag"):
-        m.pop(key)
-    return m
-
 
 def test_the_reader_skips_unknown_gt_layers(drives):
     _, bag = drives
@@ -67,7 +58,7 @@ def test_replay_notes_the_skipped_layer_and_scores_the_rest(drives, tmp_path, ca
     err = capsys.readouterr().err
     assert "note: GT layers of unknown classes skipped (not scored): /bev/gt/walkway" in err
     assert "Traceback" not in err and "error" not in err
-    got, want = _scores(tmp_path / "walkway"), _scores(tmp_path / "plain")
+    got, want = replay_scores(tmp_path / "walkway"), replay_scores(tmp_path / "plain")
     assert got.pop("skipped_gt_layers") == ["/bev/gt/walkway"] and want.pop("skipped_gt_layers") == []
     assert got == want and got["frames_scored"] == FRAMES
 
