@@ -159,15 +159,22 @@ class SegmenterStage:
             runner.close()
 
     def _labels(self, x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
-        """Normalised input ``(B, 3, h, w)`` -> ``(B, *size)`` uint8 labels, by the backend."""
-        key = (tuple(x.shape), tuple(size))
+        """Normalised input ``(B, 3, h, w)`` -> ``(B, *size)`` uint8 labels, by the backend.
+
+        An exported model has a fixed batch, so it runs one image at a time: one export per
+        image size, whatever number of cameras a set brings (a set missing cameras would
+        otherwise export again for its smaller batch).
+        """
+        key = (tuple(x.shape[1:]), tuple(size))
         runner = self._runners.get(key)
         if runner is None:
             runner = self._runners[key] = BackendRunner(self.backend, self.device, self.threads,
                                                         background=self._background)
             runner.reset(_Labels(self.model, size))
         with torch.inference_mode():
-            return runner(x)[0]
+            if runner.eager:
+                return runner(x)[0]
+            return torch.cat([runner(x[i:i + 1])[0] for i in range(len(x))])  # B x (1, H, W) -> (B, H, W)
 
     def segment(self, images: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         """``{camera: (H, W, 3) uint8}`` -> ``{camera: (H, W) uint8 label ids}``; cameras of one
