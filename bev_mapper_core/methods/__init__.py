@@ -40,6 +40,8 @@ class MethodSpec:
             of its label weights (when it has no RGB weights).
         monocular: it maps one camera only.
         train_flags: what ``bev-train --method NAME`` needs beyond ``--rig`` and ``--input``.
+        any_rig_flags: the ``bev-train`` flags that train this method's weights for any rig
+            (``--rig random`` and a rig-free architecture); empty: it trains for one rig only.
     """
 
     mapper: str | None
@@ -51,7 +53,11 @@ class MethodSpec:
     chains: bool = False
     monocular: bool = False
     train_flags: str = ""
+    any_rig_flags: str = ""
 
+
+#: The rig name of weights that map any rig (``<method>_any_<input>.safetensors``).
+ANY_RIG = "any"
 
 _PKG = "bev_mapper_core.methods"
 
@@ -74,9 +80,10 @@ METHODS: MappingProxyType[str, MethodSpec] = MappingProxyType({
     "bimapper": MethodSpec(
         mapper=f"{_PKG}.bimapper.mapper:BiMapperMapper", trainer=f"{_PKG}.bimapper.train:BiMapperMethod",
         weights=("bimapper_surround6_labels.safetensors", "bimapper_cam2bev4_labels.safetensors",
-                 "bimapper_front1_labels.safetensors", "bimapper_surround6_rgb_e2e.safetensors"),
+                 "bimapper_front1_labels.safetensors", "bimapper_surround6_rgb_e2e.safetensors",
+                 "bimapper_any_labels.safetensors"),
         summary="Bi-Mapper (RA-L 2023): global-cross and local-self view streams, any rig",
-        chains=True,
+        chains=True, any_rig_flags="--rig random --streams lv --ipm-skip",
     ),
     "s2g2": MethodSpec(
         mapper=f"{_PKG}.s2g2.mapper:S2G2Mapper", trainer=f"{_PKG}.s2g2.train:S2G2Method",
@@ -134,6 +141,11 @@ def runnable_methods(input_kind: str, rig_name: str, cameras: int | None = None,
               and _shipped(METHODS["segmenter"])):
             out.append(f"{name} (RGB through the shipped segmenter, then its shipped label weights "
                        f"for rig {rig_name!r})")
+        elif shipped_weights(name, ANY_RIG, input_kind).is_file() and not spec.monocular:
+            out.append(f"{name} (its shipped weights for any rig, {words})")
+        elif (spec.chains and input_kind == "rgb" and shipped_weights(name, ANY_RIG, "labels").is_file()
+              and _shipped(METHODS["segmenter"])):
+            out.append(f"{name} (RGB through the shipped segmenter, then its shipped label weights for any rig)")
     return tuple(out)
 
 
@@ -143,7 +155,11 @@ def train_command(method: str, rig_name: str, input_kind: str) -> str:
     """
     from ..geometry.rig import PRESETS  # noqa: PLC0415 - only the messages need it
 
-    flags = METHODS[method].train_flags
+    spec = METHODS[method]
+    flags = spec.train_flags
+    if rig_name not in PRESETS and spec.any_rig_flags:  # weights for every rig, this one included
+        return (f"bev-train --method {method} {spec.any_rig_flags} --input {input_kind}"
+                f"{' ' + flags if flags else ''} --out runs/NAME (weights for any rig; rig {rig_name!r} is no preset)")
     rig = rig_name if rig_name in PRESETS else "PRESET"
     cmd = f"bev-train --method {method} --rig {rig} --input {input_kind}{' ' + flags if flags else ''} --out runs/NAME"
     if rig_name not in PRESETS:
@@ -181,5 +197,5 @@ def method_presets() -> dict[str, dict[str, str]]:
     return {name: {**over, "method": method} for method, spec in METHODS.items() for name, over in spec.presets.items()}
 
 
-__all__ = ["INPUT_WORDS", "METHODS", "WEIGHTS_DIR", "MethodSpec", "alternatives", "mapper_targets", "method_presets",
+__all__ = ["ANY_RIG", "INPUT_WORDS", "METHODS", "WEIGHTS_DIR", "MethodSpec", "alternatives", "mapper_targets", "method_presets",
            "runnable_methods", "shipped_weights", "train_command", "trainer_targets"]

@@ -17,8 +17,11 @@ def class_pos_weight(frames: FrameSet, max_weight: float = 10.0) -> tuple[float,
     thin and rare layers (lane dividers, crossings, boundaries, pedestrians: 0.05-2 % of the
     cells) otherwise stay at zero IoU; the square root keeps the weighting mild.
     """
-    m = frames.mask[:, None]  # (M, 1, H, W)
-    pos = np.count_nonzero(frames.target & m, axis=(0, 2, 3)).astype(np.float64)
-    tot = float(np.count_nonzero(frames.mask))
+    sets = [f for _, f in frames.parts] if hasattr(frames, "parts") else [frames]  # MultiRigFrames: each rig's
+    pos, tot = 0.0, 0.0
+    for f in sets:
+        m = f.mask[:, None]  # (M, 1, H, W)
+        pos = pos + np.count_nonzero(f.target & m, axis=(0, 2, 3)).astype(np.float64)
+        tot += float(np.count_nonzero(f.mask))
     w = np.sqrt(np.maximum(tot - pos, 1.0) / np.maximum(pos, 1.0))
     return tuple(float(round(v, 3)) for v in np.clip(w, 1.0, max_weight))

@@ -21,6 +21,7 @@ from typing import Any
 
 from ..errors import BevMapperError, ConfigError
 from ..geometry.grid import BevGrid, grid_preset
+from ..geometry.random_rig import RANDOM_RIGS
 from ..geometry.rig import PRESETS
 from ..labels.classes import BEV_CLASS_NAMES, CAM2BEV_CLASSES, CLASS_SETS, resolve_classes
 from ..labels.label_maps import label_map
@@ -98,7 +99,9 @@ class TrainConfig:
 
     Args:
         method: registered training method (:func:`~.method.train_methods`).
-        rig: preset rig name (ignored for the cameras when training on bags: the bag's rig).
+        rig: preset rig name (ignored for the cameras when training on bags: the bag's rig), or
+            ``random``: every synthetic drive seen by its own seeded random rig (a rig-free model,
+            :mod:`~.multirig`).
         out: run directory.
         epochs, frames_per_epoch (None = every training frame), batch, lr, seed.
         lr_step_epoch: 0-based epoch from which lr is multiplied by ``lr_gamma``; None = the
@@ -194,8 +197,9 @@ class TrainConfig:
         if not isinstance(self.grid, BevGrid):
             raise ConfigError(f"grid must be a BevGrid, got {self.grid!r} (TrainConfig.from_dict converts mappings)")
         cls = method_class(self.method)  # ConfigError for an unknown method
-        if self.rig not in PRESETS:
-            raise ConfigError(f"unknown rig {self.rig!r}; presets: {sorted(PRESETS)}")
+        if self.rig not in PRESETS and self.rig != RANDOM_RIGS:
+            raise ConfigError(f"unknown rig {self.rig!r}; presets: {sorted(PRESETS)}, or {RANDOM_RIGS!r} "
+                              "(every drive its own random rig)")
         if self.model is None:
             object.__setattr__(self, "model", cls.default_model_config(class_set(AUTO_CLASSES, self.rig)))
         if self.loss is None:
@@ -342,8 +346,8 @@ class TrainConfig:
             known = sorted(run | model_fields | loss_fields | set(MODEL_ALIASES))
             raise ConfigError(f"unknown training config keys {sorted(unknown)}; known: {known}")
         rig = d.get("rig", _default("rig"))
-        if rig not in PRESETS:
-            raise ConfigError(f"unknown rig {rig!r}; presets: {sorted(PRESETS)}")
+        if rig not in PRESETS and rig != RANDOM_RIGS:
+            raise ConfigError(f"unknown rig {rig!r}; presets: {sorted(PRESETS)}, or {RANDOM_RIGS!r}")
         base = _jsonable(method.default_model_config(class_set(AUTO_CLASSES, rig)))
         model_kw["classes"] = class_set(model_kw.get("classes", AUTO_CLASSES), rig)
         d["model"] = _build(method.model_config_type, {**base, **model_kw}, f"{method.name} model config")

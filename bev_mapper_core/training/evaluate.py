@@ -48,14 +48,15 @@ def score_frameset(predict: Callable[[dict], tuple[np.ndarray, np.ndarray]], fra
     """
     acc = MetricAccumulator(grid, class_names)
     n = len(frames) if limit is None else min(limit, len(frames))
-    starts = range(0, n, batch)
+    # frames of several rigs (MultiRigFrames) batch within one rig
+    groups = (frames.scoring_batches(batch, n) if hasattr(frames, "scoring_batches")
+              else (np.arange(s, min(s + batch, n)) for s in range(0, n, batch)))
     if progress:
         from tqdm import tqdm
 
-        starts = tqdm(starts, desc=progress, unit="batch", mininterval=5)
+        groups = tqdm(groups, total=-(-n // batch), desc=progress, unit="batch", mininterval=5)
     t_pred = 0.0
-    for s in starts:
-        idx = np.arange(s, min(s + batch, n))
+    for idx in groups:
         t0 = time.perf_counter()
         probs, known = predict(frames.batch(idx))
         t_pred += time.perf_counter() - t0

@@ -24,8 +24,10 @@ from typing_extensions import override
 
 from ..errors import ConfigError
 from ..geometry.grid import BevGrid
+from ..geometry.random_rig import RANDOM_RIGS, random_rig
 from ..geometry.rig import Rig, preset_rig
 from .data import FrameSet, shard_slice, synth_frameset, train_seeds
+from .multirig import random_rig_frameset
 
 if TYPE_CHECKING:  # typing only: config imports the method registry, not this module
     from .config import TrainConfig
@@ -150,12 +152,16 @@ class SynthSource(DataSource):
     def rig_grid(self, cfg: "TrainConfig") -> tuple[Rig, BevGrid]:
         if cfg.bag:
             raise ConfigError("training on bags needs the bag data source (the bev-train command passes it)")
+        if cfg.rig == RANDOM_RIGS:  # the model is built for the first training drive's rig
+            return random_rig(train_seeds(cfg.seed, 1)[0]), cfg.grid
         return preset_rig(cfg.rig), cfg.grid
 
     @override
     def load(self, cfg: "TrainConfig", rig: Rig, grid: BevGrid, needs: DataNeeds,
              log: Callable[[str], None]) -> TrainData:
         self.check(needs)
+        if cfg.rig == RANDOM_RIGS:
+            return self._load_random(cfg, grid, needs, log)
         if needs.unlabeled and cfg.unlabeled_bag:
             raise ConfigError("unlabeled bags need the unlabeled-bag data source (the bev-train command passes it)")
         if needs.unlabeled and not (cfg.unlabeled_drives or cfg.unlabeled_real):
@@ -191,6 +197,23 @@ class SynthSource(DataSource):
         extra = "" if unlabeled is None else f" / {len(unlabeled)} unlabeled"
         log(f"data: {len(train)} training{extra} / {len(val)} held-out frames ({time.time() - t0:.1f} s)")
         return with_window(TrainData(train, val, unlabeled), needs)
+
+
+    @staticmethod
+    def _load_random(cfg: "TrainConfig", grid: BevGrid, needs: DataNeeds, log: Callable[[str], None]) -> TrainData:
+        """Training and held-out drives, each seen by its own random rig (:mod:`.multirig`):
+        label images at camera size, no RGB, single frames.
+        """
+        if needs.rgb or needs.unlabeled or needs.sequence_length > 1 or needs.poses:
+            raise ConfigError(f"random rigs give single labeled frames of label images; method {cfg.method!r} "
+                              "needs more (RGB, unlabeled frames or sequences)")
+        t0 = time.time()
+        train = random_rig_frameset(grid, cfg.class_names, train_seeds(cfg.seed, cfg.train_drives),
+                                    cfg.frames_per_drive, cfg.stride, cfg.cache, log)
+        val = random_rig_frameset(grid, cfg.class_names, cfg.held_out_seeds, cfg.frames_per_drive, cfg.stride,
+                                  cfg.cache, log)
+        log(f"data: {len(train)} training / {len(val)} held-out frames of random rigs ({time.time() - t0:.1f} s)")
+        return TrainData(train, val)
 
 
 class InMemorySource(DataSource):

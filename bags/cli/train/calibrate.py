@@ -10,6 +10,8 @@ import argparse
 
 from bev_mapper_core.geometry.rig import PRESETS
 
+from .flags import rig_name_arg
+
 from .flags import DEFAULTS, add_held_out_flags, pos_int
 
 HELP = ("fit per-class temperatures of Bi-Mapper weights on validation drives "
@@ -18,7 +20,8 @@ HELP = ("fit per-class temperatures of Bi-Mapper weights on validation drives "
 
 def configure(p: argparse.ArgumentParser, argv: list[str]) -> None:
     """The weights in and out and the validation drives."""
-    p.add_argument("--rig", default=DEFAULTS["rig"], choices=sorted(PRESETS))
+    p.add_argument("--rig", default=DEFAULTS["rig"], type=rig_name_arg, metavar="RIG",
+                   help=f"a preset rig ({', '.join(sorted(PRESETS))}) or random-<seed> (default: %(default)s)")
     p.add_argument("--weights", required=True, help="Bi-Mapper weights to calibrate")
     p.add_argument("--out", required=True, help="calibrated weights file to write")
     add_held_out_flags(p)
@@ -30,14 +33,14 @@ def run(a: argparse.Namespace) -> int:
     import torch
 
     from bev_mapper_core.geometry.grid import BevGrid
-    from bev_mapper_core.geometry.rig import preset_rig
+    from bev_mapper_core.geometry.random_rig import rig_by_name
     from bev_mapper_core.methods.bimapper.calibrate import calibrate_weights
     from bev_mapper_core.methods.bimapper.weights import WeightsFile
     from bev_mapper_core.training.data import val_seeds
     from bev_mapper_core.training.evaluate import held_out_frames
 
     torch.set_num_threads(a.threads)
-    rig, grid = preset_rig(a.rig), BevGrid()
+    rig, grid = rig_by_name(a.rig), BevGrid()
     classes = WeightsFile.open(a.weights).classes
     seeds = a.val_seeds or val_seeds(a.val_drives)
     frames = held_out_frames(rig, grid, classes, seeds, a.frames_per_drive, a.stride, a.cache, progress=False)

@@ -19,6 +19,8 @@ import json
 from bev_mapper_core.datasets.camvid import SPLITS
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.geometry.rig import PRESETS
+
+from .flags import rig_name_arg
 from bev_mapper_core.mapper import INPUT_KINDS, MapperConfig
 from bev_mapper_core.synth.styles import STYLE_CHOICES
 from bev_mapper_core.temporal import TemporalConfig
@@ -31,7 +33,8 @@ HELP = "Score a mapper on held-out synthetic drives."
 
 def configure(p: argparse.ArgumentParser, argv: list[str]) -> None:
     """The mapper's and the held-out drives' flags (defaults: TrainConfig's and MapperConfig's)."""
-    p.add_argument("--rig", default=DEFAULTS["rig"], choices=sorted(PRESETS))
+    p.add_argument("--rig", default=DEFAULTS["rig"], type=rig_name_arg, metavar="RIG",
+                   help=f"a preset rig ({', '.join(sorted(PRESETS))}) or random-<seed> (default: %(default)s)")
     p.add_argument("--method", default=MapperConfig.method, help="a registered mapper (ipm, bimapper, ...)")
     p.add_argument("--weights", default=None, help="the learned method's weights (default: the shipped file)")
     p.add_argument("--input", dest="input_kind", default=MapperConfig.input_kind, choices=list(INPUT_KINDS),
@@ -87,7 +90,7 @@ def run(a: argparse.Namespace) -> int:
     import torch
 
     from bev_mapper_core.geometry.grid import BevGrid
-    from bev_mapper_core.geometry.rig import preset_rig
+    from bev_mapper_core.geometry.random_rig import rig_by_name
     from bev_mapper_core.metrics import format_table
     from bev_mapper_core.nn.runtime import THREADS_ENV
     from bev_mapper_core.training.config import class_set
@@ -98,7 +101,7 @@ def run(a: argparse.Namespace) -> int:
     torch.set_num_threads(a.threads)
     classes = class_set(a.classes, a.rig)
     seeds = a.val_seeds or val_seeds(a.val_drives)
-    res = evaluate(preset_rig(a.rig), a.grid or BevGrid(), classes, a.method, a.weights, seeds, a.frames_per_drive, a.stride,
+    res = evaluate(rig_by_name(a.rig), a.grid or BevGrid(), classes, a.method, a.weights, seeds, a.frames_per_drive, a.stride,
                    a.cache, a.device, progress=True, ipm_occlusion=a.ipm_occlusion, unknown_below=a.unknown_below,
                    input_kind=a.input_kind, style=a.style, temporal_window=a.temporal_window)
     print(format_table(res))

@@ -10,6 +10,7 @@ import argparse
 import math
 from dataclasses import fields
 
+from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.training.config import TrainConfig
 from bev_mapper_core.training.method import CliFlag
 
@@ -106,3 +107,13 @@ def add_held_out_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--frames-per-drive", type=pos_int, default=DEFAULTS["frames_per_drive"])
     p.add_argument("--stride", type=pos_int, default=DEFAULTS["stride"])
     p.add_argument("--cache", default=DEFAULTS["cache"])
+
+
+def rig_name_arg(s: str) -> str:
+    """Argparse type: a preset rig's name or ``random-<seed>`` (:func:`~bev_mapper_core.geometry.random_rig.rig_by_name`)."""
+    from bev_mapper_core.geometry.random_rig import check_rig_name
+
+    try:
+        return check_rig_name(s)
+    except ConfigError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None

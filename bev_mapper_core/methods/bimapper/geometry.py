@@ -156,11 +156,17 @@ class BiMapperGeometry:
         raw_sizes: ``(width, height)`` of each camera's delivered image.
     """
 
-    def __init__(self, rig: Rig, grid: BevGrid, input_width: int, plane: PlaneSpec, bev_downsample: int) -> None:
+    def __init__(self, rig: Rig, grid: BevGrid, input_width: int, plane: PlaneSpec, bev_downsample: int,
+                 any_aspect: bool = False) -> None:
         self.rig, self.grid, self.plane = rig, grid, plane
         self.feat_grid = feature_grid(grid, bev_downsample)
         cams = [scaled_camera(c, input_width) for c in rig.cameras]
         sizes = {c.model.image_size for c in cams}
+        if len(sizes) != 1 and any_aspect:
+            # a model without per-camera parameters (Bi-Mapper's LV stream) batches cameras of other
+            # aspect ratios at the first camera's input size: each image is resized to it, and its
+            # normalised IPM coordinates are the same at any size
+            sizes = {cams[0].model.image_size}
         if len(sizes) != 1:
             raise ConfigError(
                 f"rig {rig.name!r}: cameras give different input sizes {sorted(sizes)} at width "
@@ -174,7 +180,7 @@ class BiMapperGeometry:
         for cam in cams:
             pts_ego = transform_points(cam.ego_from_cam_array, plane.points_cam(cam))  # (Hp*Wp, 3)
             table = remap_table(cam, pts_ego, plane.shape)
-            ipm_g.append(pixel_normalized(table.map_x, table.map_y, (w_in, h_in)))
+            ipm_g.append(pixel_normalized(table.map_x, table.map_y, cam.model.image_size))
             ipm_v.append(table.valid)
             x, y = pts_ego[:, 0].reshape(plane.shape), pts_ego[:, 1].reshape(plane.shape)  # (Hp, Wp)
             gt_g.append(grid_normalized(grid, x, y))

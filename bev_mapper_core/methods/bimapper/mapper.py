@@ -32,7 +32,7 @@ from ..ipm.occlusion import OcclusionModel, learned_footprints
 from ..segmenter.stage import SegmenterStage, segmenter_path
 from ..segmenter.weights import load_segmenter
 from .model import BiMapper
-from .weights import WeightsFile
+from .weights import ANY_RIG, WeightsFile
 
 
 def default_weights_path(rig_name: str, input_kind: str) -> Path:
@@ -63,28 +63,34 @@ class BiMapperMapper(Mapper):
     def weights_path(cls, config: MapperConfig, rig_name: str) -> Path:
         """The weights file to use: ``config.weights``, or the shipped one for the rig and input
         kind; on RGB input without shipped RGB weights and with a segmenter, the shipped label
-        weights (chained input, :meth:`plan`).
+        weights (chained input, :meth:`plan`); for a rig without weights of its own, the same
+        lookup for the rig-free weights ``bimapper_any_<input>.safetensors`` (:data:`ANY_RIG`).
 
         Raises:
             ConfigError: none given and none shipped for this rig and input kind.
         """
         if config.weights:
             return Path(config.weights)
-        path = default_weights_path(rig_name, config.input_kind)
-        if not path.is_file() and config.input_kind == "rgb" and config.segmenter != "none":
-            path = default_weights_path(rig_name, "labels")
-        if not path.is_file():
-            shipped = sorted(p.name for p in WEIGHTS_DIR.glob("bimapper_*.safetensors"))
-            chain = ""
-            if config.input_kind == "rgb" and default_weights_path(rig_name, "labels").is_file():
-                chain = (f"; segmenter 'auto' (not {config.segmenter!r}) runs the shipped label weights of rig "
-                         f"{rig_name!r} on RGB, the segmenter in front")
-            raise ConfigError(
-                f"no Bi-Mapper weights given and none shipped for rig {rig_name!r} / input "
-                f"{config.input_kind!r} (shipped: {', '.join(shipped) or 'none'}){chain}; "
-                f"{alternatives('bimapper', config.input_kind, rig_name)}"
-            )
-        return path
+        chain = config.input_kind == "rgb" and config.segmenter != "none"  # RGB may run label weights behind the segmenter
+        candidates = [default_weights_path(rig_name, config.input_kind)]
+        if chain:
+            candidates.append(default_weights_path(rig_name, "labels"))
+        # the rig-free weights (trained on random rigs) map any rig without weights of its own
+        candidates += [default_weights_path(ANY_RIG, config.input_kind)] + (
+            [default_weights_path(ANY_RIG, "labels")] if chain else [])
+        for path in candidates:
+            if path.is_file():
+                return path
+        shipped = sorted(p.name for p in WEIGHTS_DIR.glob("bimapper_*.safetensors"))
+        hint = ""
+        if config.input_kind == "rgb" and any(default_weights_path(r, "labels").is_file() for r in (rig_name, ANY_RIG)):
+            hint = (f"; segmenter 'auto' (not {config.segmenter!r}) runs shipped label weights on RGB, "
+                    "the segmenter in front")
+        raise ConfigError(
+            f"no Bi-Mapper weights given and none shipped for rig {rig_name!r} / input "
+            f"{config.input_kind!r} (shipped: {', '.join(shipped) or 'none'}){hint}; "
+            f"{alternatives('bimapper', config.input_kind, rig_name)}"
+        )
 
     @classmethod
     def plan(cls, config: MapperConfig, rig_name: str) -> tuple[Path, str, Path | None]:
@@ -205,9 +211,12 @@ class BiMapperMapper(Mapper):
                 if out is None:
                     out = self.model(raw, cam_mask)
                     out = {**out, "logits": self.model.calibrated(out["logits"])}
-            else:  # cameras of different sizes (the model refuses ipm_skip / lv_full_res then; torch only)
+            else:  # cameras of different sizes (the model refuses lv_full_res then; torch only)
                 xs = [self.model.preprocess(torch.from_numpy(r)[None, None].to(self.device)) for r in raws]  # (1, 1, C_in, h, w) each
-                out = self.model.forward_preprocessed(torch.cat(xs, dim=1), cam_mask)  # input (1, N, C_in, h, w)
+                prior = None
+                if self.model.config.ipm_skip:  # each camera's own image
+                    prior = self.model.ipm_prior([torch.from_numpy(r)[None].to(self.device) for r in raws], cam_mask)
+                out = self.model.forward_preprocessed(torch.cat(xs, dim=1), cam_mask, None, prior)  # input (1, N, C_in, h, w)
                 out = {**out, "logits": self.model.calibrated(out["logits"])}
             logits = out["logits"]  # per-class temperature applied (1 if uncalibrated)
             probs = torch.sigmoid(logits[0, self._layers]).float().cpu().numpy()  # (K_wanted, H, W)

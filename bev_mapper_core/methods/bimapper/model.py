@@ -55,7 +55,8 @@ class BiMapper(nn.Module):
         self.config, self.rig, self.grid = config, rig, grid
         self.num_cameras = len(rig.cameras)
         self.num_classes = len(config.classes)
-        geo = BiMapperGeometry(rig, grid, config.input_width, config.plane_spec(), config.bev_downsample)
+        geo = BiMapperGeometry(rig, grid, config.input_width, config.plane_spec(), config.bev_downsample,
+                               any_aspect=config.streams in ("lv", "none"))
         self.input_size = geo.input_size
         self.feat_hw = geo.feat_grid.shape
         for name, arr in geo.arrays().items():
@@ -98,38 +99,61 @@ class BiMapper(nn.Module):
         """``(H, W)`` shared by all cameras' delivered images (None if they differ).
 
         Raises:
-            ConfigError: sizes differ, but ipm_skip / lv_full_res need the images batched.
+            ConfigError: sizes differ, but lv_full_res needs the images batched.
         """
         sizes = set(geo.raw_sizes)
         if len(sizes) != 1:
-            if self.config.ipm_skip or self.config.lv_full_res:
-                raise ConfigError(f"ipm_skip / lv_full_res batch the camera-size images: rig {rig.name!r} has "
+            if self.config.lv_full_res:
+                raise ConfigError(f"lv_full_res batches the camera-size images: rig {rig.name!r} has "
                                   f"cameras of different sizes {sorted(sizes)}")
-            return None
+            return None  # the IPM prior then gathers from each camera's own image (a list)
         w, h = sizes.pop()
         return (h, w)
 
-    def set_rig(self, rig: Rig) -> None:
-        """Rebuild the calibration tables for a new calibration of the same cameras.
+    @property
+    def rig_free(self) -> bool:
+        """No parameter depends on the cameras: without the GV stream (per-camera MLPs sized by
+        the camera count and input size) every camera runs the same LV U-Net and the geometry is
+        all in the tables, so the model maps any rig (:meth:`set_rig` takes any cameras).
+        """
+        return not self.use_gv
+
+    def geometry(self, rig: Rig) -> BiMapperGeometry:
+        """The calibration tables of ``rig`` for this model's configuration (for :meth:`set_rig`)."""
+        return BiMapperGeometry(rig, self.grid, self.config.input_width, self.config.plane_spec(),
+                                self.config.bev_downsample, any_aspect=self.rig_free)
+
+    def set_rig(self, rig: Rig, geometry: BiMapperGeometry | None = None) -> None:
+        """Rebuild the calibration tables for a new calibration of the same cameras; a
+        :attr:`rig_free` model takes any rig (other cameras, counts and image sizes).
+        ``geometry``: ``rig``'s tables from :meth:`geometry`, when the caller keeps them.
 
         Raises:
-            ConfigError: different camera names/order, or a different model input size.
+            ConfigError: different camera names/order, or a different model input size (a
+                model with the GV stream).
         """
-        if rig.names != self.rig.names:
+        if not self.rig_free and rig.names != self.rig.names:
             raise ConfigError(f"rig cameras {list(rig.names)} differ from the model's {list(self.rig.names)}")
-        geo = BiMapperGeometry(rig, self.grid, self.config.input_width, self.config.plane_spec(), self.config.bev_downsample)
-        if geo.input_size != self.input_size:
+        geo = geometry if geometry is not None else self.geometry(rig)
+        if not self.rig_free and geo.input_size != self.input_size:
             raise ConfigError(f"new calibration gives input size {geo.input_size}, the model needs {self.input_size}")
         raw_hw = self._raw_hw(geo, rig)
+        dev = self.rgb_mean.device
         for name, arr in geo.arrays().items():
-            getattr(self, name).copy_(torch.from_numpy(np.ascontiguousarray(arr)))
+            t = torch.from_numpy(np.ascontiguousarray(arr))
+            old = getattr(self, name)
+            if old.shape == t.shape:
+                old.copy_(t)
+            else:  # a rig-free model on other cameras: new table shapes
+                self.register_buffer(name, t.to(dev), persistent=False)
         self.rig, self.raw_hw = rig, raw_hw
+        self.num_cameras, self.input_size = len(rig.cameras), geo.input_size
 
     def tables(self) -> dict[str, torch.Tensor]:
         """The calibration tables as tensors (on the model's device)."""
         return {n: getattr(self, n) for n in ("ipm_grid", "ipm_valid", "gt_grid", "gt_valid", "merge_grid", "merge_weight", "frustum")}
 
-    def ipm_prior(self, images: torch.Tensor, cam_mask: torch.Tensor | None = None) -> torch.Tensor:
+    def ipm_prior(self, images: torch.Tensor | list[torch.Tensor], cam_mask: torch.Tensor | None = None) -> torch.Tensor:
         """The ``ipm_skip`` input: camera-size images IPM'd onto the full ego grid.
 
         Exactly the classical :class:`~bev_mapper_core.methods.ipm.mapper.IpmMapper`'s geometry (a gather
@@ -138,19 +162,26 @@ class BiMapper(nn.Module):
         trained on this prior.
 
         Args:
-            images: raw images as for :meth:`preprocess`, at the cameras' delivered size.
+            images: raw images as for :meth:`preprocess`, at the cameras' delivered size; for
+                cameras of different sizes a list of N tensors ``(B, H_n, W_n[, 3])`` in rig order.
             cam_mask: (B, N) cameras present, None = all.
 
         Returns:
             (B, C_in + 1, H, W): labels: the average one-hot label of the covering cameras;
             rgb: their average normalised colour; last channel 1 where some camera covers.
         """
+        if isinstance(images, (list, tuple)):
+            return self._ipm_prior_each(images, cam_mask)
+        if images.shape[1] != self.num_cameras or tuple(images.shape[2:4]) != self.raw_hw:
+            raise ValueError(f"images {tuple(images.shape)} do not match {self.num_cameras} cameras of "
+                             f"{self.raw_hw} (H, W) from the calibration")
+        return self._prior(images, cam_mask)
+
+    def _prior(self, images: torch.Tensor, cam_mask: torch.Tensor | None) -> torch.Tensor:
+        """:meth:`ipm_prior` of checked images ``(B, N, H, W[, 3])`` (any H, W the index fits)."""
         dev = self.rgb_mean.device
         idx = self.prior_index  # (N, Hg*Wg)
         B, N = images.shape[:2]
-        if N != self.num_cameras or tuple(images.shape[2:4]) != self.raw_hw:
-            raise ValueError(f"images {tuple(images.shape)} do not match {self.num_cameras} cameras of "
-                             f"{self.raw_hw} (H, W) from the calibration")
         Hg, Wg = self.grid.shape
         HW = Hg * Wg
         valid = self.frustum.flatten(1)[None].to(torch.float32).expand(B, N, HW)  # (N, Hg, Wg) -> (B, N, HW)
@@ -177,6 +208,26 @@ class BiMapper(nn.Module):
         avg = acc / count.clamp(min=1.0)[..., None]
         prior = torch.cat([avg, (count > 0).to(avg.dtype)[..., None]], dim=2)  # (B, HW, C_in + 1)
         return prior.permute(0, 2, 1).reshape(B, -1, Hg, Wg)  # (B, HW, P) -> (B, P, Hg, Wg)
+
+    def _ipm_prior_each(self, images: list[torch.Tensor], cam_mask: torch.Tensor | None) -> torch.Tensor:
+        """:meth:`ipm_prior` of cameras of different sizes: each camera's own image flattened and
+        padded to the largest, then gathered as one batch (the indices never reach the padding).
+        """
+        sizes = [tuple(int(v) for v in (c.model.image_size[1], c.model.image_size[0])) for c in self.rig.cameras]
+        if len(images) != self.num_cameras or any(tuple(im.shape[1:3]) != hw for im, hw in zip(images, sizes)):
+            raise ValueError(f"images {[tuple(im.shape) for im in images]} do not match the {self.num_cameras} "
+                             f"cameras' sizes {sizes} (H, W) from the calibration")
+        longest = max(h * w for h, w in sizes)
+        flat = []
+        for im in images:
+            f = im.reshape(im.shape[0], -1, *im.shape[3:])  # (B, H_n, W_n[, 3]) -> (B, H_n*W_n[, 3])
+            pad = longest - f.shape[1]
+            if pad:
+                f = torch.cat([f, f.new_zeros(f.shape[0], pad, *f.shape[2:])], dim=1)
+            flat.append(f)
+        x = torch.stack(flat, dim=1)  # (B, N, L[, 3])
+        x = x[:, :, None]  # (B, N, L[, 3]) -> (B, N, 1, L[, 3]): one row, the same flat indices
+        return self._prior(x, cam_mask)
 
     # ---------------------------------------------------------- preprocessing
     def preprocess(self, images: torch.Tensor, resize: bool = True) -> torch.Tensor:

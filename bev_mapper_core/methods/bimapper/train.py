@@ -28,6 +28,7 @@ import torch
 from typing_extensions import override
 
 from bev_mapper_core.errors import ConfigError
+from bev_mapper_core.geometry.random_rig import RANDOM_RIGS
 from bev_mapper_core.nn.augment import Augment, step_augment
 from bev_mapper_core.nn.efficientnet import EfficientNetConfig
 from bev_mapper_core.training.class_weights import POS_WEIGHTS, class_pos_weight
@@ -39,7 +40,7 @@ from ..segmenter.trunk import check_encoder_init, init_encoder, trunk_config
 from .config import FUSIONS, STREAMS, BiMapperConfig
 from .losses import MUTUAL_MODES, BiMapperLossConfig, bimapper_loss
 from .model import BiMapper
-from .weights import load_state, save_weights
+from .weights import ANY_RIG, load_state, save_weights
 
 #: Paper: mutual learning both ways from the 5th of 30 epochs (0-based 4; the loss config's
 #: default), scaled to the run's epochs.
@@ -222,9 +223,17 @@ class BiMapperMethod(TrainMethod):
     def default_model_config(cls, classes: tuple[str, ...]) -> BiMapperConfig:
         return BiMapperConfig(classes=tuple(classes), gv_hidden=TRAIN_GV_HIDDEN)
 
+    @property
+    def random_rigs(self) -> bool:
+        """The run trains a rig-free model on random rigs (``--rig random``)."""
+        return self.cfg.rig == RANDOM_RIGS
+
     @override
     def build_model(self) -> BiMapper:
         model = BiMapper(self.cfg.model, self.rig, self.grid)
+        if self.random_rigs and not model.rig_free:
+            raise ConfigError("--rig random trains a model for any rig: it needs one without the GV stream "
+                              "(--streams lv; the GV MLPs are sized for one rig's cameras)")
         self.encoder_source = None
         spec, kind = self.cfg.loss.encoder_init, self.cfg.model.input_kind
         if spec == "auto" and not same_trunk(self.cfg.model.encoder_config(3), trunk_config()):
@@ -252,7 +261,7 @@ class BiMapperMethod(TrainMethod):
     def data_needs(self) -> DataNeeds:
         # Full-resolution LV input and the IPM prior need the camera-size images in memory (else:
         # stored resized, exactly as preprocess would).
-        full = self.cfg.model.lv_full_res or self.cfg.model.ipm_skip
+        full = self.cfg.model.lv_full_res or self.cfg.model.ipm_skip or self.random_rigs  # random rigs: sizes differ
         rgb = self.cfg.model.input_kind == "rgb" or self.cfg.loss.segmenter is not None
         return DataNeeds(image_size=None if full else self.model.input_size, rgb=rgb)
 
@@ -301,8 +310,18 @@ class BiMapperMethod(TrainMethod):
             self.model.eval()
             self.model.decoder.vis_head.train()
 
+    def _use_rig(self, batch: dict) -> None:
+        """Frames of random rigs: switch the model's tables to the batch's rig (cached per rig)."""
+        rig = batch.get("rig")
+        if rig is not None and rig is not self.model.rig:
+            cache = self.__dict__.setdefault("_tables", {})  # id(rig) -> (rig, tables); the frame set keeps the rigs
+            if id(rig) not in cache:
+                cache[id(rig)] = (rig, self.model.geometry(rig))
+            self.model.set_rig(rig, cache[id(rig)][1])
+
     @override
     def loss(self, batch: dict, epoch: int, step: int) -> tuple[torch.Tensor, dict[str, float]]:
+        self._use_rig(batch)
         dev = self.device
         aug = step_augment(self.cfg.seed, step, dev) if self._augments() else None
         outputs = self.model(self._inputs(batch, aug))
@@ -311,6 +330,7 @@ class BiMapperMethod(TrainMethod):
 
     @override
     def predict(self, batch: dict) -> tuple[np.ndarray, np.ndarray]:
+        self._use_rig(batch)
         out = self.model(self._inputs(batch))
         probs = torch.sigmoid(self.model.calibrated(out["logits"])).float().cpu().numpy()
         known = self.model.known().cpu().numpy()[0]  # (1, H, W) -> (H, W), the same for every frame
@@ -318,7 +338,7 @@ class BiMapperMethod(TrainMethod):
 
     @override
     def save(self, path) -> None:
-        save_weights(self.model, path)
+        save_weights(self.model, path, any_rig=self.random_rigs)
 
     @override
     def load(self, path) -> None:
@@ -326,7 +346,7 @@ class BiMapperMethod(TrainMethod):
 
     @override
     def checkpoint_info(self) -> dict:
-        return {"model_config": self.model.config.to_dict(), "rig": self.model.rig.name}
+        return {"model_config": self.model.config.to_dict(), "rig": ANY_RIG if self.random_rigs else self.model.rig.name}
 
 
 __all__ = ["BiMapperMethod", "BiMapperTraining", "POS_WEIGHTS", "class_pos_weight"]

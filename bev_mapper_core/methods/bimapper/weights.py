@@ -51,10 +51,15 @@ from bev_mapper_core.nn.weights import (
     weights_file_problem,
 )
 
+from .. import ANY_RIG as _ANY_RIG
 from .model import BiMapper, BiMapperConfig
 
 FORMAT = "bev_mapper.bimapper"
 VERSION = 1
+#: The ``rig`` of weights that map any rig (:data:`bev_mapper_core.methods.ANY_RIG`): a rig-free
+#: model (:attr:`BiMapper.rig_free`, no GV stream) trained on many rigs (``bev-train --rig
+#: random``); its ``cameras`` are ``[]``.
+ANY_RIG = _ANY_RIG
 
 
 def _check_schema(meta: dict, path: Path) -> None:
@@ -62,27 +67,41 @@ def _check_schema(meta: dict, path: Path) -> None:
     if not isinstance(meta["rig"], str):
         raise WeightsError(f"{path}: metadata 'rig' must be a string, got {meta['rig']!r}")
     cams = meta["cameras"]
+    if meta["rig"] == ANY_RIG:
+        if cams != []:
+            raise WeightsError(f"{path}: weights for any rig name no cameras, got {cams!r}")
+        check_model_document(meta, path, BiMapperConfig)
+        if meta["config"].get("streams") not in ("lv", "none"):
+            raise WeightsError(f"{path}: weights for any rig need a model without the GV stream (streams 'lv'), "
+                               f"got streams {meta['config'].get('streams')!r}")
+        return
     if (not isinstance(cams, list) or not cams or any(not isinstance(c, str) or not c for c in cams)
             or len(set(cams)) != len(cams)):
         raise WeightsError(f"{path}: metadata 'cameras' must be a list of distinct camera names, got {cams!r}")
     check_model_document(meta, path, BiMapperConfig)
 
 
-def model_metadata(model: BiMapper) -> dict:
-    """The metadata document describing ``model`` (see the module docstring)."""
+def model_metadata(model: BiMapper, any_rig: bool = False) -> dict:
+    """The metadata document describing ``model`` (see the module docstring); ``any_rig``: for
+    every rig (:data:`ANY_RIG`; a :attr:`BiMapper.rig_free` model only).
+    """
     cfg = model.config
+    if any_rig and not model.rig_free:
+        raise ConfigError("only a model without the GV stream (streams 'lv') maps any rig")
     return {
         "format": FORMAT, "version": VERSION, "method": "bimapper",
-        "rig": model.rig.name, "cameras": list(model.rig.names),
+        "rig": ANY_RIG if any_rig else model.rig.name, "cameras": [] if any_rig else list(model.rig.names),
         "input_kind": cfg.input_kind, "classes": list(cfg.classes),
         "grid": model.grid.to_dict(), "input_size": list(model.input_size),
         "config": cfg.to_dict(),
     }
 
 
-def save_weights(model: BiMapper, path: str | os.PathLike) -> Path:
-    """Write ``model``'s parameters and buffers plus its metadata to ``path`` (atomically)."""
-    return save_document(model, path, model_metadata(model))
+def save_weights(model: BiMapper, path: str | os.PathLike, any_rig: bool = False) -> Path:
+    """Write ``model``'s parameters and buffers plus its metadata to ``path`` (atomically);
+    ``any_rig``: as weights for every rig (:func:`model_metadata`).
+    """
+    return save_document(model, path, model_metadata(model, any_rig))
 
 
 def _parse_metadata(path: Path) -> dict:
@@ -134,7 +153,7 @@ def check_metadata(meta: dict, path: str | os.PathLike = "weights", *, rig: Rig 
         raise WeightsError(f"{path}: weights were trained for {what} {got!r}, but {want!r} is required")
 
     stored_cfg, stored_grid = config_from_metadata(meta, path)
-    if rig is not None:
+    if rig is not None and meta["rig"] != ANY_RIG:
         if meta["rig"] != rig.name:
             fail("rig", rig.name, meta["rig"])
         if list(meta["cameras"]) != list(rig.names):
@@ -255,12 +274,13 @@ class WeightsFile:
         path, meta = self.path, self.meta
         if input_kind is not None and meta["input_kind"] != input_kind:
             raise WeightsError(f"{path} is for input {meta['input_kind']!r}, configured input is {input_kind!r}")
-        if rig_name and meta["rig"] != rig_name:
+        any_rig = meta["rig"] == ANY_RIG
+        if rig_name and meta["rig"] != rig_name and not any_rig:
             raise WeightsError(f"{path} was trained for rig {meta['rig']!r}, not {rig_name!r}")
         unknown = [c for c in classes or () if c not in meta["classes"]]
         if unknown:
             raise WeightsError(f"{path}: classes {unknown} are not among the weights' classes {list(meta['classes'])}")
-        if cameras is not None and list(cameras) != list(meta["cameras"]):
+        if cameras is not None and list(cameras) != list(meta["cameras"]) and not any_rig:
             raise WeightsError(f"{path}: weights were trained for cameras {list(meta['cameras'])} (in this "
                                f"order), but {list(cameras)} are configured; or use method 'ipm'")
         if grid is not None:
@@ -281,7 +301,7 @@ class WeightsFile:
         path, meta = self.path, self.meta
         check_metadata(meta, path, rig=model.rig, grid=model.grid, input_kind=model.config.input_kind,
                        classes=model.config.classes, config=model.config)
-        if list(meta["input_size"]) != list(model.input_size):
+        if meta["rig"] != ANY_RIG and list(meta["input_size"]) != list(model.input_size):
             raise WeightsError(f"{path}: weights expect input size {meta['input_size']}, the model has {list(model.input_size)}")
         expected = model.state_dict()
         state = self._entry["state"]
@@ -310,7 +330,8 @@ class WeightsFile:
         cfg, grid = config_from_metadata(self.meta, self.path)
         h, w = self.meta["input_size"]
         try:
-            model = BiMapper(cfg, standin_rig(self.meta["rig"], tuple(self.meta["cameras"]), (w, h)), grid)
+            cams = tuple(self.meta["cameras"]) or ("cam0",)  # weights for any rig: one camera stands in
+            model = BiMapper(cfg, standin_rig(self.meta["rig"], cams, (w, h)), grid)
         except (BevMapperError, ValueError, RuntimeError) as e:
             raise WeightsError(f"{self.path}: cannot build the stored model ({e})") from None
         self.load_into(model)
