@@ -15,7 +15,8 @@ from pathlib import Path
 
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.geometry.grid import BevGrid
-from bev_mapper_core.geometry.rig import PRESETS, Rig, preset_rig
+from bev_mapper_core.geometry.random_rig import check_rig_name, rig_by_name
+from bev_mapper_core.geometry.rig import PRESETS, Rig
 from bev_mapper_core.labels.classes import BEV_CLASSES, CAM2BEV_CLASSES, S2G2_CLASSES, class_cover
 from bev_mapper_core.synth.config import SynthConfig
 from bev_mapper_core.synth.styles import STYLE_CHOICES, resolve_style, style_help
@@ -34,7 +35,7 @@ class SynthBagOptions:
 
     Args:
         out: output rosbag2 directory.
-        rig: rig preset name.
+        rig: rig preset name, or ``random-<seed>`` (a seeded random rig, :mod:`~bev_mapper_core.geometry.random_rig`).
         scale: image scale applied to every camera of the rig (0.25 = quarter size).
         storage: ``'mcap'`` or ``'sqlite3'``.
         force: overwrite an existing bag at ``out``.
@@ -54,16 +55,15 @@ class SynthBagOptions:
     synth: SynthConfig = field(default_factory=SynthConfig)
 
     def __post_init__(self) -> None:
-        if self.rig not in PRESETS:
-            raise ConfigError(f"unknown rig {self.rig!r}; presets: {sorted(PRESETS)}")
+        check_rig_name(self.rig)  # a preset or random-<seed>
         if not 0.05 <= self.scale <= 4.0:
             raise ConfigError(f"scale must be in [0.05, 4], got {self.scale}")
         if self.storage not in STORAGES:
             raise ConfigError(f"storage must be one of {list(STORAGES)}, got {self.storage!r}")
 
     def build_rig(self) -> Rig:
-        """The preset rig at the requested image scale."""
-        rig = preset_rig(self.rig)
+        """The preset (or seeded random) rig at the requested image scale."""
+        rig = rig_by_name(self.rig)
         return rig if self.scale == 1.0 else rig.scaled(self.scale)
 
 
@@ -96,6 +96,14 @@ def synth_bag(options: SynthBagOptions) -> DriveSummary:
                        force=options.force, custom_data=custom, compressed=options.compressed)
 
 
+def rig_arg(name: str) -> str:
+    """Argparse type of ``--rig``: a preset or ``random-<seed>``."""
+    try:
+        return check_rig_name(name)
+    except ConfigError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
 def gt_classes(rig_name: str) -> tuple:
     """GT layers of a synthetic bag: the standard classes, plus the layers that the standard
     ones cannot express of the rig's other class set, so that models of either set are scored on
@@ -115,7 +123,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     """Arguments of ``bev-bag synth``."""
     o, sc = SynthBagOptions, SynthConfig  # the defaults live there
     p.add_argument("out", type=Path, help="output rosbag2 directory")
-    p.add_argument("--rig", default=o.rig, choices=sorted(PRESETS), help="rig preset")
+    p.add_argument("--rig", default=o.rig, type=rig_arg, metavar="RIG",
+                   help=f"rig preset ({', '.join(sorted(PRESETS))}) or random-<seed>, a seeded random rig "
+                        "(default: %(default)s)")
     p.add_argument("--scale", type=float, default=o.scale,
                    help="image scale of every camera (e.g. 0.25 for quick tests)")
     p.add_argument("--frames", type=int, default=sc.frames, help="number of frames")

@@ -30,7 +30,8 @@ from pathlib import Path
 
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.geometry.grid import BevGrid
-from bev_mapper_core.geometry.rig import PRESETS, preset_rig
+from bev_mapper_core.geometry.random_rig import rig_by_name
+from bev_mapper_core.geometry.rig import PRESETS
 from bev_mapper_core.synth.config import SynthConfig
 from bev_mapper_core.synth.styles import STYLE_CHOICES, style_help
 from bev_mapper_core.training.config import AUTO_CLASSES, TrainConfig, class_set
@@ -41,7 +42,7 @@ from ..files import partial_name
 from ..fleet.ray_tasks import RayOptions, TaskFailure, add_ray_args, ray_runtime, run_tasks
 from ..io.writer import STORAGES, check_output
 from .grid_args import add_grid_args, grid_from_args
-from .synth import SynthBagOptions, synth_bag
+from .synth import SynthBagOptions, rig_arg, synth_bag
 
 HELP = "render many synthetic drives (one Ray task per seed) into bags or into the training cache"
 FORMATS = ("bag", "cache")
@@ -127,7 +128,7 @@ def render_seed(seed: int, options: SynthManyOptions) -> dict[str, bytes]:
             synth_bag(replace(d, out=path, force=False, synth=replace(d.synth, seed=seed)))
             return {p.relative_to(path).as_posix(): p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file()}
         spec = options.drive
-        load_or_render(preset_rig(spec.rig), BevGrid(*spec.grid), spec, seed, tmp)
+        load_or_render(rig_by_name(spec.rig), BevGrid(*spec.grid), spec, seed, tmp)
         return {"": drive_path(tmp, spec, seed).read_bytes()}
 
 
@@ -208,7 +209,8 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--format", choices=FORMATS, default=FORMATS[0],
                    help="bag: OUT/drive_<seed>/ rosbag2 bags (as bev-bag synth); cache: OUT/<key>/drive_<seed>.npz, "
                         "the drive cache bev-train --cache OUT reads (default: %(default)s)")
-    p.add_argument("--rig", default=o.rig, choices=sorted(PRESETS), help="rig preset (default: %(default)s)")
+    p.add_argument("--rig", default=o.rig, type=rig_arg, metavar="RIG",
+                   help=f"rig preset ({', '.join(sorted(PRESETS))}) or random-<seed> (default: %(default)s)")
     p.add_argument("--frames", type=int, default=None,
                    help=f"frames per drive (default: bag {sc.frames}; cache {tc.frames_per_drive}, bev-train's "
                         "--frames-per-drive)")
@@ -274,7 +276,7 @@ def options_from_args(args: argparse.Namespace) -> SynthManyOptions:
         drive = SynthBagOptions(out=Path(args.out), rig=args.rig, scale=pick(args.scale, o.scale),
                                 storage=pick(args.storage, o.storage), grid=grid, synth=synth)
     else:
-        rig = preset_rig(args.rig)
+        rig = rig_by_name(args.rig)
         tc = TrainConfig
         rgb = _rgb_size(args.rgb, rig)
         drive = drive_spec(rig, grid, class_set(args.classes or AUTO_CLASSES, args.rig),

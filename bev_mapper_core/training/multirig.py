@@ -68,6 +68,7 @@ class MultiRigFrames:
 
     @property
     def window(self) -> int:
+        """Frames per sample: always 1 (random-rig drives train single frames)."""
         return 1
 
     @window.setter

@@ -10,9 +10,7 @@ import argparse
 
 from bev_mapper_core.geometry.rig import PRESETS
 
-from .flags import rig_name_arg
-
-from .flags import DEFAULTS, add_held_out_flags, pos_int
+from .flags import DEFAULTS, add_held_out_flags, pos_int, rig_name_arg
 
 HELP = ("fit per-class temperatures of Bi-Mapper weights on validation drives "
         "(NLL of the visible cells) and write them into a copy of the file")

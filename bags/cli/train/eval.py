@@ -19,14 +19,12 @@ import json
 from bev_mapper_core.datasets.camvid import SPLITS
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.geometry.rig import PRESETS
-
-from .flags import rig_name_arg
 from bev_mapper_core.mapper import INPUT_KINDS, MapperConfig
 from bev_mapper_core.synth.styles import STYLE_CHOICES
 from bev_mapper_core.temporal import TemporalConfig
 from bev_mapper_core.training.config import AUTO_CLASSES
 
-from .flags import DEFAULTS, add_held_out_flags, grid_help, grid_name, pos_int
+from .flags import DEFAULTS, add_held_out_flags, grid_help, grid_name, pos_int, rig_name_arg
 
 HELP = "Score a mapper on held-out synthetic drives."
 
