@@ -144,8 +144,8 @@ class BiMapper(nn.Module):
             old = getattr(self, name)
             if old.shape == t.shape:
                 old.copy_(t)
-            else:  # a rig-free model on other cameras: new table shapes
-                self.register_buffer(name, t.to(dev), persistent=False)
+            else:  # a rig-free model on other cameras: new table shapes (a copy: the caller may keep ``geometry``)
+                self.register_buffer(name, t.to(dev, copy=True), persistent=False)
         self.rig, self.raw_hw = rig, raw_hw
         self.num_cameras, self.input_size = len(rig.cameras), geo.input_size
 

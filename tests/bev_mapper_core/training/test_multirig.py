@@ -125,3 +125,18 @@ def test_the_prior_of_cameras_of_different_sizes_equals_each_camera_alone():
     assert torch.equal(same.ipm_prior(x), same.ipm_prior([x[:, i] for i in range(x.shape[1])]))
     with pytest.raises(ValueError, match="sizes"):
         model.ipm_prior(imgs[::-1])
+
+
+def test_switching_rigs_with_kept_tables_never_writes_into_them():
+    """A rig-free model switched between rigs whose tables the caller keeps (the trainer does, per
+    rig): a table registered anew must not alias the kept one, or the next switch overwrites it.
+    """
+    grid = BevGrid(*TINY_GRID)
+    a, b, c = random_rig(7), random_rig(8), random_rig(9)
+    model = BiMapper(BiMapperConfig(streams="lv", ipm_skip=True, input_width=48, plane_shape=(16, 12)), a, grid)
+    kept = {r.name: model.geometry(r) for r in (a, b, c)}
+    fresh = {r.name: model.geometry(r).prior_index.copy() for r in (a, b, c)}
+    for r in (b, c, a, b, c, b, a):
+        model.set_rig(r, kept[r.name])
+        assert np.array_equal(model.prior_index.numpy(), fresh[r.name])
+    assert all(np.array_equal(kept[n].prior_index, fresh[n]) for n in kept)
