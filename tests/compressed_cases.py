@@ -59,13 +59,12 @@ def _segment(marker: int, payload: bytes) -> bytes:
 
 
 def cmyk_jpeg(rgb: np.ndarray) -> bytes:
-    """``rgb`` ``(H, W, 3)`` uint8 (H, W multiples of 8, each 8x8 block one colour) as a CMYK
+    """``rgb`` ``(H, W, 3)`` uint8 (each 8x8 block taken as the colour of its first pixel) as a CMYK
     JPEG in Adobe's convention (an APP14 "Adobe" marker, inverted ink values: what Photoshop and
     ImageMagick write): K = 1 - max(R, G, B), C = (1 - R - K) / (1 - K) ..., stored as 255 - ink.
     Baseline, quantisation 1, DC coefficients only (the blocks are flat).
     """
-    h, w = rgb.shape[:2]
-    assert h % 8 == 0 and w % 8 == 0
+    h, w = rgb.shape[:2]  # any size: the blocks cover it, the decoder crops to (h, w)
     blocks = rgb[::8, ::8].astype(np.float64) / 255  # (H/8, W/8, 3): one colour per block
     k = 1 - blocks.max(axis=2, keepdims=True)
     ink = np.where(k < 1, (1 - blocks - k) / np.maximum(1 - k, 1e-9), 0)
