@@ -3,11 +3,13 @@ hidden temporary name beside its target and renamed into place when complete.
 
 :func:`partial_name` is that temporary name (``<dir>/.<name>.partial-<pid>``, one per process),
 :func:`write_atomic` writes a file through it, :func:`remove_path` deletes a file or a directory
-tree, and :func:`remove_partials` removes what an interrupted run left under such names.
+tree, and :func:`remove_partials` removes what an interrupted run left under such names
+(:func:`remove_dead_partials`: only those of processes that no longer run).
 """
 
 from __future__ import annotations
 
+import glob
 import os
 import shutil
 from pathlib import Path
@@ -57,4 +59,30 @@ def remove_partials(directory: Path) -> None:
             p.unlink(missing_ok=True)
 
 
-__all__ = ["PARTIAL_GLOB", "partial_name", "remove_partials", "remove_path", "write_atomic"]
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def remove_dead_partials(path: str | Path) -> list[Path]:
+    """Remove the temporary names of ``path`` (``<dir>/.<name>.partial-<pid>``) whose process no
+    longer runs (killed before it could clean up, e.g. by SIGKILL); a live writer's are kept, so
+    this is safe where another process may write. Returns what was removed.
+    """
+    path = Path(path)
+    removed = []
+    for p in path.parent.glob(f".{glob.escape(path.name)}.partial-*"):
+        pid = p.name.rpartition("-")[2]
+        if pid.isdigit() and not _alive(int(pid)):
+            remove_path(p)
+            removed.append(p)
+    return removed
+
+
+__all__ = ["PARTIAL_GLOB", "partial_name", "remove_dead_partials", "remove_partials", "remove_path",
+           "write_atomic"]

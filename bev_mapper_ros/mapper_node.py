@@ -387,7 +387,7 @@ class MapperNode(Node):
             # label images leave the adapters in Label ids (the label map applied once)
             labels = self.cfg.mapper.input_kind == "labels"
             if self.cfg.compressed:
-                img = (compressed_to_labels(msg, (w, h), label_map=self.label_map) if labels
+                img = (compressed_to_labels(msg, (w, h), label_map=self.label_map, check_format=True) if labels
                        else compressed_to_rgb(msg, expected_size=(w, h), check_format=True))
             elif labels:
                 img = image_to_labels(msg, expected_size=(w, h), label_map=self.label_map)

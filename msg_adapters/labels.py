@@ -28,7 +28,7 @@ import numpy as np
 from bev_mapper_core.errors import InputError
 from bev_mapper_core.labels.label_maps import NATIVE, LabelMap, label_map
 
-from ._fields import as_str, field
+from ._fields import as_str, byte_buffer, field
 from .errors import EncodingError
 from .image import compressed_to_array, image_to_array
 from .limits import DEFAULT_LIMITS, AdapterLimits
@@ -77,6 +77,16 @@ def image_to_labels(msg: Any, expected_size: Any = None, *, limits: AdapterLimit
     return _apply(lm, image_to_array(msg, expected_size=expected_size, limits=limits))
 
 
+def _is_jpeg(msg: Any) -> bool:
+    """Whether ``msg.data`` starts with JPEG's start-of-image marker (other defects: not here)."""
+    try:
+        head = byte_buffer(field(msg, "data", EncodingError, "compressed image"), "data", EncodingError,
+                           "compressed image")[:2]
+    except EncodingError:
+        return False  # compressed_to_array says why
+    return bytes(head) == b"\xff\xd8"
+
+
 def compressed_to_labels(msg: Any, expected_size: Any = None, *, limits: AdapterLimits = DEFAULT_LIMITS,
                          label_map: LabelMap | None = None, check_format: bool = False) -> np.ndarray:
     """Decode a compressed label image (PNG) and map it to ``(H, W)`` uint8 Label ids.
@@ -86,11 +96,13 @@ def compressed_to_labels(msg: Any, expected_size: Any = None, *, limits: Adapter
     decoding (:func:`~msg_adapters.image.compressed_to_array`).
 
     Raises:
-        EncodingError: the decoded image is not what the label map takes (8-bit single-channel
+        EncodingError: a JPEG (lossy: it changes label ids), the decoded image is not what the label map takes (8-bit single-channel
             for mono8 maps, 8-bit RGB for rgb8 maps), or any defect ``compressed_to_array``
             refuses.
     """
     lm = _map(label_map)
+    if _is_jpeg(msg):  # before decoding; the bag reader and the node refuse it alike
+        raise EncodingError("compressed label images must be PNG: JPEG changes label ids")
     img = compressed_to_array(msg, expected_size, limits=limits, check_format=check_format)
     channels = 1 if img.ndim == 2 else img.shape[2]
     want = 1 if lm.encoding == "mono8" else 3

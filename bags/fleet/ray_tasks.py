@@ -236,6 +236,29 @@ def run_tasks(ray, fn: Callable, items: Iterable, *args, max_in_flight: int | No
             if poll is not None:
                 poll()
     finally:
-        for ref in pending:
-            with contextlib.suppress(Exception):
-                ray.cancel(ref, force=True)
+        _cancel(ray, list(pending))
+
+
+#: Seconds :func:`run_tasks` waits, when it leaves early, for its cancelled tasks to end before
+#: the caller goes on (typically to ``ray.shutdown()``, which stops whatever still runs).
+CANCEL_WAIT_S = 10.0
+
+
+def _cancel(ray, refs: list) -> None:
+    """Cancel the tasks of ``refs`` and wait (at most :data:`CANCEL_WAIT_S`) until each has ended.
+
+    Not ``force=True``: a forced cancel kills the worker while its reply may be on the way, and
+    Ray's core then aborts the whole driver (``task_manager.cc: Tried to complete task that was
+    not pending``, exit 1; ray-project/ray#54260), which turned a SIGTERM's status 143 into 1.
+    A plain cancel drops the tasks not started and raises KeyboardInterrupt in the running ones,
+    each task ending once, through its own reply; waiting for those ends means no completion is
+    still in flight when Ray shuts down. A task that ignores the interrupt (long native code) is
+    stopped by the shutdown after the wait.
+    """
+    if not refs:
+        return
+    for ref in refs:
+        with contextlib.suppress(Exception):
+            ray.cancel(ref, force=False)
+    with contextlib.suppress(Exception):
+        ray.wait(refs, num_returns=len(refs), timeout=CANCEL_WAIT_S)

@@ -1,5 +1,6 @@
 """Writing one imported drive (a scene, a log) as a rosbag2 bag, through :class:`bags.io.writer.BagWriter`
-(written under a temporary name, renamed when complete).
+(written under a temporary name, renamed when complete; a killed import's temporary is removed
+by the next).
 
 Topics (the layout of :mod:`bags.io.topics`, the images compressed):
 
@@ -39,6 +40,7 @@ from msg_adapters import (
 )
 from msg_adapters.factory import make_header
 
+from ..files import remove_dead_partials
 from ..io import topics as T
 from ..io.writer import BagWriter
 from .errors import DatasetError
@@ -182,6 +184,7 @@ def write_imported_drive(path: str | Path, drive: ImportedDrive, *, force: bool 
         sorted((int(im.stamp_ns), 1, i) for i, im in enumerate(drive.images)),
         sorted((int(k.stamp_ns), 2, i) for i, k in enumerate(drive.keyframes)),
     )
+    remove_dead_partials(path)  # what a killed import of this drive left (it could not clean up)
     with BagWriter(path, storage="mcap", force=force) as bw:
         fac = bw.factory
         bw.add_topic(T.TF_STATIC, T.TF_TYPE, latched=True)

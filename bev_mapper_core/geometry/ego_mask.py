@@ -211,11 +211,15 @@ def with_ego_masks(rig, masks: Mapping[str, EgoMask]):
     """``rig`` with the masks attached (see :func:`attach_ego_masks`).
 
     Raises:
-        EgoMaskError: any mask of the wrong size or for an unknown camera.
+        EgoMaskError: any mask of the wrong size or for an unknown camera, or masks that cover
+            every camera's whole image (nothing would be mapped).
     """
     out, problems = attach_ego_masks(rig, masks)
     if problems:
         raise EgoMaskError("; ".join(problems.values()))
+    if out.cameras and all(c.ego_mask is not None and c.ego_mask.all_masked for c in out.cameras):
+        raise EgoMaskError(f"the ego masks cover the whole image of every camera of rig {out.name!r}: "
+                           "nothing would be mapped (inverted? nonzero = ego body)")
     return out
 
 

@@ -22,6 +22,7 @@ import struct
 import time
 import zlib
 
+import compressed_cases
 import cv2
 import numpy as np
 import pytest
@@ -106,12 +107,19 @@ def bad_camera_infos(model):
     ]
 
 
-def bad_compressed(labels: np.ndarray) -> list[tuple[str, bytes]]:
-    """``(name, data)`` of the issue's compressed images (the camera delivers ``labels``' size)."""
+#: Issue #41's label-image cases (tests/compressed_cases.py) not in :func:`bad_compressed`'s own list.
+NEW_CASES = ("wrong format string", "PNG in a jpeg slot", "compressedDepth format",
+             "PNG header claiming 8000x4000 (within limits, not the camera)", "16-bit label PNG",
+             "JPEG label image", "CMYK JPEG label image")
+
+
+def bad_compressed(labels: np.ndarray) -> list[tuple[str, bytes, str]]:
+    """``(name, data, format)`` of the issue's compressed images (the camera delivers ``labels``'
+    size), then issue #41's (a JPEG label image was decoded, its ids changed, before the fix)."""
     ok, good = cv2.imencode(".png", labels)
     assert ok
     good = good.tobytes()
-    return [
+    own = [
         ("PNG header claiming 40000x40000", _with_png_size(good, 40000, 40000)),
         ("PNG of 32 KB decoding to 16000x16000 RGB", _png(16000, 16000, color_type=3, bit_depth=1)),
         ("truncated PNG", good[: len(good) // 2]),
@@ -119,6 +127,8 @@ def bad_compressed(labels: np.ndarray) -> list[tuple[str, bytes]]:
         ("JPEG cut after its header", cv2.imencode(".jpg", labels)[1].tobytes()[:400]),
         ("no data", b""),
     ]
+    cases = {c.name: c for c in compressed_cases.cases("labels")}
+    return [(name, data, "png") for name, data in own] + [(name, *cases[name].make(labels)) for name in NEW_CASES]
 
 
 class Driver:
@@ -159,11 +169,11 @@ class Driver:
                 self.infos[cam.name].publish(msg)
             spin_until(self.node, lambda: False, 0.05)
 
-    def send_frame(self, labels: dict, stamp_ns: int, bad_data: bytes | None = None):
+    def send_frame(self, labels: dict, stamp_ns: int, bad_data: bytes | None = None, bad_format: str = "png"):
         for name, lab in labels.items():
             msg = make_compressed_image(self.factory, lab, "png", stamp_ns, self.rig[name].frame_id)
             if name == BAD_CAM and bad_data is not None:
-                msg.data = bad_data
+                msg.data, msg.format = bad_data, bad_format
             self.images[name].publish(msg)
             spin_until(self.node, lambda: False, 0.01)
 
@@ -206,11 +216,11 @@ def test_node_survives_bad_camera_info_and_compressed_bombs(tmp_path):
         stamp[0] += 100_000_000
         return stamp[0]
 
-    def mapped(bad_data: bytes | None = None, what: str = "") -> tuple:
+    def mapped(bad_data: bytes | None = None, what: str = "", bad_format: str = "png") -> tuple:
         """Send one frame (BAD_CAM's image replaced by ``bad_data``); the node's grid must come
         and match the core's map of the cameras it received."""
         s = next_stamp()
-        d.send_frame(labels, s, bad_data)
+        d.send_frame(labels, s, bad_data, bad_format)
         assert d.wait_for(s), f"no grid after {what}:\n{log.read_text()}"
         data = np.asarray(d.grids[s].data, dtype=np.int8)
         pred, lost = core_map_as_received(mapper, GRID, labels, data)
@@ -244,8 +254,8 @@ def test_node_survives_bad_camera_info_and_compressed_bombs(tmp_path):
             else:
                 pytest.fail(f"{BAD_CAM} was never mapped after a CameraInfo with {what}:\n{log.read_text()}")
 
-        for what, data in bad_compressed(labels[BAD_CAM]):
-            lost = mapped(bad_data=data, what=what)
+        for what, data, fmt in bad_compressed(labels[BAD_CAM]):
+            lost = mapped(bad_data=data, what=what, bad_format=fmt)
             n_bad += 1
             # ADAPTER + CONTAINMENT: the frame is mapped without BAD_CAM only (before the fix a
             # cv2.error dropped the whole frame).

@@ -17,12 +17,10 @@ import numpy as np
 from bev_mapper_core.labels.label_maps import LabelMap
 from msg_adapters import (
     AdapterError,
-    EncodingError,
     FrameSynchronizer,
     OdometryState,
     SyncConfig,
     SyncedSet,
-    compressed_image_header,
     compressed_to_labels,
     compressed_to_rgb,
     header_stamp_ns,
@@ -74,9 +72,7 @@ def decode_image(msg: Any, kind: str, compressed: bool, size: tuple[int, int] | 
     if compressed:
         if kind == "rgb":
             arr = compressed_to_rgb(msg, size, check_format=True)
-        else:
-            if compressed_image_header(msg.data).format != "png":
-                raise EncodingError("compressed label images must be PNG: JPEG changes label ids")
+        else:  # refuses JPEG: it changes label ids
             arr = compressed_to_labels(msg, size, label_map=label_map, check_format=True)
     else:
         arr = image_to_rgb(msg) if kind == "rgb" else image_to_labels(msg, label_map=label_map)

