@@ -8,11 +8,13 @@ from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.geometry.rig import Rig, scaled_camera
 
 
-def check_one_camera(rig: Rig, title: str) -> None:
-    """Raise ConfigError unless ``rig`` has exactly one camera (monocular method ``title``)."""
+def check_one_camera(rig: Rig, title: str, hint: str = "") -> None:
+    """Raise ConfigError unless ``rig`` has exactly one camera (monocular method ``title``);
+    ``hint``: what runs on the rig instead (:func:`~bev_mapper_core.methods.alternatives`).
+    """
     if len(rig.cameras) != 1:
         raise ConfigError(f"{title} is monocular: rig {rig.name!r} has {len(rig.cameras)} cameras "
-                          f"{list(rig.names)}; use a one-camera rig (e.g. front1), or method bimapper / ipm")
+                          f"{list(rig.names)}; use a one-camera rig (e.g. front1)" + (f"; {hint}" if hint else ""))
 
 
 def one_camera_input_size(rig: Rig, input_width: int, title: str) -> tuple[int, int]:

@@ -105,7 +105,8 @@ class MonocularMapper(Mapper):
         stored = BevGrid.from_dict(meta["grid"])
         if grid is not None and not grid.isclose(stored):
             raise WeightsError(f"{path}: weights were trained for grid {stored.describe()}, but {grid.describe()} "
-                               "is configured; use weights trained for this grid, or method 'ipm'")
+                               f"is configured; use weights trained for this grid; "
+                               f"{alternatives(cls.name, config.input_kind, rig_name)}")
         cls.validate(path)
 
     @classmethod
@@ -120,7 +121,7 @@ class MonocularMapper(Mapper):
         sets :attr:`weights_file` and ``_layers`` (the output layers to return, in the
         configured order: a subset is allowed).
         """
-        check_one_camera(rig, self.title)
+        check_one_camera(rig, self.title, alternatives(self.name, config.input_kind, rig.name, len(rig.cameras)))
         self.preflight(config, rig.name, grid, rig.names)
         self.weights_file = self.weights_path(config, rig.name)
         meta = self.read_metadata(self.weights_file)

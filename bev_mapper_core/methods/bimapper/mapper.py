@@ -129,6 +129,7 @@ class BiMapperMapper(Mapper):
         path, kind, seg = cls.plan(config, rig_name)
         weights = WeightsFile.open(path)
         weights.check(rig_name=rig_name, cameras=cameras, grid=grid, input_kind=kind,
+                      hint=alternatives("bimapper", config.input_kind, rig_name, None if cameras is None else len(cameras)),
                       classes=config.classes)
         weights.validate()
         if seg is not None:

@@ -261,8 +261,10 @@ class WeightsFile:
 
     def check(self, *, rig_name: str | None = None, cameras: tuple[str, ...] | None = None,
               grid: BevGrid | None = None, input_kind: str | None = None,
-              classes: tuple[str, ...] | None = None) -> None:
+              classes: tuple[str, ...] | None = None, hint: str = "") -> None:
         """Start-up checks against a configuration; ``None`` (or an empty rig name) is not checked.
+        ``hint``: what a camera or grid refusal adds (the methods that run instead,
+        :func:`~bev_mapper_core.methods.alternatives`).
 
         ``classes`` must be among the weights' classes (a subset, any order); ``cameras`` must
         be the stored names in the stored order; ``grid`` must be the stored grid
@@ -282,12 +284,12 @@ class WeightsFile:
             raise WeightsError(f"{path}: classes {unknown} are not among the weights' classes {list(meta['classes'])}")
         if cameras is not None and list(cameras) != list(meta["cameras"]) and not any_rig:
             raise WeightsError(f"{path}: weights were trained for cameras {list(meta['cameras'])} (in this "
-                               f"order), but {list(cameras)} are configured; or use method 'ipm'")
+                               f"order), but {list(cameras)} are configured" + (f"; {hint}" if hint else ""))
         if grid is not None:
             try:
                 check_metadata(meta, path, grid=grid)
             except WeightsError as e:
-                raise WeightsError(f"{e}; use weights trained for this grid, or method 'ipm'") from None
+                raise WeightsError(f"{e}; use weights trained for this grid" + (f"; {hint}" if hint else "")) from None
 
     # ------------------------------------------------------------- tensors
     def load_into(self, model: BiMapper) -> None:

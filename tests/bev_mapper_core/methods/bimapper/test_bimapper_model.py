@@ -277,8 +277,10 @@ def test_ipm_skip_trains_every_part_and_needs_its_prior():
     loss.backward()
     assert parts["asl"] == 0 and parts["mutual"] == 0 and float(bare.ipm_proj.weight.grad.abs().sum()) > 0
     other = Rig("mixed", (RIG.cameras[0], replace(RIG.cameras[1], model=CAM_MODEL.scaled(2.0))))
-    with pytest.raises(ConfigError, match="different sizes"):
-        BiMapper(replace(TINY, ipm_skip=True), other, GRID)
+    with pytest.raises(ConfigError, match="different sizes"):  # the full-resolution LV input batches them
+        BiMapper(replace(TINY, lv_full_res=True), other, GRID)
+    mixed = BiMapper(replace(TINY, ipm_skip=True), other, GRID)  # the prior gathers each from its own image (#38)
+    assert mixed.raw_hw is None
 
 
 # ------------------------------------------------------------------ weights
