@@ -156,6 +156,9 @@ class Mapper(ABC):
     name: str = ""
     #: the method reads ``ego_pose`` and ``stamp_ns`` (callers look poses up for it)
     uses_ego_pose: bool = False
+    #: what the caller should tell the user once about how the method was set up (e.g. which
+    #: weights it chose and why); the node logs them, ``bev-bag replay`` prints them as notes
+    notes: tuple[str, ...] = ()
 
     def __init__(self, rig: Rig, grid: BevGrid, config: MapperConfig) -> None:
         self.grid = grid

@@ -345,6 +345,8 @@ class MapperNode(Node):
         rig = self._masked(self.calibration.rig())
         if self.mapper is None:
             mapper = create_mapper(rig, self.cfg.grid, self.cfg.mapper)
+            for note in mapper.notes:  # e.g. the weights for any rig chosen for a rig its own do not fit
+                self.get_logger().warning(note)
             mapper.export_in_background()  # torch maps until the fast backend's model is ready (issue #41)
             self.mapper = mapper
             if tuple(self.mapper.class_names) != tuple(self.class_names):

@@ -104,6 +104,7 @@ def replay(options: ReplayOptions, progress: Callable | None = None) -> ReplayRe
             if "rig" not in str(exc) or hints is not None or rig.name in PRESETS:  # a preset is no guess
                 raise
             raise type(exc)(f"{exc} (the bag's rig was taken as {rig.name!r}: {RIG_FLAGS_HINT})") from None
+        notes += list(mapper.notes)  # e.g. the weights for any rig chosen for a rig its own do not fit
         out.mkdir(parents=True, exist_ok=True)
         run = ReplayRun(options, reader, rig, grid, mapper, out, partial_name(out / FRAMES_DIR), notes)
         shutil.rmtree(run.tmp_frames, ignore_errors=True)

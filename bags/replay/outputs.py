@@ -308,6 +308,14 @@ def _remove_stale(path: Path) -> None:
         path.unlink()
 
 
+def _weights_name(mapper) -> str | None:
+    """The file name of the weights a learned mapper runs (e.g. the shipped weights for any rig),
+    None for a training-free one.
+    """
+    path = getattr(mapper, "weights_path", None) or getattr(mapper, "weights_file", None)
+    return None if path is None else Path(path).name
+
+
 def metrics_document(run: ReplayRun, scorer: ReplayScorer, tally: MappingTally, bag_counts: dict) -> dict:
     """The ``metrics.json`` document: the scores, what was mapped, the reader's input problems and
     the temporal fusion's counts.
@@ -315,6 +323,7 @@ def metrics_document(run: ReplayRun, scorer: ReplayScorer, tally: MappingTally, 
     options, res = run.options, scorer.result()
     doc = {
         "method": options.mapper.method,
+        "weights": _weights_name(run.mapper),
         "input": options.mapper.input_kind,
         "label_map": options.mapper.label_map,
         "bag": str(options.bag),

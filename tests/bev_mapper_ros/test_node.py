@@ -19,6 +19,7 @@ from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 from bev_mapper_core.geometry.grid import BevGrid, grid_preset
 from bev_mapper_core.geometry.rig import Rig, RigCamera, preset_rig
 from bev_mapper_core.mapper import MapperConfig, create_mapper
+from bev_mapper_core.methods import WEIGHTS_DIR
 from bev_mapper_core.methods.ipm.mapper import IpmMapper
 from bev_mapper_core.synth import SynthConfig, generate_drive
 from bev_mapper_ros import mapper_node
@@ -239,8 +240,9 @@ BAD_PARAMETERS = [
     (["-p", "input_kind:=rgb", "-p", "segmenter:=none"], "none shipped for rig 'surround6' / input 'rgb'"),
     (["-p", "method:=segipm"], "segipm maps RGB images"),
     (["-p", "grid.resolution:=0.25"], "weights were trained for grid"),
-    (["-p", "rig:=mine"], "none shipped for rig 'mine'"),
-    (["-p", "cameras:=[front,back]", "-p", "use_tf:=true"], "weights were trained for cameras"),
+    (["-p", "rig:=mine", "-p", "input_kind:=rgb", "-p", "segmenter:=none"], "none shipped for rig 'mine'"),
+    (["-p", "cameras:=[front,back]", "-p", "use_tf:=true", "-p",
+      f"weights:={WEIGHTS_DIR / 'bimapper_surround6_labels.safetensors'}"], "weights were trained for cameras"),
     (["-p", "label_map:=cityscapes"], "label_map 'cityscapes' is no preset"),
     (["-p", "sync_slop_s:=fast"], "expecting type 'DOUBLE'"),
 ]

@@ -20,7 +20,7 @@ import torch
 
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.geometry.grid import BevGrid
-from bev_mapper_core.geometry.rig import Rig
+from bev_mapper_core.geometry.rig import Rig, scaled_camera
 from bev_mapper_core.mapper import BevPrediction, Mapper, MapperConfig
 from bev_mapper_core.nn.backends import backend_runner, resolve_backend
 from bev_mapper_core.nn.runtime import inference_device, inference_threads
@@ -93,6 +93,44 @@ class BiMapperMapper(Mapper):
         )
 
     @classmethod
+    def fitting_default(cls, config: MapperConfig, rig_name: str, cameras: tuple[str, ...] | None = None,
+                        rig: Rig | None = None) -> tuple[MapperConfig, str]:
+        """``(config, note)``: ``config`` itself, unless it names no weights and the shipped
+        default for ``rig_name`` was trained for other cameras (names, in order) or another
+        model input size (another image aspect ratio; needs ``rig``) than this rig's: then the
+        config with the shipped weights for any rig (:data:`ANY_RIG`), and the note that says so.
+        A rig called ``surround6`` whose cameras are not nuScenes' still maps.
+        """
+        if config.weights:
+            return config, ""
+        try:
+            path = cls.weights_path(config, rig_name)
+            wf = WeightsFile.open(path)
+        except (ConfigError, WeightsError):
+            return config, ""  # preflight says what is wrong
+        if wf.rig_name == ANY_RIG:
+            return config, ""
+        why = ""
+        if cameras is not None and list(cameras) != list(wf.cameras):
+            why = f"its cameras {list(wf.cameras)} are not this rig's {list(cameras)}"
+        elif rig is not None:
+            sizes = {scaled_camera(c, wf.config.input_width).model.image_size for c in rig.cameras}
+            h, w = wf.meta["input_size"]
+            if sizes != {(w, h)}:
+                why = (f"its model input {w}x{h} (the trained image aspect) is not this rig's "
+                       f"{', '.join(f'{a}x{b}' for a, b in sorted(sizes))}")
+        anyrig = [default_weights_path(ANY_RIG, k) for k in (config.input_kind, "labels")]
+        anyrig = [p for p in anyrig if p.is_file() and (p.name.endswith("_labels.safetensors") or
+                                                          config.input_kind == "rgb")]
+        if not why or not anyrig:
+            return config, ""
+        if config.input_kind == "rgb" and anyrig[0].name.endswith("_labels.safetensors") and config.segmenter == "none":
+            return config, ""
+        return (replace(config, weights=str(anyrig[0])),
+                f"bimapper: the shipped weights of rig {rig_name!r} ({path.name}) do not fit: {why}; "
+                f"mapping with the weights for any rig ({anyrig[0].name})")
+
+    @classmethod
     def plan(cls, config: MapperConfig, rig_name: str) -> tuple[Path, str, Path | None]:
         """``(weights file, the model's input kind, segmenter file or None)``.
 
@@ -126,6 +164,7 @@ class BiMapperMapper(Mapper):
         for the constructor).
         """
         resolve_backend(config.backend)  # an inference runtime asked for by name must be installed
+        config, _ = cls.fitting_default(config, rig_name, cameras)
         path, kind, seg = cls.plan(config, rig_name)
         weights = WeightsFile.open(path)
         weights.check(rig_name=rig_name, cameras=cameras, grid=grid, input_kind=kind,
@@ -143,6 +182,8 @@ class BiMapperMapper(Mapper):
         return tuple(WeightsFile.open(cls.weights_path(config, rig_name)).classes)
 
     def __init__(self, rig: Rig, grid: BevGrid, config: MapperConfig) -> None:
+        config, note = self.fitting_default(config, rig.name, rig.names, rig)
+        self.notes = (note,) if note else ()
         self.preflight(config, rig.name, grid, rig.names)  # the clear errors first (file, rig, grid, cameras)
         path, self.model_input, seg = self.plan(config, rig.name)
         self._weights = WeightsFile.open(path)  # the header preflight just read (cached)

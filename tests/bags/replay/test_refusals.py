@@ -20,6 +20,8 @@ def test_ipm_on_rgb_names_segipm_and_no_rig_flags(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.startswith("error: IPM maps semantic label images only") and "Traceback" not in err
     assert "segipm (RGB images, any calibrated rig)" in err and "--rig" not in err  # surround6 is a preset
-    assert main(["replay", str(bag), "--out", str(tmp_path / "out"), "--quiet", "--rig", "mine"]) == 1
+    assert main(["replay", str(bag), "--out", str(tmp_path / "out"), "--quiet", "--rig", "mine", "--input", "rgb",
+                 "--segmenter", "none"]) == 1
     err = capsys.readouterr().err
-    assert "none shipped for rig 'mine' / input 'labels'" in err and "ipm (label images, any calibrated rig)" in err
+    assert "none shipped for rig 'mine' / input 'rgb'" in err and "segipm (RGB images, any calibrated rig)" in err
+    assert "segmenter 'auto' (not 'none')" in err and "bev-train --method bimapper --rig random" in err

@@ -38,9 +38,22 @@ def test_bimapper_without_weights_says_how_to_get_them_and_what_runs_instead():
     assert "methods that run on RGB images of rig 'surround6' as shipped: segipm" in msg
     assert "bev-train --method bimapper --rig surround6 --input rgb --out runs/NAME, then pass weights=<file>" in msg
     assert "use method 'ipm'" not in msg  # IPM does not map RGB
-    msg = _refusal("mine", method="bimapper")
-    assert "as shipped: ipm (label images, any calibrated rig); to train bimapper weights" in msg
+    msg = _refusal("mine", method="bimapper", input_kind="rgb", segmenter="none")
+    assert "none shipped for rig 'mine' / input 'rgb'" in msg and "segmenter 'auto' (not 'none')" in msg
+    assert "bimapper (RGB through the shipped segmenter, then its shipped label weights for any rig)" not in msg
+    assert ("to train bimapper weights: bev-train --method bimapper --rig random --streams lv --ipm-skip --input rgb "
+            "--out runs/NAME (weights for any rig; rig 'mine' is no preset)") in msg
+    msg = _refusal("mine", method="s2g2", input_kind="rgb")
     assert "bev-train trains the preset rigs surround6, cam2bev4, front1; rig 'mine' is none of them" in msg
+
+
+def test_the_weights_for_any_rig_run_on_a_rig_without_its_own():
+    """Issue #38: no refusal for a rig that is no preset: Bi-Mapper maps it with the weights for any rig."""
+    preflight(MapperConfig(method="bimapper"), "mine", None, ("a", "b", "c"))
+    preflight(MapperConfig(method="bimapper", input_kind="rgb"), "mine", None, ("a", "b", "c"))
+    assert "bimapper (its shipped weights for any rig, label images)" in runnable_methods("labels", "mine")
+    assert ("bimapper (RGB through the shipped segmenter, then its shipped label weights for any rig)"
+            in runnable_methods("rgb", "mine"))
 
 
 def test_other_refusals_name_the_alternatives():

@@ -140,3 +140,33 @@ def test_switching_rigs_with_kept_tables_never_writes_into_them():
         model.set_rig(r, kept[r.name])
         assert np.array_equal(model.prior_index.numpy(), fresh[r.name])
     assert all(np.array_equal(kept[n].prior_index, fresh[n]) for n in kept)
+
+
+def _aspect_4_3(cam):
+    """``cam`` delivering 400 x 300 images (4:3) with its focal length."""
+    K = cam.model.K_array
+    model = CameraModel(K=((K[0, 0] / 4, 0.0, 200.0), (0.0, K[1, 1] / 4, 150.0), (0.0, 0.0, 1.0)), D=(0.0,) * 5,
+                        width=400, height=300)
+    return replace(cam, model=model)
+
+
+def test_a_preset_name_whose_cameras_do_not_fit_its_weights_maps_with_the_weights_for_any_rig():
+    """Issue #38: 'surround6' with two of its cameras, or with 4:3 images, does not fit the shipped
+    surround6 weights (camera list, trained input size): the default takes the weights for any
+    rig and says so once; explicit weights are never replaced.
+    """
+    s6 = preset_rig("surround6")
+    grid = BevGrid()
+    two = replace(s6, cameras=(s6["front"], s6["back"]))
+    wide = replace(s6, cameras=tuple(_aspect_4_3(c) for c in s6.cameras))
+    for rig, why in ((two, "cameras"), (wide, "model input 112x63")):
+        m = create_mapper(rig, grid, MapperConfig(method="bimapper", backend="torch"))
+        assert m.weights_path.name == "bimapper_any_labels.safetensors"
+        assert len(m.notes) == 1 and why in m.notes[0] and "bimapper_surround6_labels.safetensors" in m.notes[0]
+        pred = m.map({c.name: np.full(c.model.image_size[::-1], 1, np.uint8) for c in rig.cameras})
+        assert pred.known.any()
+    m = create_mapper(s6, grid, MapperConfig(method="bimapper", backend="torch"))
+    assert m.weights_path.name == "bimapper_surround6_labels.safetensors" and m.notes == ()
+    explicit = str(methods.WEIGHTS_DIR / "bimapper_surround6_labels.safetensors")
+    with pytest.raises(Exception, match="cameras"):
+        create_mapper(two, grid, MapperConfig(method="bimapper", weights=explicit))
