@@ -14,6 +14,7 @@ from bags.cli.train.main import main as bev_train  # noqa: E402
 from bags.cli.train.train import train_parser  # noqa: E402
 from bev_mapper_core.errors import ConfigError  # noqa: E402
 from bev_mapper_core.geometry.grid import BevGrid  # noqa: E402
+from bev_mapper_core.geometry.random_rig import RANDOM_RIGS  # noqa: E402
 from bev_mapper_core.geometry.rig import preset_rig  # noqa: E402
 from bev_mapper_core.methods.bimapper.model import BiMapper  # noqa: E402
 from bev_mapper_core.methods.bimapper.weights import load_state  # noqa: E402
@@ -397,13 +398,15 @@ def _choices(parser) -> dict:
 
 def test_cli_choices_and_defaults_come_from_the_owning_constants():
     p = train_parser()
-    assert _choices(p) == {"--method": list(train_methods()), "--rig": sorted(PRESETS), "--input": list(INPUT_KINDS),
+    assert _choices(p) == {"--method": list(train_methods()), "--rig": [*sorted(PRESETS), RANDOM_RIGS],
+                           "--input": list(INPUT_KINDS),
                            "--streams": list(STREAMS), "--fusion": list(FUSIONS), "--mutual": list(MUTUAL_MODES),
                            "--pos-weight": list(POS_WEIGHTS), "--style": STYLE_CHOICES,
                            "--unlabeled-style": STYLE_CHOICES}
     assert TrainConfig().style == SynthConfig.style
     assert vars(p.parse_args([])) == {}  # no flag has a default of its own: the dataclasses have them
-    assert _choices(eval_parser())["--rig"] == sorted(PRESETS)
+    assert "--rig" not in _choices(eval_parser())  # a preset or random-<seed>, checked by its type
+    assert eval_parser().parse_args(["--rig", "random-950000044"]).rig == "random-950000044"
     e, d = eval_parser().parse_args([]), TrainConfig()
     assert (e.rig, e.val_drives, e.frames_per_drive, e.stride, e.cache, e.device, e.threads) == \
         (d.rig, d.val_drives, d.frames_per_drive, d.stride, d.cache, d.device, d.threads)
