@@ -239,6 +239,27 @@ class SegmenterStage:
                 return runner(x)[0]
             return torch.cat([runner(x[i:i + 1])[0] for i in range(len(x))])  # B x (1, H, W) -> (B, H, W)
 
+    def _preprocess(self, batch: list[np.ndarray]) -> torch.Tensor:
+        """``B x (H, W, 3)`` uint8 -> ``(B, 3, h, w)`` normalised model input. Torch runs
+        :meth:`Segmenter.preprocess` (the reference); an exported backend, where the input is
+        no smaller than the image (antialiasing changes nothing then), resizes each image with
+        OpenCV's bilinear on float32 (the same half-pixel sampling; within 1e-5 of torch's) and
+        normalises it in place: 2.7x faster for six 400x225 cameras (issue #41).
+        """
+        H, W = batch[0].shape[:2]
+        h, w = self.model.config.input_size((W, H))
+        if self.backend == "torch" or self.device.type != "cpu" or h < H or w < W:
+            return self.model.preprocess(torch.from_numpy(np.stack(batch)).to(self.device))  # (B, H, W, 3) in
+        std = self.model.rgb_std.reshape(3).numpy()
+        scale = (1.0 / (255.0 * std)).astype(np.float32)
+        shift = (-self.model.rgb_mean.reshape(3).numpy() / std).astype(np.float32)
+        out = np.empty((len(batch), 3, h, w), np.float32)
+        for i, img in enumerate(batch):
+            r = img.astype(np.float32) if (h, w) == (H, W) else cv2.resize(img.astype(np.float32), (w, h),
+                                                                           interpolation=cv2.INTER_LINEAR)
+            out[i] = (r * scale + shift).transpose(2, 0, 1)  # (h, w, 3) -> (3, h, w)
+        return torch.from_numpy(out)
+
     def segment(self, images: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         """``{camera: (H, W, 3) uint8}`` -> ``{camera: (H, W) uint8 label ids}``; cameras of one
         size are segmented as one batch. An image ``k`` >= 2 times wider than the labels are
@@ -255,10 +276,9 @@ class SegmenterStage:
             k = max(1, W // (DECISION_WIDTH_FACTOR * self.model.config.input_width))
             batch = [images[n] if k == 1 else cv2.resize(images[n], (W // k, H // k), interpolation=cv2.INTER_AREA)
                      for n in names]  # a full-resolution camera: a k x k box mean first, cheap on uint8
-            x = torch.from_numpy(np.stack(batch)).to(self.device)  # (B, H/k, W/k, 3)
             h, w = self.model.decision_size((H, W))
             with torch.inference_mode():
-                labels = self._labels(self.model.preprocess(x), (h, w))  # (B, h, w), as Segmenter.segment
+                labels = self._labels(self._preprocess(batch), (h, w))  # (B, h, w), as Segmenter.segment
             if (h, w) != (H, W):
                 labels = F.interpolate(labels[:, None], size=(H, W), mode="nearest")[:, 0]  # (B, 1, H, W) -> (B, H, W)
             labels = labels.cpu().numpy()
