@@ -80,8 +80,12 @@ def _node_rows(args) -> None:
     for _ in range(args.node_repeat):
         for p in args.precisions:
             cmd = [sys.executable, str(REPO / "bench" / "bench_node_rate.py"), "--input", "rgb", "--hz", str(args.hz),
-                   "--seconds", str(args.seconds), "--settle", "3", "--node-arg", f"segmenter_precision:={p}"]
-            out = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, check=False).stdout
+                   "--seconds", str(args.seconds), "--settle", "3", "--node-arg", f"segmenter_precision:={p}",
+                   "--domain-id", str(args.domain_id)]
+            res = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, check=False)
+            out = res.stdout
+            if res.returncode != 0:
+                print(f"  node, precision {p}: failed ({(res.stderr or out).strip().splitlines()[-1:]})")
             m = re.search(r"output rate\s*: ([\d.]+)", out)
             d = re.search(r"processing_ms (\S+)", out)
             rates[p].append(f"{m.group(1) if m else '?'} grids/s (processing {d.group(1) if d else '?'} ms)")
@@ -103,6 +107,7 @@ def main() -> None:
     ap.add_argument("--node-repeat", type=int, default=1)
     ap.add_argument("--hz", type=float, default=10.0)
     ap.add_argument("--seconds", type=float, default=15.0)
+    ap.add_argument("--domain-id", type=int, default=int(os.environ.get("ROS_DOMAIN_ID") or 150 + os.getpid() % 50))
     args = ap.parse_args()
     if not args.node_only:
         _mapper_rows(args)

@@ -79,7 +79,8 @@ _DECLARATIONS: dict[str, tuple] = {
                   "(auto = camvid, the default; camvid: trained with CamVid, non-commercial; open: commercial use "
                   "allowed; none; or a safetensors file)"),
     "segmenter_precision": (_T.PARAMETER_STRING, f"RGB input: arithmetic of the segmenter on an exported backend, one "
-                            f"of {list(SEGMENTER_PRECISIONS)} (int8: its ONNX export quantized once, cached)"),
+                            f"of {list(SEGMENTER_PRECISIONS)}: auto = bf16 on OpenVINO where the CPU computes in bf16, else f32; "
+                            "int8: its ONNX export quantized once, cached (docs/SPEED.md, issue #41)"),
     "classes": (_T.PARAMETER_STRING_ARRAY,
                 f"classes to publish, of {list(BEV_CLASS_NAMES)} or the weights' ([] = all)"),
     "grid.x_min": (_T.PARAMETER_DOUBLE, "grid extent along x (m)"),
