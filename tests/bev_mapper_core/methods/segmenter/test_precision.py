@@ -119,3 +119,31 @@ def test_bf16_runs_on_openvino_and_agrees_with_f32(frames, tmp_path, monkeypatch
     for f in frames:
         assert _agreement(stage.segment(f), ref.segment(f)) > AGREEMENT
     assert stage.state == "openvino bf16"
+
+
+@pytest.mark.slow
+def test_int8_is_built_by_the_background_export(frames, tmp_path, monkeypatch):
+    """The node's start-up (issue #41): segipm in int8 maps with torch while the export process
+    exports and quantizes, then switches to the int8 model."""
+    if importlib.util.find_spec("onnxruntime") is None:
+        pytest.skip("onnxruntime not installed")
+    import onnx
+
+    from bev_mapper_core.geometry.grid import BevGrid
+    from bev_mapper_core.geometry.rig import preset_rig
+    from bev_mapper_core.mapper import create_mapper
+
+    monkeypatch.setenv("BEV_MAPPER_CACHE", str(tmp_path))
+    mapper = create_mapper(preset_rig("surround6"), BevGrid(),
+                           MapperConfig(method="segipm", input_kind="rgb", backend="onnxruntime",
+                                        segmenter_precision="int8", threads=1))
+    mapper.export_in_background()
+    mapper.map(frames[0])
+    assert mapper.backend_state == "torch (until the onnxruntime model is ready)"
+    (runner,) = mapper.stage._runners.values()
+    assert runner.wait_ready(300)
+    mapper.map(frames[1])
+    assert mapper.backend_state == "onnxruntime int8"
+    (model,) = tmp_path.rglob("*.onnx")
+    assert "QuantizeLinear" in {n.op_type for n in onnx.load(str(model)).graph.node}
+    mapper.close()
