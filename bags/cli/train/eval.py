@@ -122,8 +122,7 @@ def run_real(a: argparse.Namespace) -> int:
     """
     import torch
 
-    from bev_mapper_core.methods.segmenter.real import (format_report, ms_per_frame, open_split, score_reader,
-                                                        stage_ms_per_frame)
+    from bev_mapper_core.methods.segmenter.real import format_report, ms_per_frame, open_split, score_reader, stage_ms_per_frame
     from bev_mapper_core.methods.segmenter.stage import GENERAL_SEGMENTER, shipped_segmenter
     from bev_mapper_core.methods.segmenter.weights import load_segmenter
 
@@ -165,7 +164,8 @@ def run_real(a: argparse.Namespace) -> int:
         from ...files import write_atomic
 
         doc = {"segmenter": str(path), "backend": stage.backend if stage else "torch",
-               "precision": stage.precision if stage else "f32", "config": model.config.to_dict(), "params": params, "threads": torch.get_num_threads(),
+               "precision": stage.precision if stage else "f32", "config": model.config.to_dict(), "params": params,
+               "threads": torch.get_num_threads(),
                "cpu_ms_per_frame": round(ms, 1), "timing_size": [w, h], "results": results}
         write_atomic(a.json, (json.dumps(doc, indent=1, allow_nan=False) + "\n").encode())
     return 0

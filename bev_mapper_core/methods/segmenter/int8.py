@@ -5,10 +5,11 @@ onnxruntime's static quantizer, for ``MapperConfig.segmenter_precision`` ``int8`
   weights int8 per output channel, activations uint8 per tensor, MinMax calibration. The last
   part of the graph (the bilinear upsampling of the class scores to the camera's size, the
   argmax, the cast to labels) stays float: every node after the classifier's convolution is
-  left out; so do the first :data:`FLOAT_LEADING_CONVS` convolutions (accuracy). OpenVINO reads the QDQ file and runs its convolutions in int8
+  left out; so do the first :data:`FLOAT_LEADING_CONVS` convolutions (accuracy). OpenVINO reads
+  the QDQ file and runs its convolutions in int8
   (:data:`~.stage.STAGE_AUTO_ORDER_INT8`); onnxruntime runs it too, slower here.
-* **Calibration**: :data:`CALIBRATION_SEEDS` synthetic-town drives (training seeds of a run seed
-  no shipped model was trained on, never a held-out or test seed), :data:`CALIBRATION_FRAMES`
+* **Calibration**: :data:`CALIBRATION_SEEDS` synthetic-town drives (training seeds of run seed
+  77, below the validation seeds: never a held-out or test drive), :data:`CALIBRATION_FRAMES`
   frames each, every surround6 camera, resized to the model's input: deterministic, needs no
   dataset, and the same on every machine. No CamVid image is read, so building the file at a
   node's first start needs nothing but the package.
@@ -16,8 +17,9 @@ onnxruntime's static quantizer, for ``MapperConfig.segmenter_precision`` ``int8`
   runs right after the float export, in the export's child process when the node exports in the
   background), so the int8 file is verified, refused and rebuilt like any export
   (:mod:`~bev_mapper_core.nn.export_cache`); its key differs from the float export's by the
-  :data:`RECIPE` buffer (the recipe's version and the quantizer's version). Measured cost on the
-  2-core machine: docs/SPEED.md ("Issue #41: INT8 segmenter").
+  module's ``int8_recipe`` buffer (:func:`recipe_tensor`: the recipe, the calibration set and the
+  quantizer's version). Measured cost and accuracy: docs/SPEED.md ("Issue #41: surround6 RGB at
+  camera rate").
 """
 
 from __future__ import annotations
@@ -119,10 +121,15 @@ def quantize_onnx(src: Path, dst: Path, inputs: list[np.ndarray]) -> Path:
         ConfigError: onnxruntime's quantizer is not installed.
     """
     try:
-        from onnxruntime.quantization import (  # noqa: PLC0415
-            CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType, quantize_static)
-        from onnxruntime.quantization.shape_inference import quant_pre_process  # noqa: PLC0415
         import onnxruntime as ort  # noqa: PLC0415
+        from onnxruntime.quantization import (  # noqa: PLC0415
+            CalibrationDataReader,
+            CalibrationMethod,
+            QuantFormat,
+            QuantType,
+            quantize_static,
+        )
+        from onnxruntime.quantization.shape_inference import quant_pre_process  # noqa: PLC0415
     except ImportError:
         raise ConfigError("segmenter_precision int8 needs onnxruntime (its quantizer): pip install onnxruntime, "
                           "or use segmenter_precision f32") from None
