@@ -24,6 +24,7 @@ class), else f32; ``int8`` runs the export quantized by :mod:`.int8`.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -93,6 +94,7 @@ def segmenter_path(config: MapperConfig, rig_name: str) -> Path:
     return Path(spec)
 
 
+@functools.cache
 def cpu_has_bf16() -> bool:
     """True when OpenVINO is installed and says this CPU computes in bf16 (AVX512-BF16 / AMX)."""
     if "openvino" not in installed_backends():
