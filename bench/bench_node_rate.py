@@ -41,6 +41,10 @@ def main() -> None:
     ap.add_argument("--node-arg", action="append", default=[], metavar="NAME:=VALUE",
                     help="another node parameter, e.g. backend:=openvino (repeatable)")
     ap.add_argument("--json", default=None, help="also write the row for bench/bench_table.py here")
+    ap.add_argument("--input", choices=("labels", "rgb"), default=None,
+                    help="override the file's input_kind (rgb: the cameras' RGB images, the segmenter in front)")
+    ap.add_argument("--settle", type=float, default=0.0,
+                    help="seconds after the first grid before the measured window (a background export's switch)")
     ap.add_argument("--domain-id", type=int, default=150 + os.getpid() % 50)
     args = ap.parse_args()
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
@@ -60,14 +64,14 @@ def main() -> None:
 
     params_file = REPO / "config" / f"{args.params}.yaml"
     params = yaml.safe_load(params_file.read_text())["/**"]["ros__parameters"]
-    rig, kind = preset_rig(params["rig"]), params.get("input_kind", "labels")
+    rig, kind = preset_rig(params["rig"]), args.input or params.get("input_kind", "labels")
     method = args.method or params["method"]
     grid = BevGrid.from_dict(params["grid"])
     frames = [{n: (c.labels if kind == "labels" else c.rgb) for n, c in f.cameras.items()}
               for f in generate_drive(rig, grid, SynthConfig(frames=10, seed=950_000_008))]
     node_proc = subprocess.Popen(
         [sys.executable, "-m", "bev_mapper_ros.mapper_node", "--ros-args", "--params-file",
-         str(params_file), "-p", f"method:={method}", *(a for p in args.node_arg for a in ("-p", p))],
+         str(params_file), "-p", f"method:={method}", "-p", f"input_kind:={kind}", *(a for p in args.node_arg for a in ("-p", p))],
         cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT, env=dict(os.environ))
     rclpy.init()
     node = rclpy.create_node("bench_node_rate")
@@ -107,7 +111,7 @@ def main() -> None:
                 pubs[cam.name].publish(make_image(factory, frames[k % len(frames)][cam.name], encoding,
                                                   stamp, cam.frame_id))
             k += 1
-            if warm is None and received:
+            if warm is None and received and time.time() - received[0][0] >= args.settle:
                 warm = len(received), time.time()
             next_t = start + k * period
             while time.monotonic() < next_t:

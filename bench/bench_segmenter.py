@@ -4,7 +4,8 @@ shipped before (``segmenter_w320``), in the same run.
 Rows:
 
 * ``SegmenterStage.segment`` of one 480x360 RGB frame (CamVid's size; resize, network, labels at
-  the frame's size), 1 thread, for torch, onnxruntime and OpenVINO (those installed);
+  the frame's size), 1 thread, for torch, onnxruntime and OpenVINO (those installed), and
+  OpenVINO in bf16 and int8 (``segmenter_precision``, issue #41; int8's first call quantizes);
 * the whole ``Mapper.map`` of ``segipm`` and of chained Bi-Mapper (the shipped surround6 label
   weights behind the segmenter) on one surround6 frame (6 RGB cameras of 400x225), at the
   machine's default threads, per backend (``MapperConfig.backend``).
@@ -63,14 +64,16 @@ def main() -> None:
     print(f"torch {torch.__version__}, backends {backends}; ms, median of {a.frames}")
     default_threads = torch.get_num_threads()
     torch.set_num_threads(1)
-    print("\nSegmenterStage.segment, one 480x360 frame, 1 thread")
-    print(f"{'segmenter':20}" + "".join(f"{b:>14}" for b in backends))
+    # columns: each backend in f32, then OpenVINO's bf16 and int8 (issue #41) where installed
+    columns = [(b, "f32") for b in backends] + [("openvino", p) for p in ("bf16", "int8") if "openvino" in backends]
+    print("\nSegmenterStage.segment, one 480x360 frame, 1 thread (precision after the backend)")
+    print(f"{'segmenter':20}" + "".join(f"{b + ('' if p == 'f32' else ' ' + p):>16}" for b, p in columns))
     for label, name in files.items():
         cells = []
-        for b in backends:
-            stage = SegmenterStage(WEIGHTS_DIR / name, backend=b, threads=1)
+        for b, p in columns:
+            stage = SegmenterStage(WEIGHTS_DIR / name, backend=b, threads=1, precision=p)
             cells.append(_median_ms(lambda s=stage: s.segment({"f": frame}), a.frames))
-        print(f"{label:20}" + "".join(f"{c:14.1f}" for c in cells), flush=True)
+        print(f"{label:20}" + "".join(f"{c:16.1f}" for c in cells), flush=True)
     torch.set_num_threads(default_threads)
     if a.skip_maps:
         return
@@ -81,6 +84,7 @@ def main() -> None:
             cells = []
             for b in backends:
                 cfg = MapperConfig(method=method, input_kind="rgb", backend=b, segmenter=str(WEIGHTS_DIR / name),
+                                   segmenter_precision="f32",
                                    weights=str(WEIGHTS_DIR / "bimapper_surround6_labels.safetensors")
                                    if method == "bimapper" else None)
                 mapper = create_mapper(rig, grid, cfg)

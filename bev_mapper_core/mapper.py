@@ -25,6 +25,8 @@ from .registry import resolve
 INPUT_KINDS = ("labels", "rgb")
 #: ``MapperConfig.backend`` choices (see :mod:`~bev_mapper_core.nn.backends`).
 BACKENDS = ("torch", "onnxruntime", "openvino", "auto")
+#: ``MapperConfig.segmenter_precision`` choices (see :mod:`~bev_mapper_core.methods.segmenter.int8`).
+SEGMENTER_PRECISIONS = ("auto", "f32", "bf16", "int8")
 
 
 @dataclass(frozen=True)
@@ -66,7 +68,14 @@ class MapperConfig:
             calibration, cached; optional extras); see
             :mod:`~bev_mapper_core.nn.backends`. Bi-Mapper, S2G2 and FocusBEV use it (FocusBEV
             for its image -> BEV feature part), and the segmenter stage of segipm and chained
-            Bi-Mapper (``auto``: onnxruntime first there, its fastest).
+            Bi-Mapper (``auto``: onnxruntime first there, its fastest in f32; OpenVINO first in int8).
+        segmenter_precision: the segmenter stage's arithmetic on an exported backend (issue
+            #41): ``auto`` (the default: ``bf16`` where OpenVINO is installed and the CPU
+            computes in bf16, else ``f32``), ``f32``, ``bf16`` (OpenVINO's bf16 inference of the
+            float export; CamVid test within 0.3 IoU of f32 per class, 2.3x faster here), or
+            ``int8`` (its ONNX export quantized after training on a fixed synthetic calibration
+            set, in the export cache: :mod:`~bev_mapper_core.methods.segmenter.int8`).
+            ``backend`` torch runs f32 whatever this says (docs/SPEED.md, issue #41).
         label_map: how the ids of the label images (``input_kind`` labels) map onto this
             package's :class:`~bev_mapper_core.labels.classes.Label`: ``native`` (they are Label
             ids), a preset of another segmenter (``cityscapes_ids``, ``cityscapes_train_ids``,
@@ -86,6 +95,7 @@ class MapperConfig:
     segmenter: str = "auto"
     label_map: str = NATIVE
     backend: str = "auto"
+    segmenter_precision: str = "auto"
 
     def __post_init__(self) -> None:
         v = self.unknown_below
@@ -102,6 +112,9 @@ class MapperConfig:
             raise ConfigError(f"unknown method {self.method!r}; available: {list(available_methods())}")
         if self.backend not in BACKENDS:
             raise ConfigError(f"backend must be one of {BACKENDS}, got {self.backend!r}")
+        if self.segmenter_precision not in SEGMENTER_PRECISIONS:
+            raise ConfigError(f"segmenter_precision must be one of {SEGMENTER_PRECISIONS}, got "
+                              f"{self.segmenter_precision!r}")
         if self.input_kind not in INPUT_KINDS:
             raise ConfigError(f"input_kind must be one of {INPUT_KINDS}, got {self.input_kind!r}")
         if self.classes is not None:
@@ -377,6 +390,7 @@ def create_mapper(rig: Rig, grid: BevGrid, config: MapperConfig) -> Mapper:
 
 __all__ = [
     "BACKENDS",
+    "SEGMENTER_PRECISIONS",
     "BEV_CLASS_NAMES",
     "BevPrediction",
     "Mapper",

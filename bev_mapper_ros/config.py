@@ -265,6 +265,7 @@ PARAM_FIELDS: dict[str, ParamField] = {
     "ipm_occlusion": ParamField(MapperConfig, "ipm_occlusion"),
     "unknown_below": ParamField(MapperConfig, "unknown_below"),
     "segmenter": ParamField(MapperConfig, "segmenter"),
+    "segmenter_precision": ParamField(MapperConfig, "segmenter_precision"),
     "classes": ParamField(MapperConfig, "classes", string_array=True),
     "grid.x_min": ParamField(BevGrid, "x_min"),
     "grid.x_max": ParamField(BevGrid, "x_max"),

@@ -30,7 +30,7 @@ from rclpy.parameter import Parameter
 from bev_mapper_core.geometry.rig import PRESETS
 from bev_mapper_core.labels.classes import BEV_CLASS_NAMES
 from bev_mapper_core.labels.label_maps import PRESET_NAMES
-from bev_mapper_core.mapper import BACKENDS, INPUT_KINDS, available_methods
+from bev_mapper_core.mapper import BACKENDS, INPUT_KINDS, SEGMENTER_PRECISIONS, available_methods
 
 from .config import (
     PARAM_FIELDS,
@@ -78,6 +78,9 @@ _DECLARATIONS: dict[str, tuple] = {
     "segmenter": (_T.PARAMETER_STRING, "RGB input: 2-D segmenter of segipm and of label weights run on RGB "
                   "(auto = camvid, the default; camvid: trained with CamVid, non-commercial; open: commercial use "
                   "allowed; none; or a safetensors file)"),
+    "segmenter_precision": (_T.PARAMETER_STRING, f"RGB input: arithmetic of the segmenter on an exported backend, one "
+                            f"of {list(SEGMENTER_PRECISIONS)}: auto = bf16 on OpenVINO where the CPU computes in bf16, else f32; "
+                            "int8: its ONNX export quantized once, cached (docs/SPEED.md, issue #41)"),
     "classes": (_T.PARAMETER_STRING_ARRAY,
                 f"classes to publish, of {list(BEV_CLASS_NAMES)} or the weights' ([] = all)"),
     "grid.x_min": (_T.PARAMETER_DOUBLE, "grid extent along x (m)"),

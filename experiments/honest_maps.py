@@ -28,7 +28,7 @@ import numpy as np
 from bags.io.reader import BagReader
 from bags.replay import ReplayScorer
 from bev_mapper_core.labels.classes import NUM_LABELS, Label
-from bev_mapper_core.mapper import INPUT_KINDS, MapperConfig, available_methods, create_mapper
+from bev_mapper_core.mapper import BACKENDS, INPUT_KINDS, SEGMENTER_PRECISIONS, MapperConfig, available_methods, create_mapper
 from bev_mapper_core.metrics import format_table, format_whole_grid_table
 
 
@@ -44,10 +44,14 @@ def main() -> None:
                    help="Bi-Mapper visibility threshold(s); several values: one pass, one table each")
     p.add_argument("--input", dest="input_kind", default=MapperConfig.input_kind, choices=INPUT_KINDS)
     p.add_argument("--segmenter", default=MapperConfig.segmenter, help="RGB input: auto | none | FILE")
+    p.add_argument("--backend", default=MapperConfig.backend, choices=BACKENDS, help="inference runtime")
+    p.add_argument("--segmenter-precision", default=MapperConfig.segmenter_precision, choices=SEGMENTER_PRECISIONS,
+                   help="RGB input: the segmenter stage's precision (issue #41)")
     p.add_argument("--json", type=Path, help="also write the pooled result here (the first threshold's)")
     args = p.parse_args()
     configs = [MapperConfig(method=args.method, ipm_occlusion=args.ipm_occlusion, weights=args.weights,
-                            unknown_below=u, input_kind=args.input_kind, segmenter=args.segmenter)
+                            unknown_below=u, input_kind=args.input_kind, segmenter=args.segmenter,
+                            backend=args.backend, segmenter_precision=args.segmenter_precision)
                for u in args.unknown_below]
     for i, config in enumerate(configs):
         run(args, config, args.json if i == 0 else None)
@@ -99,6 +103,7 @@ def run(args: argparse.Namespace, config: MapperConfig, json_path: Path | None) 
     if json_path:
         json_path.write_text(json.dumps({"method": config.method, "ipm_occlusion": config.ipm_occlusion,
                                          "input": config.input_kind, "segmenter": config.segmenter,
+                                         "backend": config.backend, "segmenter_precision": config.segmenter_precision,
                                          "ms_per_frame": 1000 * t_map / max(n, 1),
                                          "weights": config.weights, "unknown_below": config.unknown_below,
                                          "bags": [str(b) for b in args.bags], **result}, indent=2))

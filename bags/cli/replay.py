@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 
 from bev_mapper_core.labels.label_maps import PRESET_NAMES
-from bev_mapper_core.mapper import BACKENDS, INPUT_KINDS, MapperConfig, available_methods
+from bev_mapper_core.mapper import BACKENDS, INPUT_KINDS, SEGMENTER_PRECISIONS, MapperConfig, available_methods
 from bev_mapper_core.metrics import SCOPES, format_table, format_whole_grid_table
 from bev_mapper_core.temporal import TemporalConfig
 from msg_adapters.errors import SyncConfigError
@@ -92,6 +92,9 @@ def add_replay_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--backend", default=MapperConfig.backend, choices=BACKENDS,
                    help="inference runtime of learned methods: torch, onnxruntime or openvino (the model exported to "
                         "ONNX, cached), auto = the fastest installed (default %(default)s)")
+    p.add_argument("--segmenter-precision", default=MapperConfig.segmenter_precision, choices=SEGMENTER_PRECISIONS,
+                   help="RGB input: the segmenter's arithmetic on an exported backend: auto = bf16 on OpenVINO where "
+                        "the CPU has it, else f32; int8 = the export quantized once, cached (default %(default)s)")
     p.add_argument("--input", dest="input_kind", default=MapperConfig.input_kind, choices=INPUT_KINDS,
                    help="camera images to map: semantic labels or RGB")
     p.add_argument("--label-map", default=MapperConfig.label_map, metavar="PRESET|YAML",
@@ -165,7 +168,8 @@ def options_from_args(args: argparse.Namespace) -> ReplayOptions:
                           classes=tuple(args.classes) if args.classes else None,
                           weights=args.weights, device=args.device, backend=args.backend,
                           ipm_occlusion=args.ipm_occlusion, unknown_below=args.unknown_below,
-                          segmenter=args.segmenter, label_map=args.label_map)
+                          segmenter=args.segmenter, label_map=args.label_map,
+                          segmenter_precision=args.segmenter_precision)
     return ReplayOptions(
         bag=args.bag, out=args.out, mapper=mapper, grid=grid, scope=args.scope,
         max_frames=args.max_frames, pictures=not args.no_pictures,

@@ -13,7 +13,8 @@ exported to ONNX and run by onnxruntime or OpenVINO (optional extras:
   exported again (:mod:`.export_cache`). A new calibration or new weights export again
   (about 7 s for the shipped surround6 Bi-Mapper on this machine); a later start reuses the
   file. OpenVINO runs in f32 (``INFERENCE_PRECISION_HINT``: its default on CPUs with bf16 units
-  differs from torch by up to 0.13 in logits).
+  differs from torch by up to 0.13 in logits); the segmenter stage may ask for bf16
+  (``MapperConfig.segmenter_precision``, issue #41).
 * ``auto`` (the default, issue #28): the fastest installed: OpenVINO, else onnxruntime, else
   torch. The first start with new weights or a new calibration exports (and says so in the log,
   with the time it took); later starts load the cached file.
@@ -107,7 +108,9 @@ def model_key(module: torch.nn.Module, inputs: Sequence[torch.Tensor]) -> str:
 
 def export_onnx(module: torch.nn.Module, inputs: Sequence[torch.Tensor], path: Path) -> Path:
     """Export ``module`` (eval mode, CPU) on example ``inputs`` to ``path`` (the export cache
-    gives a temporary name in its directory and renames it once the file is complete).
+    gives a temporary name in its directory and renames it once the file is complete). A module
+    with an ``after_export(path, inputs)`` method has it called on the written file (the int8
+    segmenter: :class:`~bev_mapper_core.methods.segmenter.int8.Int8Export`).
     """
     path.parent.mkdir(parents=True, exist_ok=True)
     quiet = logging.getLogger("torch.onnx")  # its notes (e.g. on torchvision ops) are not for users
@@ -120,6 +123,9 @@ def export_onnx(module: torch.nn.Module, inputs: Sequence[torch.Tensor], path: P
             program.save(str(path))
     finally:
         quiet.setLevel(level)
+    after = getattr(module, "after_export", None)  # e.g. the int8 segmenter: quantized in place
+    if after is not None:
+        after(path, inputs)
     return path
 
 
@@ -139,8 +145,10 @@ class ExportedModel:
     """
 
     def __init__(self, module: torch.nn.Module, inputs: Sequence[torch.Tensor], backend: str, threads: int,
-                 fresh: bool = False, isolated: bool = False, cancel: threading.Event | None = None) -> None:
+                 fresh: bool = False, isolated: bool = False, cancel: threading.Event | None = None,
+                 precision: str = "f32") -> None:
         self.backend = resolve_backend(backend)
+        self.precision = precision  # OpenVINO's INFERENCE_PRECISION_HINT (f32, or bf16 where the CPU has it)
         if self.backend == "torch":
             raise ConfigError("ExportedModel runs onnxruntime or openvino; torch runs the module itself")
         self.shapes = [tuple(t.shape) for t in inputs]
@@ -176,7 +184,7 @@ class ExportedModel:
             import openvino as ov
 
             session = ov.Core().compile_model(str(path), "CPU", {"INFERENCE_NUM_THREADS": self.threads,
-                                                                 "INFERENCE_PRECISION_HINT": "f32"})
+                                                                 "INFERENCE_PRECISION_HINT": self.precision})
             names = [i.get_any_name() for i in session.inputs]
         if len(names) != len(self.shapes):
             raise ValueError(f"the file takes {len(names)} inputs, the model {len(self.shapes)}")
@@ -202,7 +210,8 @@ class BackendRunner:
 
     ``backend``: ``MapperConfig.backend`` resolved (:func:`resolve_backend`); ``device``: the
     model's torch device (exported backends run on the CPU only: elsewhere torch runs);
-    ``threads``: the runtime's intra-op threads.
+    ``threads``: the runtime's intra-op threads; ``precision``: OpenVINO's inference precision
+    (``f32``; ``bf16`` for the segmenter stage where the CPU has it, issue #41).
 
     ``background`` (the node, issue #41): the first call starts the export (or the cached file's
     check and load) in a thread, the export itself in a child process, and runs torch until the
@@ -211,8 +220,9 @@ class BackendRunner:
     Without ``background`` the first call waits for the export (replay, benchmarks, tests).
     """
 
-    def __init__(self, backend: str, device: torch.device, threads: int, background: bool = False) -> None:
-        self.backend, self.device, self.threads = backend, device, threads
+    def __init__(self, backend: str, device: torch.device, threads: int, background: bool = False,
+                 precision: str = "f32") -> None:
+        self.backend, self.device, self.threads, self.precision = backend, device, threads, precision
         self.background = background
         self.module: torch.nn.Module | None = None
         self._exported: ExportedModel | None = None
@@ -268,7 +278,8 @@ class BackendRunner:
             out = self.module(*inputs)
             return out if isinstance(out, tuple) else (out,)
         if self._exported is None:
-            self._exported = ExportedModel(self.module.eval(), inputs, self.backend, self.threads)
+            self._exported = ExportedModel(self.module.eval(), inputs, self.backend, self.threads,
+                                           precision=self.precision)
         arrays = [t.numpy() for t in inputs]
         try:
             outputs = self._exported(*arrays)
@@ -280,7 +291,8 @@ class BackendRunner:
                                   f"({' '.join(str(exc).split())[:200]}); use backend 'torch'") from None
             log.warning("export cache: %s failed at run time (%s); exporting again", self._exported.path,
                         " ".join(str(exc).split())[:200])
-            self._exported = ExportedModel(self.module.eval(), inputs, self.backend, self.threads, fresh=True)
+            self._exported = ExportedModel(self.module.eval(), inputs, self.backend, self.threads, fresh=True,
+                                           precision=self.precision)
             outputs = self._exported(*arrays)
         return tuple(torch.from_numpy(o) for o in outputs)
 
@@ -290,7 +302,8 @@ class BackendRunner:
             return
         job = self._job
         if job is None:
-            self._job = _ExportJob(self.module.eval(), [t.detach().clone() for t in inputs], self.backend, self.threads)
+            self._job = _ExportJob(self.module.eval(), [t.detach().clone() for t in inputs], self.backend, self.threads,
+                                   self.precision)
             return
         if job.thread.is_alive():
             return
@@ -319,19 +332,20 @@ class _ExportJob:
     process when needed, and the runtime's load, in a daemon thread.
     """
 
-    def __init__(self, module: torch.nn.Module, inputs: list[torch.Tensor], backend: str, threads: int) -> None:
+    def __init__(self, module: torch.nn.Module, inputs: list[torch.Tensor], backend: str, threads: int,
+                 precision: str = "f32") -> None:
         self.cancel = threading.Event()
         self.model: ExportedModel | None = None
         self.error = ""
         self.seconds = 0.0
         self._started = time.perf_counter()
-        self.thread = threading.Thread(target=self._run, args=(module, inputs, backend, threads),
+        self.thread = threading.Thread(target=self._run, args=(module, inputs, backend, threads, precision),
                                        name="bev-export", daemon=True)
         self.thread.start()
 
-    def _run(self, module, inputs, backend, threads) -> None:
+    def _run(self, module, inputs, backend, threads, precision) -> None:
         try:
-            model = ExportedModel(module, inputs, backend, threads, isolated=True, cancel=self.cancel)
+            model = ExportedModel(module, inputs, backend, threads, isolated=True, cancel=self.cancel, precision=precision)
             if not self.cancel.is_set():
                 self.model = model
         except ExportCancelled:

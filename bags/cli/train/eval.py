@@ -8,7 +8,7 @@ or, with ``--real``, a segmenter on real labelled frames (pooled pixel IoU in ea
 classes, the common five and their mean, CPU ms/frame; :mod:`bev_mapper_core.methods.segmenter.real`)::
 
     bev-train eval --method segmenter --real camvid:DIR [--real folder:DIR[:PRESET] ...]
-        [--split test] [--segmenter FILE] [--limit N] [--skip-bad] [--threads T] [--json OUT]
+        [--split test] [--segmenter FILE] [--backend B] [--segmenter-precision f32|int8] [--limit N] [--skip-bad] [--threads T] [--json OUT]
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import json
 from bev_mapper_core.datasets.camvid import SPLITS
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.geometry.rig import PRESETS
-from bev_mapper_core.mapper import INPUT_KINDS, MapperConfig
+from bev_mapper_core.mapper import BACKENDS, INPUT_KINDS, SEGMENTER_PRECISIONS, MapperConfig
 from bev_mapper_core.synth.styles import STYLE_CHOICES
 from bev_mapper_core.temporal import TemporalConfig
 from bev_mapper_core.training.config import AUTO_CLASSES
@@ -64,6 +64,12 @@ def configure(p: argparse.ArgumentParser, argv: list[str]) -> None:
                    help="segmenter weights (default: the shipped segmenter)")
     g.add_argument("--limit", type=pos_int, default=None, help="score only the first N frames of each dataset")
     g.add_argument("--skip-bad", action="store_true", help="leave bad frames out (counted) instead of stopping")
+    g.add_argument("--backend", default="torch", choices=list(BACKENDS),
+                   help="run the segmenter by this backend (its segmenter stage, as the node does) instead of torch's "
+                        "logits (default: %(default)s)")
+    g.add_argument("--segmenter-precision", default=MapperConfig.segmenter_precision, choices=list(SEGMENTER_PRECISIONS),
+                   help="the stage's precision on an exported --backend (int8: bev_mapper_core.methods.segmenter.int8; "
+                        "default: %(default)s)")
     g.add_argument("--timing-frames", type=pos_int, default=10, help="segment() calls timed (default: %(default)s)")
 
 
@@ -117,7 +123,7 @@ def run_real(a: argparse.Namespace) -> int:
     """
     import torch
 
-    from bev_mapper_core.methods.segmenter.real import format_report, ms_per_frame, open_split, score_reader
+    from bev_mapper_core.methods.segmenter.real import format_report, ms_per_frame, open_split, score_reader, stage_ms_per_frame
     from bev_mapper_core.methods.segmenter.stage import GENERAL_SEGMENTER, shipped_segmenter
     from bev_mapper_core.methods.segmenter.weights import load_segmenter
 
@@ -136,15 +142,21 @@ def run_real(a: argparse.Namespace) -> int:
     if path is None:
         raise ConfigError(f"no segmenter shipped ({GENERAL_SEGMENTER}); name one with --segmenter FILE")
     model = load_segmenter(path)  # CPU, eval mode
+    stage = None
+    if a.backend != "torch" or a.segmenter_precision != "f32":
+        from bev_mapper_core.methods.segmenter.stage import SegmenterStage
+
+        stage = SegmenterStage(path, backend=a.backend, threads=a.threads, precision=a.segmenter_precision)
+        print(f"segmenter stage: backend {stage.backend}, precision {stage.precision}")
     results, first = [], None
     for spec, reader in readers:
-        rep = score_reader(model, reader, a.limit or 0)
+        rep = score_reader(model, reader, a.limit or 0, stage=stage)
         results.append({"dataset": spec, "split": a.split, **rep})
         for line in format_report(f"{spec} {a.split}", rep):
             print(line)
         if first is None:
             first = next(iter(reader)).image  # the timing frame: the first dataset's first good frame
-    ms = ms_per_frame(model, first, a.timing_frames)
+    ms = ms_per_frame(model, first, a.timing_frames) if stage is None else stage_ms_per_frame(stage, first, a.timing_frames)
     params = sum(p.numel() for p in model.parameters())
     h, w = first.shape[:2]
     print(f"CPU {ms:.1f} ms/frame ({w}x{h}, {torch.get_num_threads()} thread(s)), {params / 1e6:.2f} M params, "
@@ -152,7 +164,9 @@ def run_real(a: argparse.Namespace) -> int:
     if a.json:
         from ...files import write_atomic
 
-        doc = {"segmenter": str(path), "config": model.config.to_dict(), "params": params, "threads": torch.get_num_threads(),
+        doc = {"segmenter": str(path), "backend": stage.backend if stage else "torch",
+               "precision": stage.precision if stage else "f32", "config": model.config.to_dict(), "params": params,
+               "threads": torch.get_num_threads(),
                "cpu_ms_per_frame": round(ms, 1), "timing_size": [w, h], "results": results}
         write_atomic(a.json, (json.dumps(doc, indent=1, allow_nan=False) + "\n").encode())
     return 0

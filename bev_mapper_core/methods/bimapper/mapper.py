@@ -200,7 +200,8 @@ class BiMapperMapper(Mapper):
         self.backend = self._runner.backend
         self.weights_path = path
         #: the chained first stage (RGB -> labels), None when the model reads the input itself
-        self.stage = None if seg is None else SegmenterStage(seg, self.device, config.backend, config.threads)
+        self.stage = None if seg is None else SegmenterStage(seg, self.device, config.backend, config.threads,
+                                                                    config.segmenter_precision)
         self.model: BiMapper | None = None
         super().__init__(rig, grid, config)
 

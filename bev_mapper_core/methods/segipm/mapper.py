@@ -45,7 +45,7 @@ class SegIpmMapper(Mapper):
     def __init__(self, rig: Rig, grid: BevGrid, config: MapperConfig) -> None:
         self.preflight(config, rig.name)
         self.stage = SegmenterStage(segmenter_path(config, rig.name), inference_device(config), config.backend,
-                                    config.threads)
+                                    config.threads, config.segmenter_precision)
         self.ipm = IpmMapper(rig, grid, replace(config, method="ipm", input_kind="labels"))
         super().__init__(rig, grid, config)
 

@@ -268,9 +268,11 @@ def iou_report(iou: np.ndarray, space: LabelSpace) -> dict:
 
 
 @torch.no_grad()
-def score_reader(model: Segmenter, reader, limit: int = 0) -> dict:
+def score_reader(model: Segmenter, reader, limit: int = 0, stage=None) -> dict:
     """Pooled pixel IoU of ``model`` over a reader's frames (the first ``limit``; 0: all), one
-    frame at a time at its own size: ``{"frames", "skipped", **iou_report}``.
+    frame at a time at its own size: ``{"frames", "skipped", **iou_report}``. ``stage``: a
+    :class:`~.stage.SegmenterStage` of the same weights whose labels are scored instead (its
+    backend and precision; the same fine argmax, each label mapped to its home class).
 
     Raises:
         DatasetError: a bad frame (unless the reader skips them), or no frames.
@@ -281,7 +283,13 @@ def score_reader(model: Segmenter, reader, limit: int = 0) -> dict:
     conf = torch.zeros(space.num_classes, space.num_classes + 1, dtype=torch.long)
     n = 0
     dev = next(model.parameters()).device
+    home = torch.from_numpy(space.coarse_of_fine())
     for s in itertools.islice(iter(reader), limit or None):
+        if stage is not None:
+            labels = torch.from_numpy(stage.segment({"frame": s.image})["frame"])
+            conf += confusion(home[labels.long()][None], torch.from_numpy(s.labels)[None], space.num_classes)
+            n += 1
+            continue
         conf += frame_confusion(model, torch.from_numpy(s.image)[None].to(dev), torch.from_numpy(s.labels)[None].to(dev),
                                 space)
         n += 1
@@ -304,6 +312,15 @@ def ms_per_frame(model: Segmenter, image: np.ndarray, frames: int = 10) -> float
     return (time.perf_counter() - t) / frames * 1000
 
 
+def stage_ms_per_frame(stage, image: np.ndarray, frames: int = 10) -> float:
+    """:func:`ms_per_frame` of a :class:`~.stage.SegmenterStage` (its backend and precision)."""
+    stage.segment({"frame": image})
+    t = time.perf_counter()
+    for _ in range(frames):
+        stage.segment({"frame": image})
+    return (time.perf_counter() - t) / frames * 1000
+
+
 def format_report(name: str, rep: dict) -> list[str]:
     """The printed lines of one dataset's :func:`score_reader` result."""
     def pct(v):
@@ -320,4 +337,5 @@ def format_report(name: str, rep: dict) -> list[str]:
 
 __all__ = ["BASE_FACTOR", "REAL_KINDS", "RealSet", "base_copy", "base_size", "check_spec", "common_classes",
            "format_report", "frame_confusion", "iou_report", "joint_class_weights", "load_split", "mixed_loss",
-           "ms_per_frame", "open_split", "pooled_iou", "read_split", "sample_batch", "score_reader", "step_generator"]
+           "ms_per_frame", "open_split", "pooled_iou", "read_split", "sample_batch", "score_reader", "stage_ms_per_frame",
+           "step_generator"]

@@ -94,3 +94,24 @@ def test_segipm_exports_in_the_background_and_maps_meanwhile(tmp_path, monkeypat
     assert mapper.backend_state == "onnxruntime"
     np.testing.assert_array_equal(first.known, second.known)
     mapper.close()
+
+
+def test_exported_stage_preprocesses_as_torch_does():
+    """Issue #41: an exported backend's stage resizes with OpenCV (float32 bilinear) where the
+    model input is no smaller than the image; within 1e-5 of Segmenter.preprocess; larger images
+    keep torch's antialiased path (the same tensor)."""
+    import cv2
+    import torch
+
+    if importlib.util.find_spec("onnxruntime") is None:
+        pytest.skip("onnxruntime not installed")
+    path = WEIGHTS_DIR / SHIPPED_SEGMENTERS[DEFAULT_SEGMENTER]
+    stage = SegmenterStage(path, backend="onnxruntime", threads=1)
+    rng = np.random.default_rng(3)
+    for h, w in ((225, 400), (270, 480), (360, 480), (900, 1600)):
+        noise = rng.integers(0, 256, (2 * h, w, 3), dtype=np.uint8)
+        batch = list(cv2.GaussianBlur(noise, (5, 5), 1.5).reshape(2, h, w, 3))
+        ref = stage.model.preprocess(torch.from_numpy(np.stack(batch)))
+        got = stage._preprocess(batch)
+        assert got.shape == ref.shape and got.dtype == torch.float32
+        np.testing.assert_allclose(got.numpy(), ref.numpy(), rtol=0, atol=1e-5)
