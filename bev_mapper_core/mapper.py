@@ -156,6 +156,10 @@ class Mapper(ABC):
     name: str = ""
     #: the method reads ``ego_pose`` and ``stamp_ns`` (callers look poses up for it)
     uses_ego_pose: bool = False
+    #: :meth:`set_rig` only rebuilds cheap tables (no model export), so a rig placed per set at
+    #: its cameras' times is affordable (:mod:`~bev_mapper_core.placement`); False: the method
+    #: keeps its calibrated rig for every set
+    per_set_rig: bool = False
 
     def __init__(self, rig: Rig, grid: BevGrid, config: MapperConfig) -> None:
         self.grid = grid

@@ -184,6 +184,7 @@ class IpmMapper(Mapper):
     """
 
     name = "ipm"
+    per_set_rig = True  # set_rig rebuilds numpy tables only (time placement, issue #38)
     #: occlusion search per image column (:mod:`.columns`); ``False``: along the polar raster's
     #: BEV rays, the search before issue #28 (kept for comparison: experiments/ipm_occlusion_columns.py)
     occlusion_columns = True
