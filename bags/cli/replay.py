@@ -13,6 +13,7 @@ from pathlib import Path
 from bev_mapper_core.labels.label_maps import PRESET_NAMES
 from bev_mapper_core.mapper import BACKENDS, INPUT_KINDS, MapperConfig, available_methods
 from bev_mapper_core.metrics import SCOPES, format_table, format_whole_grid_table
+from bev_mapper_core.geometry.time_placement import PLACEMENT_MODES, TimePlacementConfig
 from bev_mapper_core.temporal import TemporalConfig
 from msg_adapters.errors import SyncConfigError
 from msg_adapters.sync import SyncConfig
@@ -111,6 +112,14 @@ def add_replay_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--temporal-window", type=int, default=TemporalConfig.window, metavar="N",
                    help="fuse the method's output over the last N frames, aligned by the bag's odometry, in "
                         "log-odds (any method; 1 = off; default: %(default)s)")
+    tp = TimePlacementConfig
+    p.add_argument("--time-placement", choices=PLACEMENT_MODES, default=tp.mode,
+                   help="place each camera with the ego pose (the bag's /odom or /tf) of its own stamp, in base_link "
+                        "at the frame's stamp (IPM, segipm; learned methods keep their calibration, counted); "
+                        "auto: where the bag has poses (default: %(default)s)")
+    p.add_argument("--placement-step-cells", type=float, default=tp.step_cells, metavar="CELLS",
+                   help="round each camera's correction to this many grid cells (under half of it: skipped, "
+                        "counted as static; 0 = exact, tables rebuilt every frame; default: %(default)s)")
     p.add_argument("--classes", nargs="+", default=None, metavar="CLASS",
                    help="BEV classes to produce (default: the method's)")
     p.add_argument("--scope", default=ReplayOptions.scope, choices=SCOPES,
@@ -177,6 +186,7 @@ def options_from_args(args: argparse.Namespace) -> ReplayOptions:
         rig=RigChoice(name=args.rig, params_file=args.params_file),
         sync=sync_from_args(args),
         ego_masks=ego_masks_from_args(args.ego_mask),
+        placement=TimePlacementConfig(mode=args.time_placement, step_cells=args.placement_step_cells),
     )
 
 

@@ -29,13 +29,14 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 
-from ..errors import CalibrationError, ConfigError
+from ..errors import ConfigError
 from .grid import BevGrid
 from .rig import Rig
-from .transforms import invert_transform, make_transform, rpy_to_rot, validate_transform
+from .transforms import invert_transform, make_transform, rpy_to_rot
 
 #: ``TimePlacementConfig.mode`` choices.
 PLACEMENT_MODES = ("auto", "off")
@@ -84,7 +85,7 @@ class Placement:
     """What :func:`place_cameras` made of one set.
 
     Attributes:
-        rig: the rig to map the set with (the static rig itself when no camera moved).
+        base: the calibrated rig.
         key: the rounded corrections of the moved cameras, ``((name, (6 ints)), ...)``; ``()``
             for the static rig. Equal keys are equal rigs.
         placed: cameras moved to their own time.
@@ -94,15 +95,28 @@ class Placement:
         jumped: cameras stamped farther than ``max_offset_s`` from the reference, as calibrated.
         max_offset_m: the largest displacement a correction (before rounding) gives a point of the
             grid's corners or the camera's centre, over the cameras with a pose; 0 without.
+        moves: ``(name, rounded ego_ref_from_ego_cam 4x4)`` of the placed cameras.
     """
 
-    rig: Rig
+    base: Rig
     key: tuple = ()
     placed: tuple[str, ...] = ()
     static: tuple[str, ...] = ()
     no_pose: tuple[str, ...] = ()
     jumped: tuple[str, ...] = ()
     max_offset_m: float = 0.0
+    moves: tuple = ()
+
+    @cached_property
+    def rig(self) -> Rig:
+        """The rig to map the set with (``base`` itself when no camera moved); built on first use
+        (a caller whose mapper already holds the rig of this ``key`` never builds it).
+        """
+        out = self.base
+        for name, D in self.moves:
+            cam = out[name]
+            out = out.with_camera(replace(cam, ego_from_cam=D @ cam.ego_from_cam_array))
+        return out
 
 
 def camera_correction(ref_pose: np.ndarray, cam_pose: np.ndarray) -> np.ndarray:
@@ -158,8 +172,8 @@ def place_cameras(rig: Rig, stamps: Mapping[str, int | None], ref_stamp_ns: int,
     ``base_link`` at ``ref_stamp_ns`` (see the module docstring). Cameras missing from
     ``stamps`` (or stamped None: not in the set) are left as calibrated and not reported.
 
-    ``pose_at(stamp_ns)`` gives ``world_from_ego`` or None; a pose it returns that is not a
-    rigid transform counts as none. Never raises on bad poses or stamps.
+    ``pose_at(stamp_ns)`` gives ``world_from_ego`` (rigid) or None; a pose it returns that is
+    not a finite 4x4 array counts as none. Never raises on bad poses or stamps.
     """
     ref = _checked(pose_at(int(ref_stamp_ns)))
     cams = [c for c in rig.cameras if stamps.get(c.name) is not None]
@@ -168,9 +182,8 @@ def place_cameras(rig: Rig, stamps: Mapping[str, int | None], ref_stamp_ns: int,
     step_m, step_rad = steps(grid, config)
     corners = grid_corners(grid)
     limit_ns = config.max_offset_s * 1e9
-    placed, static, no_pose, jumped, key = [], [], [], [], []
+    placed, static, no_pose, jumped, key, moves = [], [], [], [], [], []
     worst = 0.0
-    out = rig
     for cam in cams:
         stamp = int(stamps[cam.name])
         if abs(stamp - ref_stamp_ns) > limit_ns:
@@ -187,20 +200,22 @@ def place_cameras(rig: Rig, stamps: Mapping[str, int | None], ref_stamp_ns: int,
         if not any(k):
             static.append(cam.name)
             continue
-        out = out.with_camera(replace(cam, ego_from_cam=Dq @ E))
+        moves.append((cam.name, Dq))
         placed.append(cam.name)
         key.append((cam.name, k))
-    return Placement(out, tuple(key), tuple(placed), tuple(static), tuple(no_pose), tuple(jumped), worst)
+    return Placement(rig, tuple(key), tuple(placed), tuple(static), tuple(no_pose), tuple(jumped), worst,
+                     tuple(moves))
 
 
 def _checked(pose) -> np.ndarray | None:
-    """``pose`` as a rigid 4x4 float64 transform, or None (none given, or not rigid)."""
+    """``pose`` as a finite 4x4 float64 array, or None (none given, another shape, a NaN or an
+    infinity). Rigidity is the lookup's to check (the pose buffer and TF check it as poses
+    arrive): the full check here would cost more than the rest of a set's placement.
+    """
     if pose is None:
         return None
-    try:
-        return validate_transform(pose, "ego pose")
-    except CalibrationError:
-        return None
+    T = np.asarray(pose, dtype=np.float64)
+    return T if T.shape == (4, 4) and np.isfinite(T).all() else None
 
 
 __all__ = [
