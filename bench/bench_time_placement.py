@@ -58,10 +58,10 @@ def main() -> None:
     for label, cfg in configs:
         m = create_mapper(rig, grid, cfg)
         k = iter(range(1, 10_000))
-        new = timed(lambda i: m.set_rig(moved(rig, rig.names, 0.01 * next(k))), args.repeat)
-        one = timed(lambda i: m.set_rig(moved(rig, ("back",), 0.01 * next(k))), args.repeat)
+        new = timed(lambda i, m=m, k=k: m.set_rig(moved(rig, rig.names, 0.01 * next(k))), args.repeat)
+        one = timed(lambda i, m=m, k=k: m.set_rig(moved(rig, ("back",), 0.01 * next(k))), args.repeat)
         m.set_rig(rig)
-        kept = timed(lambda i: m.set_rig(rig), args.repeat)
+        kept = timed(lambda i, m=m: m.set_rig(rig), args.repeat)
         print(f"{label:<16} {new:>18.1f} {one:>18.1f} {kept:>20.1f}")
     if args.onnx:
         os.environ["BEV_MAPPER_CACHE"] = tempfile.mkdtemp()

@@ -35,11 +35,11 @@ class RigPlacer:
 
     Args:
         grid: the mapper's grid (sets the rounding step).
-        config: the placement settings.
+        config: the placement settings (None: the defaults).
     """
 
-    def __init__(self, grid: BevGrid, config: TimePlacementConfig = TimePlacementConfig()) -> None:
-        self.grid, self.config = grid, config
+    def __init__(self, grid: BevGrid, config: TimePlacementConfig | None = None) -> None:
+        self.grid, self.config = grid, config if config is not None else TimePlacementConfig()
         self.counts: dict[str, float] = {**dict.fromkeys(PLACEMENT_COUNTS, 0), "max_offset_m": 0.0}
         self.base: Rig | None = None
         self._key: tuple = ()
@@ -55,15 +55,22 @@ class RigPlacer:
               pose_at: PoseAt) -> tuple[Placement | None, list[tuple[str, str]]]:
         """Place the set's cameras on ``mapper`` (its rig set as needed) and count it.
 
-        Returns ``(placement, notes)``: the placement (None when ``mode`` is off) and
+        Returns ``(placement, notes)``: the placement (None when ``mode`` is off or the method
+        keeps its calibrated rig, ``Mapper.per_set_rig`` False: then no pose is looked up) and
         ``(key, text)`` notes to log: ``placement:*`` once per run, ``placement_set:*`` for this
         set's problems (to throttle). Never raises on bad poses or stamps.
         """
         if not self.config.enabled or self.base is None:
             return None, []
-        p = place_cameras(self.base, stamps, ref_stamp_ns, pose_at, self.grid, self.config)
         notes: list[tuple[str, str]] = []
         c = self.counts
+        if not getattr(mapper, "per_set_rig", False):  # no pose looked up: nothing would use it
+            c["sets_method"] += 1
+            self._once(notes, "placement:method", f"method {mapper.name}: its model holds the calibration (a new "
+                       "rig per set would rebuild or re-export it), so its cameras stay as calibrated, at the "
+                       "set's stamp (counted: sets_method)")
+            return None, notes
+        p = place_cameras(self.base, stamps, ref_stamp_ns, pose_at, self.grid, self.config)
         c["cameras_without_pose"] += len(p.no_pose)
         c["stamp_jumps"] += len(p.jumped)
         c["max_offset_m"] = max(c["max_offset_m"], p.max_offset_m)
@@ -72,12 +79,6 @@ class RigPlacer:
             c["sets_without_pose"] += 1
             self._once(notes, "placement:no_pose", "no ego pose (odometry or TF) at the sets' stamps: "
                        "each camera is mapped as calibrated at the set's stamp, as without time placement")
-        elif not getattr(mapper, "per_set_rig", False):
-            c["sets_method"] += 1
-            self._once(notes, "placement:method", f"method {mapper.name}: its model holds the calibration "
-                       "(a new rig per set would rebuild or re-export it), so its cameras stay as calibrated; "
-                       f"they fired up to {p.max_offset_m:.2f} m apart (counted: sets_method)")
-            return p, notes
         elif p.placed:
             c["sets_placed"] += 1
         else:

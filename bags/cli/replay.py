@@ -10,10 +10,10 @@ import sys
 import time
 from pathlib import Path
 
+from bev_mapper_core.geometry.time_placement import PLACEMENT_MODES, TimePlacementConfig
 from bev_mapper_core.labels.label_maps import PRESET_NAMES
 from bev_mapper_core.mapper import BACKENDS, INPUT_KINDS, MapperConfig, available_methods
 from bev_mapper_core.metrics import SCOPES, format_table, format_whole_grid_table
-from bev_mapper_core.geometry.time_placement import PLACEMENT_MODES, TimePlacementConfig
 from bev_mapper_core.temporal import TemporalConfig
 from msg_adapters.errors import SyncConfigError
 from msg_adapters.sync import SyncConfig

@@ -135,10 +135,11 @@ def _rpy(R: np.ndarray) -> tuple[float, float, float]:
 def quantize_correction(D: np.ndarray, step_m: float, step_rad: float) -> tuple[np.ndarray, tuple[int, ...]]:
     """``D`` rounded: translation to multiples of ``step_m``, roll/pitch/yaw to multiples of
     ``step_rad``; returns ``(rounded 4x4, its 6 integer steps)``. A zero step keeps ``D`` exactly
-    (its key then holds the 12 values of ``D - I``'s top rows: all 0 for no motion).
+    (its key then holds the 12 values of ``D - I``'s top rows to 1e-9: all 0 for no motion).
     """
-    if step_m <= 0 or step_rad <= 0:
-        return D, tuple(float(v) for v in (D - np.eye(4))[:3].ravel())
+    if step_m <= 0 or step_rad <= 0:  # exact, but float noise (a nm, a nrad) is no motion
+        key = tuple(float(v) + 0.0 for v in np.round((D - np.eye(4))[:3].ravel(), 9))
+        return (D if any(key) else np.eye(4)), key
     t = np.rint(D[:3, 3] / step_m).astype(np.int64)
     a = np.rint(np.array(_rpy(D[:3, :3])) / step_rad).astype(np.int64)
     key = tuple(int(v) for v in (*t, *a))

@@ -128,7 +128,7 @@ def test_a_learned_method_keeps_its_calibrated_rig_and_the_sets_are_counted():
     placer = RigPlacer(BevGrid())
     placer.set_base(rig)
     p, notes = placer.place(mapper, {c.name: STAMPS[c.name] for c in rig.cameras}, T0, turning)
-    assert mapper.rig is rig and p.placed  # what would have been placed, not applied
+    assert mapper.rig is rig and p is None  # nothing placed, no pose looked up
     assert [k for k, _ in notes] == ["placement:method"] and "bimapper" in notes[0][1]
     assert placer.counts["sets_method"] == 1 and placer.counts["rebuilds"] == 0
     _, notes = placer.place(mapper, {c.name: STAMPS[c.name] for c in rig.cameras}, T0, turning)
