@@ -20,8 +20,9 @@ only when the rounded placement changes (:class:`~bev_mapper_core.placement.RigP
 
 Bad input never raises here: a camera without a pose at its stamp (or a set without a pose at
 its reference stamp) stays as calibrated and is listed in ``no_pose``; a camera stamped farther
-than ``max_offset_s`` from the reference (a stamp that jumped) stays as calibrated and is listed
-in ``jumped``.
+than ``max_offset_s`` from the reference (a stamp that jumped), or whose pose lies farther from
+the reference pose than an ego moves in that time (:data:`MAX_SPEED_MPS`, :data:`MAX_TURN_RADPS`:
+a pose that jumped), stays as calibrated and is listed in ``jumped``.
 """
 
 from __future__ import annotations
@@ -40,6 +41,10 @@ from .transforms import invert_transform, make_transform, rpy_to_rot
 
 #: ``TimePlacementConfig.mode`` choices.
 PLACEMENT_MODES = ("auto", "off")
+
+#: The fastest an ego moves and turns (m/s, rad/s): a correction beyond them over its stamps'
+#: offset (at least 10 ms of it) is a pose that jumped, not motion.
+MAX_SPEED_MPS, MAX_TURN_RADPS = 60.0, 3.0
 
 #: A pose lookup: ``world_from_ego`` (4x4) at a stamp in ns, or None when there is none.
 PoseAt = Callable[[int], "np.ndarray | None"]
@@ -92,7 +97,8 @@ class Placement:
         static: cameras with a pose whose correction rounded to nothing.
         no_pose: cameras without an ego pose at their stamp (or every camera, when the reference
             stamp has none), mapped as calibrated.
-        jumped: cameras stamped farther than ``max_offset_s`` from the reference, as calibrated.
+        jumped: cameras stamped farther than ``max_offset_s`` from the reference, or whose pose
+            jumped (see the module docstring), as calibrated.
         max_offset_m: the largest displacement a correction (before rounding) gives a point of the
             grid's corners or the camera's centre, over the cameras with a pose; 0 without.
         moves: ``(name, rounded ego_ref_from_ego_cam 4x4)`` of the placed cameras.
@@ -195,6 +201,11 @@ def place_cameras(rig: Rig, stamps: Mapping[str, int | None], ref_stamp_ns: int,
             no_pose.append(cam.name)
             continue
         D = camera_correction(ref, pose)
+        dt = max(abs(stamp - ref_stamp_ns) / 1e9, 0.01)
+        turn = math.acos(max(-1.0, min(1.0, (float(np.trace(D[:3, :3])) - 1.0) / 2.0)))
+        if float(np.linalg.norm(D[:3, 3])) > MAX_SPEED_MPS * dt or turn > MAX_TURN_RADPS * dt:
+            jumped.append(cam.name)
+            continue
         E = cam.ego_from_cam_array
         worst = max(worst, _offset_m(D, np.vstack([corners, E[:3, 3]])))
         Dq, k = quantize_correction(D, step_m, step_rad)
@@ -209,17 +220,22 @@ def place_cameras(rig: Rig, stamps: Mapping[str, int | None], ref_stamp_ns: int,
 
 
 def _checked(pose) -> np.ndarray | None:
-    """``pose`` as a finite 4x4 float64 array, or None (none given, another shape, a NaN or an
-    infinity). Rigidity is the lookup's to check (the pose buffer and TF check it as poses
+    """``pose`` as a finite 4x4 float64 array, or None (none given, not numbers, another shape,
+    a NaN or an infinity). Rigidity is the lookup's to check (the pose buffer and TF check it as poses
     arrive): the full check here would cost more than the rest of a set's placement.
     """
     if pose is None:
         return None
-    T = np.asarray(pose, dtype=np.float64)
+    try:
+        T = np.asarray(pose, dtype=np.float64)
+    except (TypeError, ValueError):  # not numbers at all
+        return None
     return T if T.shape == (4, 4) and np.isfinite(T).all() else None
 
 
 __all__ = [
+    "MAX_SPEED_MPS",
+    "MAX_TURN_RADPS",
     "PLACEMENT_MODES",
     "Placement",
     "PoseAt",

@@ -118,3 +118,55 @@ def test_the_config_refuses_bad_values(kwargs):
     with pytest.raises(ConfigError):
         TimePlacementConfig(**kwargs)
     assert not TimePlacementConfig(mode="off").enabled and TimePlacementConfig().enabled
+
+
+def test_a_pose_that_jumped_leaves_its_camera_as_calibrated():
+    rig = preset_rig("surround6")
+    moving = driving(10.0)
+
+    def lookup(t):
+        if t == T0 + 20 * MS:  # 5 m off in 20 ms: a relocalization, not motion
+            return moving(t) @ pose(5.0)
+        if t == T0 + 30 * MS:  # turned 30 degrees in 30 ms
+            return moving(t) @ pose(yaw=math.radians(30))
+        return moving(t)
+    stamps = {"front": T0 + 20 * MS, "back": T0 + 30 * MS, "back_left": T0 + 40 * MS}
+    p = place_cameras(rig, stamps, T0, lookup, GRID, EXACT)
+    assert p.jumped == ("front", "back") and p.placed == ("back_left",)
+    assert p.rig["front"] == rig["front"] and p.rig["back"] == rig["back"]
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_fuzzed_poses_and_stamps_never_raise_and_each_camera_has_one_outcome(seed):
+    """Issue #41: poses missing, broken or jumping for some cameras, stamps out of order, missing
+    or far off: no traceback, every camera of the set in exactly one of placed / static / no_pose
+    / jumped, placed cameras a proper mount, the others as calibrated."""
+    rng = np.random.default_rng(seed)
+    rig = preset_rig("surround6")
+    moving = driving(float(rng.uniform(0, 20)), heading=float(rng.uniform(-3, 3)))
+    bad = [None, np.full((4, 4), np.nan), np.eye(3), np.full((4, 4), np.inf), "pose",
+           pose(1e9), pose(yaw=2.0)]
+    kinds, good = {}, object()
+
+    def lookup(t):
+        k = kinds.get(t, good)
+        return moving(t) if k is good else (moving(t) @ k if isinstance(k, np.ndarray) and k.shape == (4, 4)
+                                              and np.isfinite(k).all() else k)
+    stamps = {}
+    for c in rig.names:
+        r = rng.random()
+        t = None if r < 0.1 else T0 + int(rng.choice([rng.integers(-60, 60), rng.integers(-10**4, 10**4)]) * MS)
+        stamps[c] = t
+        if t is not None and rng.random() < 0.4:
+            kinds[t] = bad[int(rng.integers(len(bad)))]
+    cfg = TimePlacementConfig(step_cells=float(rng.choice([0.0, 0.5, 1.0])))
+    p = place_cameras(rig, stamps, T0, lookup, GRID, cfg)
+    present = [c for c in rig.names if stamps[c] is not None]
+    outcomes = p.placed + p.static + p.no_pose + p.jumped
+    assert sorted(outcomes) == sorted(present)
+    for c in rig.names:
+        if c in p.placed:
+            assert np.isfinite(p.rig[c].ego_from_cam_array).all()
+            assert abs(stamps[c] - T0) <= cfg.max_offset_s * 1e9
+        else:
+            assert p.rig[c] == rig[c]
