@@ -250,8 +250,11 @@ def run(args: argparse.Namespace) -> int:
     sync = m["sync"]
     sync_text = (f"; {sync['partial_sets']} set(s) without some camera (metrics.json: sync)"
                  if sync["partial_sets"] else "")
+    tp = m.get("placement", {})
+    tp_text = (f"; {tp['sets_placed']} set(s) with each camera at its own time (up to {tp['max_offset_m']:.2f} m; "
+               "metrics.json: placement)" if tp.get("sets_placed") else "")
     print(f"replayed {m['frames']} frame(s) ({m['frames_scored']} scored) with {m['method']} on rig "
-          f"{m['rig']['name']!r} in {time.monotonic() - t0:.1f} s{lat_text}{sync_text}; outputs in {result.out}")
+          f"{m['rig']['name']!r} in {time.monotonic() - t0:.1f} s{lat_text}{sync_text}{tp_text}; outputs in {result.out}")
     for note in result.notes:
         print(f"note: {note}", file=sys.stderr)
     if result.damage:

@@ -34,6 +34,7 @@ def test_synth_staggers_the_cameras_stamps_and_keeps_the_frame_stamp_for_gt_and_
 
 def test_each_camera_at_its_time_is_counted_and_maps_closer_to_the_truth(staggered, tmp_path, capsys):
     assert replay_ipm(staggered, tmp_path / "auto", "--no-pictures", "--no-report") == 0
+    assert f"{FRAMES - 1} set(s) with each camera at its own time" in capsys.readouterr().out  # the summary says it
     assert replay_ipm(staggered, tmp_path / "off", "--no-pictures", "--no-report", "--time-placement", "off") == 0
     auto, off = replay_scores(tmp_path / "auto"), replay_scores(tmp_path / "off")
     p = auto["placement"]
