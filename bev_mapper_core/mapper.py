@@ -172,6 +172,10 @@ class Mapper(ABC):
     #: what the caller should tell the user once about how the method was set up (e.g. which
     #: weights it chose and why); the node logs them, ``bev-bag replay`` prints them as notes
     notes: tuple[str, ...] = ()
+    #: :meth:`set_rig` only rebuilds cheap tables (no model export), so a rig placed per set at
+    #: its cameras' times is affordable (:mod:`~bev_mapper_core.placement`); False: the method
+    #: keeps its calibrated rig for every set
+    per_set_rig: bool = False
 
     def __init__(self, rig: Rig, grid: BevGrid, config: MapperConfig) -> None:
         self.grid = grid

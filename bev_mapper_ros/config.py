@@ -18,6 +18,7 @@ import numpy as np
 from bev_mapper_core.errors import BevMapperError, ConfigError
 from bev_mapper_core.geometry.grid import BevGrid
 from bev_mapper_core.geometry.rig import PRESETS, preset_rig
+from bev_mapper_core.geometry.time_placement import TimePlacementConfig
 from bev_mapper_core.geometry.transforms import make_transform, quat_to_rot
 from bev_mapper_core.mapper import MapperConfig
 from bev_mapper_core.temporal import TemporalConfig
@@ -92,6 +93,9 @@ class NodeConfig:
             ``child_frame_id`` the base frame); its pose at each image stamp aligns the frames
             of the temporal fusion.
         temporal: method-independent temporal fusion (core dataclass; ``window`` 1 = off).
+        time_placement: each camera placed with the ego pose (``pose_source``) of its own stamp,
+            in ``base_frame`` at the set's stamp (core dataclass; IPM and segipm; learned
+            methods keep their calibration, counted; :mod:`bev_mapper_core.placement`).
     """
 
     cameras: tuple[str, ...]
@@ -119,6 +123,7 @@ class NodeConfig:
     stale_error_s: float = 5.0
     odom_topic: str = "/odom"
     temporal: TemporalConfig = field(default_factory=TemporalConfig)
+    time_placement: TimePlacementConfig = field(default_factory=TimePlacementConfig)
 
     def __post_init__(self) -> None:
         cams = tuple(self.cameras)
@@ -287,6 +292,9 @@ PARAM_FIELDS: dict[str, ParamField] = {
     "stale_error_s": ParamField(NodeConfig, "stale_error_s"),
     "odom_topic": ParamField(NodeConfig, "odom_topic"),
     "temporal_window": ParamField(TemporalConfig, "window"),
+    "time_placement": ParamField(TimePlacementConfig, "mode"),
+    "time_placement_step_cells": ParamField(TimePlacementConfig, "step_cells"),
+    "time_placement_max_offset_s": ParamField(TimePlacementConfig, "max_offset_s"),
 }
 
 #: Parameters that may change while the node runs (``ros2 param set``): the diagnostics'
@@ -370,7 +378,8 @@ def node_config_from_params(p: dict) -> NodeConfig:
     """
     p = {**preset_parameters(str(p.get("rig") or "")),
          **{k: v for k, v in p.items() if not (k == "cameras" or k.startswith("extrinsics.")) or list(v or ())}}
-    kwargs: dict[type, dict] = {NodeConfig: {}, MapperConfig: {}, BevGrid: {}, TemporalConfig: {}}
+    kwargs: dict[type, dict] = {NodeConfig: {}, MapperConfig: {}, BevGrid: {}, TemporalConfig: {},
+                                TimePlacementConfig: {}}
     for name, pf in PARAM_FIELDS.items():
         if name in p:
             kwargs[pf.owner][pf.field] = pf.from_param(p[name])
@@ -386,7 +395,8 @@ def node_config_from_params(p: dict) -> NodeConfig:
     masks = {cam: str(p.get(f"ego_mask.{cam}") or "") for cam in cameras}
     return NodeConfig(cameras=cameras, mapper=mapper, grid=grid, extrinsics=tuple(ext.items()),
                       ego_masks=tuple(masks.items()),
-                      temporal=TemporalConfig(**kwargs[TemporalConfig]), **node_kw)
+                      temporal=TemporalConfig(**kwargs[TemporalConfig]),
+                      time_placement=TimePlacementConfig(**kwargs[TimePlacementConfig]), **node_kw)
 
 
 def with_runtime_parameters(cfg: NodeConfig, changes: dict) -> NodeConfig:

@@ -81,6 +81,19 @@ class EgoPoses:
         self.used = "tf"
         return pose
 
+    def lookup(self, stamp_ns: int):
+        """The ego pose at ``stamp_ns`` as :meth:`at` finds it, for placing a camera at its own
+        time (:mod:`bev_mapper_core.placement`, which counts what has none): a TF failure is not
+        counted here and :attr:`used` is left alone.
+        """
+        src = self.cfg.pose_source
+        if src == "odom" or self.tf is None or (src == "auto" and self._odom_seen):
+            return self._odom_at(stamp_ns)
+        try:
+            return self._tf_at(stamp_ns)
+        except TfLookupError:
+            return self._odom_at(stamp_ns) if src == "auto" else None
+
     def _tf_at(self, stamp_ns: int):
         """``odom_frame <- base_frame`` at ``stamp_ns`` (tf2 interpolates); waits up to
         POSE_WAIT_S for TF to reach the stamp.

@@ -55,6 +55,7 @@ from bev_mapper_core.labels.classes import bev_picture
 from bev_mapper_core.labels.label_maps import label_map
 from bev_mapper_core.mapper import create_mapper, mapper_class, output_classes, preflight
 from bev_mapper_core.nn.export_process import cancel_exports
+from bev_mapper_core.placement import RigPlacer
 from bev_mapper_core.temporal import TemporalFusion
 from msg_adapters import (
     FrameSynchronizer,
@@ -156,14 +157,20 @@ class MapperNode(Node):
         if cfg.image_reliability == "auto":
             self.create_timer(RECHECK_S, self._contained("qos", self._recheck_qos))
         # the ego pose at each image stamp from odometry, for the temporal fusion (window > 1)
-        # and for methods with their own memory (FocusBEV); neither: no odometry subscription
+        # and for methods with their own memory (FocusBEV), and to place each camera at its own
+        # time (IPM, segipm); none of them: no odometry subscription
         self.fusion = TemporalFusion(cfg.grid, cfg.temporal) if cfg.temporal.window > 1 else None
-        self.needs_pose = self.fusion is not None or mapper_class(cfg.mapper.method).uses_ego_pose
+        method_cls = mapper_class(cfg.mapper.method)
+        # each camera at its own time (issue #38): the ego pose at every camera's stamp
+        self.placer = RigPlacer(cfg.grid, cfg.time_placement) if cfg.time_placement.enabled else None
+        placing = self.placer is not None and method_cls.per_set_rig
+        #: a memory (the fusion's or the method's) reads the set's pose, vetted
+        self.needs_pose = self.fusion is not None or method_cls.uses_ego_pose
         # odometry vetted and counted before the memories see it; latency kept honest (issue #29)
         self.ego = EgoPoses(cfg, self.tf, self._stopping, self._data_now_ns, self._tf_problem,
-                            self._throttled_warning, self._bad_input) if self.needs_pose else None
+                            self._throttled_warning, self._bad_input) if self.needs_pose or placing else None
         self.clock_watch = ClockWatch()
-        if self.needs_pose and cfg.pose_source != "tf":
+        if self.ego is not None and cfg.pose_source != "tf":
             self._subs.append(self.create_subscription(
                 Odometry, cfg.odom_topic, self._contained("odometry", self.ego.on_odometry), 50))
         self._grid_pubs = {c: self.create_publisher(OccupancyGrid, f"{cfg.output_prefix}/{c}", OUTPUT_QOS)
@@ -349,6 +356,8 @@ class MapperNode(Node):
                 self.get_logger().warning(note)
             mapper.export_in_background()  # torch maps until the fast backend's model is ready (issue #41)
             self.mapper = mapper
+            if self.placer is not None:
+                self.placer.set_base(rig)
             if tuple(self.mapper.class_names) != tuple(self.class_names):
                 raise BevMapperError(f"the mapper produces {list(self.mapper.class_names)}, "
                                      f"not the announced {list(self.class_names)}")
@@ -358,6 +367,8 @@ class MapperNode(Node):
                 f"{list(self.class_names)} on {self.cfg.output_prefix}/<class>")
         elif self._mapper_version != self.calibration.version:
             self.mapper.set_rig(rig)
+            if self.placer is not None:
+                self.placer.set_base(rig)
             self._log_extrinsic_sources()
             self.get_logger().info("calibration changed: lookup tables recomputed")
         self._mapper_version = self.calibration.version
@@ -429,8 +440,9 @@ class MapperNode(Node):
         if missing:
             self._throttled_warning("missing", f"mapping a set without cameras {missing} ({synced.reason}); "
                                                "/diagnostics counts them per camera (missing_by_camera)")
-        pose = self.ego.at(stamp) if self.ego is not None else None
-        if self.ego is not None:  # vetted: a pose the memories cannot align with resets them
+        self._place(synced, images)
+        pose = self.ego.at(stamp) if self.needs_pose else None
+        if self.needs_pose:  # vetted: a pose the memories cannot align with resets them
             verdict = self.ego.watch.vet(stamp, pose)
             if verdict.reset and verdict.pose is not None:
                 self._reset_memories()
@@ -458,7 +470,7 @@ class MapperNode(Node):
                 self.stats.temporal_frames, self.stats.temporal_note = fused.frames, fused.note
             if fused.note:
                 self._throttled_warning("temporal", fused.note)
-        if self.ego is not None and verdict.note and verdict.pose is not None:  # the reset it asked for
+        if self.needs_pose and verdict.note and verdict.pose is not None:  # the reset it asked for
             with self.stats.lock:
                 self.stats.temporal_note = self.stats.temporal_note or verdict.note
         for ci, name in enumerate(self.class_names):
@@ -474,6 +486,22 @@ class MapperNode(Node):
             self._throttled_warning("clock_back", f"the node's clock jumped back {self.clock_watch.last_jump_s:.1f} s "
                                                   "(a bag looping with /clock?): that set's latency is not measured")
         self.stats.record_mapped(time.monotonic(), processing_ms, latency_ms, missing)
+
+    def _place(self, synced, images) -> None:
+        """Place each camera of the set with the ego pose of its own stamp (the mapper's rig
+        follows, counted in /diagnostics); what holds for the whole run is said once, a set's
+        problems throttled.
+        """
+        if self.placer is None:
+            return
+        stamps = {c: synced.stamps.get(c) for c in images}
+        lookup = self.ego.lookup if self.ego is not None else (lambda stamp: None)
+        _, notes = self.placer.place(self.mapper, stamps, synced.stamp_ns, lookup)
+        for key, text in notes:
+            if key.startswith("placement:"):
+                self.get_logger().info(f"time placement: {text}")
+            else:
+                self._throttled_warning(key, f"time placement: {text}")
 
     def _note_backend(self) -> None:
         """Say what runs the model whenever that changes (torch while the fast backend's model is
@@ -509,6 +537,9 @@ class MapperNode(Node):
         values["clock_jumps_back"] = self.clock_watch.jumps_back
         if self.ego is not None:
             values.update(self.ego.watch.values())
+        values["time_placement"] = self.cfg.time_placement.mode
+        if self.placer is not None:
+            values.update(self.placer.values())
         level, text = self._tf_diagnostics(values, level, text)
         status = DiagnosticStatus(level=bytes([level]), name=f"{self.get_name()}: bev mapper",
                                   message=text, hardware_id=self.calibration.rig_name)

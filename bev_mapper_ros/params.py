@@ -28,6 +28,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from bev_mapper_core.geometry.rig import PRESETS
+from bev_mapper_core.geometry.time_placement import PLACEMENT_MODES
 from bev_mapper_core.labels.classes import BEV_CLASS_NAMES
 from bev_mapper_core.labels.label_maps import PRESET_NAMES
 from bev_mapper_core.mapper import BACKENDS, INPUT_KINDS, SEGMENTER_PRECISIONS, available_methods
@@ -112,6 +113,13 @@ _DECLARATIONS: dict[str, tuple] = {
                    "frames of the temporal fusion"),
     "temporal_window": (_T.PARAMETER_INTEGER, "fuse the flat layers over the last N frames, aligned by odometry "
                         "(log-odds; 1 = off)"),
+    "time_placement": (_T.PARAMETER_STRING, f"one of {list(PLACEMENT_MODES)}: auto = place each camera with the ego "
+                       "pose (pose_source) of its own stamp, in base_frame at the set's stamp (ipm, segipm; learned "
+                       "methods keep their calibration, counted); off = every camera as calibrated"),
+    "time_placement_step_cells": (_T.PARAMETER_DOUBLE, "round each camera's correction to this many grid cells "
+                                  "(under half of it: skipped, counted as static; 0 = exact, tables rebuilt every set)"),
+    "time_placement_max_offset_s": (_T.PARAMETER_DOUBLE, "a camera stamped farther than this from its set's stamp "
+                                    "is mapped as calibrated (placement_stamp_jumps in /diagnostics) (s)"),
 }
 _DEFAULTS = parameter_defaults()
 # name -> (default, type, read_only, description), in PARAM_FIELDS order; default None = an empty

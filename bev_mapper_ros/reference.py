@@ -87,6 +87,21 @@ NODE_DIAGNOSTIC_KEYS: dict[str, str] = {
     "frames_without_pose": "sets mapped without their history since start-up: no usable ego pose",
     **{f"odometry_{kind}": f"odometry problems of kind `{kind}` since start-up ({text})"
        for kind, text in ODOMETRY_TEXTS.items()},
+    "time_placement": "the `time_placement` parameter: `auto` (each camera placed with the ego pose of its own "
+                      "stamp) or `off`",
+    "placement_sets_placed": "sets whose cameras were placed at their own times since start-up",
+    "placement_sets_static": "sets with ego poses whose every correction was under half the rounding step "
+                             "(`time_placement_step_cells`): mapped with the calibrated rig",
+    "placement_sets_without_pose": "sets without an ego pose at their stamp: every camera as calibrated",
+    "placement_sets_method": "sets of a method whose model holds the calibration (Bi-Mapper, S2G2, FocusBEV): "
+                             "every camera as calibrated, no pose looked up",
+    "placement_cameras_without_pose": "cameras without an ego pose at their own stamp: mapped as calibrated",
+    "placement_stamp_jumps": "cameras stamped more than `time_placement_max_offset_s` from their set's stamp: "
+                             "mapped as calibrated",
+    "placement_rebuilds": "times the mapper's tables were rebuilt for a new rounded placement (IPM: only the "
+                          "cameras that moved)",
+    "placement_max_offset_m": "the largest displacement a camera's correction gave a grid corner or the camera "
+                              "since start-up (m)",
 }
 
 

@@ -16,12 +16,12 @@ SMALL_DRIVE_FRAMES = 4
 
 
 def synth_small(out: pathlib.Path, *, frames: int = SMALL_DRIVE_FRAMES, storage: str = "mcap",
-                seed: int = 5, compressed: bool = False) -> pathlib.Path:
+                seed: int = 5, compressed: bool = False, extra: tuple = ()) -> pathlib.Path:
     """``bev-bag synth``: surround6 at half image scale on the small grid (``compressed``: its
-    images as CompressedImage on ``<image topic>/compressed``).
+    images as CompressedImage on ``<image topic>/compressed``; ``extra``: more arguments).
     """
     argv = ["synth", str(out), "--frames", str(frames), "--seed", str(seed), "--scale", "0.5",
-            "--storage", storage, *SMALL_GRID_ARGS, *(["--compressed"] if compressed else [])]
+            "--storage", storage, *SMALL_GRID_ARGS, *(["--compressed"] if compressed else []), *extra]
     assert main(argv) == 0
     return out
 

@@ -19,6 +19,7 @@ from bags.replay import ReplayOptions
 from bev_mapper_core.errors import GridError
 from bev_mapper_core.geometry.grid import GRID_TOL_M, BevGrid
 from bev_mapper_core.geometry.rig import PRESETS
+from bev_mapper_core.geometry.time_placement import TimePlacementConfig
 from bev_mapper_core.mapper import INPUT_KINDS, MapperConfig, available_methods
 from bev_mapper_core.metrics import SCOPES
 from bev_mapper_core.synth.config import SynthConfig
@@ -33,7 +34,7 @@ from bev_mapper_ros.rig_params import CONFIG_DIR
 from msg_adapters import GridMessageError, SyncConfig, check_grid_info
 
 # ------------------------------------------------------------ node parameters
-_OWNED_ELSEWHERE = {"mapper", "grid", "extrinsics", "ego_masks", "temporal"}  # nested dataclasses / per-camera parameters
+_OWNED_ELSEWHERE = {"mapper", "grid", "extrinsics", "ego_masks", "temporal", "time_placement"}  # nested dataclasses / per-camera parameters
 
 
 def _owner_field(name: str):
@@ -42,6 +43,8 @@ def _owner_field(name: str):
         owner, fname = BevGrid, name.split(".", 1)[1]
     elif name.startswith("temporal_"):
         owner, fname = TemporalConfig, name.split("_", 1)[1]
+    elif name.startswith("time_placement"):
+        owner, fname = TimePlacementConfig, name[len("time_placement_"):] or "mode"
     elif name in {f.name for f in fields(NodeConfig)}:
         owner, fname = NodeConfig, name
     else:
@@ -84,6 +87,8 @@ def test_every_scalar_field_is_a_parameter():
             assert (owner, f.name) in declared, f"{owner.__name__}.{f.name} has no node parameter"
     # of the temporal fusion's settings, the node exposes the window (the rest keep their defaults)
     assert {(o, f) for o, f in declared if o is TemporalConfig} == {(TemporalConfig, "window")}
+    # every setting of the time placement is one
+    assert {f for o, f in declared if o is TimePlacementConfig} == {f.name for f in fields(TimePlacementConfig)}
 
 
 def test_declared_defaults_give_the_dataclass_defaults():

@@ -133,6 +133,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rate-hz", type=float, default=sc.rate_hz, help="frame rate")
     p.add_argument("--jitter-ms", type=float, default=sc.jitter_ms,
                    help="max abs per-camera stamp offset from the frame stamp")
+    p.add_argument("--stagger-ms", type=float, default=sc.stagger_ms,
+                   help="the cameras fire this far apart (rig order, from the frame stamp), each rendered at the "
+                        "ego pose of its own time and stamped so (e.g. 43, nuScenes' spread; default: %(default)s)")
     p.add_argument("--style", default=sc.style, choices=STYLE_CHOICES, help=style_help())
     p.add_argument("--storage", choices=STORAGES, default=o.storage, help="rosbag2 storage plugin")
     p.add_argument("--force", action="store_true", help="overwrite an existing bag at OUT")
@@ -146,7 +149,7 @@ def options_from_args(args: argparse.Namespace) -> SynthBagOptions:
     """Validate parsed arguments into :class:`SynthBagOptions` (raises ConfigError/GridError)."""
     grid = grid_from_args(args)
     synth = SynthConfig(frames=args.frames, seed=args.seed, rate_hz=args.rate_hz,
-                        jitter_ms=args.jitter_ms, style=args.style)
+                        jitter_ms=args.jitter_ms, stagger_ms=args.stagger_ms, style=args.style)
     return SynthBagOptions(out=args.out, rig=args.rig, scale=args.scale, storage=args.storage,
                            force=args.force, compressed=args.compressed, grid=grid, synth=synth)
 

@@ -1,10 +1,13 @@
 """Mapping a replay's frames: read them (ahead, in a thread), map each (with temporal fusion when
 asked), time the mapper and hand the prediction on, in frame order, to the stage that scores it
-and has it written (in threads of their own, see :mod:`bags.replay.pipeline`).
+and has it written (in threads of their own, see :mod:`bags.replay.pipeline`). Each frame's cameras
+are placed with the ego pose of their own stamps first (:mod:`bev_mapper_core.placement`, as the
+node does), counted in ``metrics.json``'s ``placement``.
 """
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -12,21 +15,27 @@ from dataclasses import dataclass, field
 from bev_mapper_core.errors import BevMapperError
 from bev_mapper_core.labels.label_maps import label_map
 from bev_mapper_core.mapper import BevPrediction
+from bev_mapper_core.placement import RigPlacer
 from bev_mapper_core.temporal import OdometryCheck, TemporalFusion
 
 from ..errors import BagCorruptError
 from .options import ReplayRun
 from .pipeline import InOrder, Prefetch
 
+log = logging.getLogger("bags.replay")
+
 
 @dataclass
 class MappingTally:
     """What :func:`map_frames` counted: the mapping latency (ms) of every mapped frame, the frames
     mapped and skipped (no images of the input kind), the damage that ended the reading (or the
-    frame the mapper failed on) and the temporal fusion's counts (``metrics.json``'s ``temporal``).
+    frame the mapper failed on), the temporal fusion's counts (``metrics.json``'s ``temporal``)
+    and the time placement's (``placement``: its settings and :data:`PLACEMENT_COUNTS
+    <bev_mapper_core.placement.PLACEMENT_COUNTS>`; ``{"mode": "off"}`` when off).
     """
 
     temporal: dict
+    placement: dict = field(default_factory=dict)
     latencies: list[float] = field(default_factory=list)
     mapped: int = 0
     skipped: int = 0
@@ -55,6 +64,8 @@ def map_frames(run: ReplayRun, finish: Callable, bar) -> MappingTally:
     if options.pipeline:
         frames = Prefetch(frames, options.pipeline)
     fusion = TemporalFusion(run.grid, options.temporal) if window > 1 else None
+    placer = RigPlacer(run.grid, options.placement)
+    placer.set_base(run.mapper.rig)
     stage = InOrder(options.pipeline) if options.pipeline else None
     finished = False
     try:
@@ -64,6 +75,7 @@ def map_frames(run: ReplayRun, finish: Callable, bar) -> MappingTally:
                 tally.skipped += 1
                 continue
             t0 = time.perf_counter()
+            _place(run, placer, frame, images)
             try:
                 pred = _map_frame(run.mapper, fusion, check, frame, images, tally.temporal)
             except BevMapperError as exc:  # this frame's input: keep the outputs so far
@@ -86,7 +98,24 @@ def map_frames(run: ReplayRun, finish: Callable, bar) -> MappingTally:
         frames.close()
         if stage is not None:
             stage.close(abandon=not finished)  # the frames mapped so far are scored and written
+    cfg = options.placement
+    tally.placement = {"mode": cfg.mode} if not cfg.enabled else {
+        "mode": cfg.mode, "step_cells": cfg.step_cells, "max_offset_s": cfg.max_offset_s,
+        **{k: (round(v, 4) if k == "max_offset_m" else int(v)) for k, v in placer.counts.items()}}
     return tally
+
+
+def _place(run, placer: RigPlacer, frame, images) -> None:
+    """Place the frame's cameras at their own times on the mapper (counted by ``placer``); what
+    holds for the whole drive goes to the result's notes once, a frame's problems to the log.
+    """
+    stamps = {c: frame.camera_stamps.get(c) for c in images}
+    _, notes = placer.place(run.mapper, stamps, frame.stamp_ns, frame.pose_at)
+    for key, text in notes:
+        if key.startswith("placement:"):
+            run.notes.append(f"time placement: {text}")
+        else:
+            log.info("frame %d: time placement: %s", frame.index, text)
 
 
 def _map_frame(mapper, fusion: TemporalFusion | None, check: OdometryCheck | None, frame, images,

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.geometry.time_placement import TimePlacementConfig
 from bev_mapper_core.mapper import MapperConfig
 from bev_mapper_core.metrics import SCOPES
 from bev_mapper_core.temporal import TemporalConfig
@@ -77,6 +78,10 @@ class ReplayOptions:
         ego_masks: ``(camera, PNG path)`` pairs (``--ego-mask CAM=PNG``): the pixels of the ego
             vehicle itself, ignored by the method (:mod:`bev_mapper_core.geometry.ego_mask`); they
             win over the ``--params-file``'s ``ego_mask.<camera>``.
+        placement: each camera placed with the ego pose (the bag's odometry or ``/tf``) of its own
+            stamp, in ``base_link`` at the frame's stamp (:mod:`bev_mapper_core.placement`:
+            IPM and segipm; learned methods keep their calibrated rig, counted); counted in
+            ``metrics.json``'s ``placement``.
     """
 
     bag: Path
@@ -98,6 +103,7 @@ class ReplayOptions:
     rig: RigChoice = field(default_factory=RigChoice)
     sync: SyncConfig = field(default_factory=SyncConfig.replay)
     ego_masks: tuple = ()
+    placement: TimePlacementConfig = field(default_factory=TimePlacementConfig)
 
     def __post_init__(self) -> None:
         if self.scope not in SCOPES:

@@ -352,4 +352,5 @@ def metrics_document(run: ReplayRun, scorer: ReplayScorer, tally: MappingTally, 
     doc["sync"] = run.reader.sync_report.to_metrics()
     doc["rig"] = {"name": run.rig.name, "cameras": list(run.rig.names)}
     doc["temporal"] = tally.temporal
+    doc["placement"] = tally.placement
     return doc

@@ -22,6 +22,11 @@ class SynthConfig:
             style ``mixed`` picks).
         rate_hz: frame rate.
         jitter_ms: max abs per-camera stamp offset from the frame stamp (for the bag writer).
+        stagger_ms: the cameras fire this far apart (issue #38): camera ``i`` of ``N`` (rig order)
+            at ``i / (N - 1) * stagger_ms`` after the frame stamp, rendered at the ego pose of that
+            time (interpolated between the frames' poses; other objects as at the frame) and
+            stamped so; GT, visibility and odometry stay at the frame stamp. 0 = every camera at
+            the frame's pose (the drives before it, bit for bit).
         vehicle_density: multiplier of the number of parked and moving vehicles (0 = none).
         pedestrian_density: multiplier of the number of pedestrians (0 = none).
         obstacle_density: multiplier of poles, cones and bins on sidewalks (0 = none).
@@ -40,6 +45,7 @@ class SynthConfig:
     seed: int = 0
     rate_hz: float = 10.0
     jitter_ms: float = 0.0
+    stagger_ms: float = 0.0
     vehicle_density: float = 1.0
     pedestrian_density: float = 1.0
     obstacle_density: float = 1.0
@@ -72,6 +78,9 @@ class SynthConfig:
             raise ConfigError(
                 f"jitter_ms must be >= 0 and below half the frame period, got {self.jitter_ms}"
             )
+        if self.stagger_ms < 0 or (self.stagger_ms + self.jitter_ms) * 1e-3 >= 0.5 / self.rate_hz:
+            raise ConfigError(f"stagger_ms must be >= 0 and, with jitter_ms, below half the frame period, "
+                              f"got {self.stagger_ms}")
         for name in ("vehicle_density", "pedestrian_density", "obstacle_density", "building_density"):
             if not 0.0 <= getattr(self, name) <= 5.0:
                 raise ConfigError(f"{name} must be in [0, 5], got {getattr(self, name)}")

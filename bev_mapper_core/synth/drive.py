@@ -86,15 +86,18 @@ class DriveRenderer:
             boxes = world.boxes_at(k, cfg.cull_distance)
         stamp = cfg.frame_stamp_ns(k)
         jit = np.random.default_rng([cfg.seed, k, 11]).uniform(-1.0, 1.0, len(self.cams))
-        cameras, renders = {}, []
+        cameras, renders, moved = {}, [], []
         for ci, cam in enumerate(self.cams):
             rng = np.random.default_rng([cfg.seed, k, ci, 13])
-            out = cam.render(pose, boxes, world.ground, self.look, rng)
+            fire_s = cfg.stagger_ms * 1e-3 * ci / max(len(self.cams) - 1, 1)  # 0 without stagger
+            at = world.ego_pose_after(k, fire_s) if fire_s else pose
+            out = cam.render(at, boxes, world.ground, self.look, rng)
             renders.append(out)
+            moved.append(invert_transform(pose) @ at if fire_s else None)  # ego at the frame <- ego as it fired
             cameras[cam.name] = CameraFrame(out.rgb, out.labels,
-                                            stamp + int(round(jit[ci] * cfg.jitter_ms * 1e6)))
+                                            stamp + int(round(fire_s * 1e9)) + int(round(jit[ci] * cfg.jitter_ms * 1e6)))
         gt, own, zpt = self.ground_truth(pose, boxes)
-        vis, ground_vis = self.visibility(renders, boxes, own, zpt)
+        vis, ground_vis = self.visibility(renders, boxes, own, zpt, moved)
         return SynthFrame(k, stamp, pose, np.array([world.ego_speed[k], 0.0, 0.0]),
                           np.array([0.0, 0.0, world.ego_yaw_rate[k]]), cameras, gt, vis, ground_vis)
 
@@ -141,8 +144,9 @@ class DriveRenderer:
             gt[:, r0:r1, c0:c1][:, m] |= self.lut[boxes.label[i]][:, None]
         return gt, own, zpt
 
-    def visibility(self, renders, boxes: Boxes, own: np.ndarray, zpt: np.ndarray):
-        """``(visibility, ground_visibility)``, each ``(H, W)`` bool.
+    def visibility(self, renders, boxes: Boxes, own: np.ndarray, zpt: np.ndarray, moved=None):
+        """``(visibility, ground_visibility)``, each ``(H, W)`` bool; ``moved``: per camera, the
+        ego's motion from the frame to the camera's firing (4x4, None: none).
 
         ``visibility``: the cell's sample point (on the object whose footprint holds the cell,
         else on the ground) is seen, unoccluded, by at least one camera. ``ground_visibility``:
@@ -150,17 +154,18 @@ class DriveRenderer:
         """
         pts = self.cell_points.copy()
         pts[:, 2] = zpt.ravel()
-        vis = self._seen(renders, boxes, pts, own.ravel())
+        vis = self._seen(renders, boxes, pts, own.ravel(), moved)
         vis = vis.reshape(self.grid.shape)  # (H*W,) -> (H, W)
         return vis, vis & (own < 0)
 
-    def _seen(self, renders, boxes: Boxes, pts: np.ndarray, own: np.ndarray) -> np.ndarray:
+    def _seen(self, renders, boxes: Boxes, pts: np.ndarray, own: np.ndarray, moved=None) -> np.ndarray:
         """``(N,)`` bool: ego-frame points ``pts`` seen by a camera, not hidden by a box of an
-        object other than ``own``.
+        object other than ``own``; ``moved``: per camera, where the ego was when it fired.
         """
         vis = np.zeros(len(pts), bool)
-        for cam, out in zip(self.cams, renders):
-            cam_from_ego = invert_transform(cam.ego_from_cam)
+        for ci, (cam, out) in enumerate(zip(self.cams, renders)):
+            D = None if moved is None else moved[ci]
+            cam_from_ego = invert_transform(cam.ego_from_cam if D is None else D @ cam.ego_from_cam)
             pc = pts @ cam_from_ego[:3, :3].T + cam_from_ego[:3, 3]
             uv, front = cam.model.project(pc)
             ok = front & cam.model.in_image(uv)

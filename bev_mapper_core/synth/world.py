@@ -71,6 +71,18 @@ class World:
         x, y, yaw = self.ego[k]
         return make_transform(rpy_to_rot(0.0, 0.0, yaw), (x, y, 0.0))
 
+    def ego_pose_after(self, k: int, dt_s: float) -> np.ndarray:
+        """``world_from_ego`` ``dt_s`` seconds after frame ``k``: x, y and yaw linear between the
+        frames' poses (the last frame's segment extended past the end).
+        """
+        if dt_s == 0.0 or self.frames < 2:
+            return self.ego_pose(k)
+        a = min(k, self.frames - 2)
+        f = (k - a) + dt_s * self.config.rate_hz  # fraction of the segment a -> a + 1
+        (x0, y0, w0), (x1, y1, w1) = self.ego[a], self.ego[a + 1]
+        dw = (w1 - w0 + math.pi) % (2 * math.pi) - math.pi  # the short way round
+        return make_transform(rpy_to_rot(0.0, 0.0, w0 + f * dw), (x0 + f * (x1 - x0), y0 + f * (y1 - y0), 0.0))
+
     def object_poses(self, k: int) -> np.ndarray:
         """``(N_obj, 3)`` pose of every object at frame ``k`` (NaN: absent)."""
         pose = self.obj_pose.copy()

@@ -14,6 +14,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from bev_mapper_core.errors import BevMapperError
+from bev_mapper_core.geometry.pose_buffer import PoseBuffer
 from bev_mapper_core.labels.label_maps import LabelMap
 from msg_adapters import (
     AdapterError,
@@ -114,18 +116,22 @@ def read_frames(reader: BagReader, *, rgb: bool, labels: bool, gt: bool, odom: b
         c for c in cams if not all(reader.image_topic(c, k) in topics_in for k in kinds)))
     gt_buf = {c: deque() for c in gt_topics.values()}
     odom_buf: deque = deque()
+    poses = PoseBuffer() if want_odom or want_tf else None  # every pose read, for the frames' stamps
     ready: deque[SyncedSet] = deque()
     compressed = {stream: reader.is_compressed(topic) for topic, stream in stream_of.items()}
     ctx = dict(cams=cams, kinds=kinds, classes=classes, grid=grid, gt_buf=gt_buf, layers=grid and LayerDecoder(grid),
                compressed=compressed,
                odom_buf=odom_buf, tol=sync.slop_ns, sizes=reader._camera_sizes(), label_map=label_map, sync=sync_,
-               gt_half=gt_half)
+               gt_half=gt_half, poses=poses)
     drift = StampDrift()
     index = 0
     try:
         for m in reader.messages(topics, fast=True):
             if m.topic == T.TF:
-                odom_buf.extend(asm.tf_poses(m.msg))
+                found = asm.tf_poses(m.msg)
+                odom_buf.extend(found)
+                for stamp, state in found:
+                    _keep_pose(poses, stamp, state)
                 continue
             if isinstance(m.msg, Undecodable):  # e.g. a truncated image message: that image is lost
                 reader.issues.decode_error(m.topic, m.msg.reason)
@@ -144,6 +150,7 @@ def read_frames(reader: BagReader, *, rgb: bool, labels: bool, gt: bool, odom: b
                 gt_buf[gt_topics[m.topic]].append((stamp, m.msg))
             else:
                 odom_buf.append((stamp, m.msg))
+                _keep_pose(poses, stamp, m.msg)
             while ready and _newest(ready[0]) + lookahead_ns < m.log_ns:
                 yield asm.build(ready.popleft(), index, ctx)
                 index += 1
@@ -156,6 +163,28 @@ def read_frames(reader: BagReader, *, rgb: bool, labels: bool, gt: bool, odom: b
     while ready:
         yield asm.build(ready.popleft(), index, ctx)
         index += 1
+
+
+def _keep_pose(poses: PoseBuffer | None, stamp: int, msg: Any) -> None:
+    """Keep an odometry message's (or an :class:`OdometryState`'s) pose in ``poses``; one that
+    does not decode is left out here (the frame it is nearest counts it).
+    """
+    if poses is None:
+        return
+    try:
+        state = msg if isinstance(msg, OdometryState) else odometry_to_state(msg)
+        poses.add(stamp, state.world_from_ego)
+    except (*DECODE_ERRORS, BevMapperError):
+        pass
+
+
+def _stamp_poses(poses: PoseBuffer | None, stamps) -> dict[int, np.ndarray | None] | None:
+    """``world_from_ego`` at each of ``stamps`` (interpolated, None where there is none), or None
+    without odometry.
+    """
+    if poses is None:
+        return None
+    return {int(t): poses.at(int(t)) for t in stamps if t is not None}
 
 
 class FrameAssembler:
@@ -202,12 +231,14 @@ class FrameAssembler:
                 stamp = hit[0] if stamp is None else stamp
             except DECODE_ERRORS as exc:
                 self.reader.issues.decode_error(T.ODOM, f"frame {index}: {exc}")
+        ref_stamp = int(mean if stamp is None else stamp)
+        stamp_poses = _stamp_poses(ctx["poses"], [ref_stamp, *cam_stamps.values()])
         for buf in list(ctx["gt_buf"].values()) + [ctx["odom_buf"]]:
             while buf and buf[0][0] < mean - ctx["tol"]:  # older than any later frame can match
                 buf.popleft()
         return BagFrame(
             index=index,
-            stamp_ns=int(mean if stamp is None else stamp),
+            stamp_ns=ref_stamp,
             camera_stamps=cam_stamps,
             valid=valid,
             rgb=images["rgb"],
@@ -219,6 +250,7 @@ class FrameAssembler:
             ground_visibility=ground,
             visibility=visibility,
             truth=truth,
+            stamp_poses=stamp_poses,
         )
 
     def layer(self, topic: str, mean: int, index: int, ctx: dict, out: np.ndarray | None = None) -> np.ndarray | None:

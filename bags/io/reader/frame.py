@@ -51,6 +51,10 @@ class BagFrame:
         truth: ``(C, H, W)`` float32 0/1 (bool with ``gt_half``), what is in every cell whether seen or not (from
             ``/bev/truth/<class>``, layers in ``gt_classes`` order), or ``None`` when the bag
             lacks a truth layer of one of the GT classes (bags written before they existed).
+        stamp_poses: the ego pose ``world_from_ego`` (4x4) at ``stamp_ns`` and at each camera's
+            stamp, interpolated in the bag's odometry (or ``/tf``), None where there is none;
+            ``None`` when odometry was not asked for or the bag has none (each camera at its own
+            time, :mod:`bev_mapper_core.placement`).
     """
 
     index: int
@@ -66,6 +70,11 @@ class BagFrame:
     ground_visibility: np.ndarray | None = None
     visibility: np.ndarray | None = None
     truth: np.ndarray | None = None
+    stamp_poses: dict[int, np.ndarray | None] | None = None
+
+    def pose_at(self, stamp_ns: int) -> np.ndarray | None:
+        """The ego pose at one of the frame's stamps (:attr:`stamp_poses`), else None."""
+        return None if self.stamp_poses is None else self.stamp_poses.get(int(stamp_ns))
 
     @property
     def valid_mask(self) -> np.ndarray:

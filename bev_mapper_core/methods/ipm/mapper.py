@@ -21,7 +21,7 @@ import numpy as np
 
 from bev_mapper_core.errors import ConfigError, InputError
 from bev_mapper_core.geometry.grid import BevGrid
-from bev_mapper_core.geometry.projection import RemapTable, ground_tables
+from bev_mapper_core.geometry.projection import RemapTable, ground_tables, remap_table
 from bev_mapper_core.geometry.rig import Rig
 from bev_mapper_core.labels.classes import label_lut
 from bev_mapper_core.mapper import BevPrediction, Mapper, MapperConfig
@@ -34,6 +34,9 @@ try:  # the per-cell counting in C (optional: setup.py builds it where a C compi
     from . import _counts as _compiled
 except ImportError:  # pragma: no cover - the numpy paths below give the same maps
     _compiled = None
+
+#: per camera name, the calibrations whose tables :meth:`IpmMapper.set_rig` keeps
+CAMERA_CACHE = 4
 
 #: no hidden cells (the compiled counting's argument)
 _NONE_HIDDEN = np.zeros(0, np.int64)
@@ -103,11 +106,14 @@ class LineOfSight:
             (:mod:`~bev_mapper_core.methods.ipm.columns`, IPM's default) instead of along the
             polar raster's BEV rays (:func:`~bev_mapper_core.methods.ipm.occlusion.ray_raster`).
         gathers: the rig's gather tables when already built (column search only).
+        rasters: per camera, its column raster (column search) or polar ray raster when already
+            built (cameras missing from it are built here).
     """
 
     def __init__(self, rig: Rig, grid: BevGrid, occlusion: OcclusionModel | None,
                  tables: dict[str, RemapTable] | None = None, columns: bool = False,
-                 gathers: dict[str, GatherTable] | None = None) -> None:
+                 gathers: dict[str, GatherTable] | None = None, rasters: dict | None = None) -> None:
+        rasters = rasters or {}
         self.grid = grid
         self.tables = ground_tables(rig, grid) if tables is None else tables
         self.occlusion = occlusion
@@ -119,11 +125,13 @@ class LineOfSight:
                 for c in rig.cameras}
             self.column_rasters = {
                 c.name: column_raster(c, grid, self.tables[c.name].valid, self.gathers[c.name].cells,
-                                      self.gathers[c.name].pixels) for c in rig.cameras}
+                                      self.gathers[c.name].pixels) if rasters.get(c.name) is None else rasters[c.name]
+                for c in rig.cameras}
             self._rig_columns = rig_columns(self.column_rasters)  # all cameras' columns side by side
             self._column_occlusion = ColumnOcclusion(occlusion)
         elif occlusion is not None:
-            self.rays = {c.name: ray_raster(c, grid, self.tables[c.name].valid) for c in rig.cameras}
+            self.rays = {c.name: ray_raster(c, grid, self.tables[c.name].valid)
+                         if rasters.get(c.name) is None else rasters[c.name] for c in rig.cameras}
 
     def hidden(self, name: str, labels: np.ndarray, ids: np.ndarray) -> np.ndarray | None:
         """Column search: camera ``name``'s gathered cells hidden from it, as ``(k,)``
@@ -184,6 +192,7 @@ class IpmMapper(Mapper):
     """
 
     name = "ipm"
+    per_set_rig = True  # set_rig rebuilds numpy tables only (time placement, issue #38)
     #: occlusion search per image column (:mod:`.columns`); ``False``: along the polar raster's
     #: BEV rays, the search before issue #28 (kept for comparison: experiments/ipm_occlusion_columns.py)
     occlusion_columns = True
@@ -229,13 +238,48 @@ class IpmMapper(Mapper):
             )
 
     def set_rig(self, rig: Rig) -> None:
-        """Recompute the ground lookup tables (and their gather form) for a new calibration."""
+        """Recompute the ground lookup tables (and their gather form) for a new calibration.
+
+        Each camera's tables and rasters are kept for the last :data:`CAMERA_CACHE` cameras per
+        camera name (keyed by the camera, mount and intrinsics): a rig placed per set at its
+        cameras' times (:mod:`~bev_mapper_core.placement`) rebuilds only the cameras that moved.
+        """
         super().set_rig(rig)
-        self.tables = ground_tables(rig, self.grid)
-        self.gathers = {c.name: GatherTable.from_remap(self.tables[c.name], c.model.image_size[::-1])
-                        for c in rig.cameras}
-        self.sight = LineOfSight(rig, self.grid, self._occlusion if self.config.ipm_occlusion else None,
-                                 self.tables, columns=self.occlusion_columns, gathers=self.gathers)
+        occlusion = self._occlusion if self.config.ipm_occlusion else None
+        parts = {c.name: self._camera_parts(c, occlusion) for c in rig.cameras}
+        self.tables = {n: p[0] for n, p in parts.items()}
+        self.gathers = {n: p[1] for n, p in parts.items()}
+        self.sight = LineOfSight(rig, self.grid, occlusion, self.tables, columns=self.occlusion_columns,
+                                 gathers=self.gathers, rasters={n: p[2] for n, p in parts.items()})
+        for c in rig.cameras:  # the rasters LineOfSight built, for the next time
+            raster = self.sight.column_rasters.get(c.name, self.sight.rays.get(c.name))
+            entry = self._cache[self._cache_key(c)]
+            self._cache[self._cache_key(c)] = (*entry[:2], raster, entry[3])
+
+    def _cache_key(self, cam) -> tuple:
+        return (cam.name, cam.ego_from_cam, id(cam.model), id(cam.ego_mask), self.occlusion_columns,
+                self.config.ipm_occlusion)
+
+    def _camera_parts(self, cam, occlusion) -> tuple:
+        """``(RemapTable, GatherTable, raster or None, cam)`` of one camera, from the cache or built."""
+        cache = self.__dict__.setdefault("_cache", {})  # insertion order = use order (LRU)
+        key = self._cache_key(cam)
+        hit = cache.pop(key, None)
+        if hit is None:
+            table = remap_table(cam, self._cell_points(), self.grid.shape)
+            hit = (table, GatherTable.from_remap(table, cam.model.image_size[::-1]), None, cam)  # cam: ids stay unique
+            same_name = [k for k in cache if k[0] == cam.name]
+            for k in same_name[:max(0, len(same_name) - CAMERA_CACHE + 1)]:
+                del cache[k]
+        cache[key] = hit
+        return hit
+
+    def _cell_points(self) -> np.ndarray:
+        """``(H*W, 3)`` the grid's cell centres on the ground, computed once."""
+        pts = self.__dict__.get("_pts")
+        if pts is None:
+            pts = self._pts = self.grid.points(0.0)
+        return pts
 
     def map(self, images: Mapping[str, np.ndarray], ego_pose=None, stamp_ns=None) -> BevPrediction:
         """Warp each camera's labels to the ground and average the class indicators.

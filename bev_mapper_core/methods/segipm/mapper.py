@@ -32,6 +32,7 @@ class SegIpmMapper(Mapper):
     """Segmenter + IPM on RGB images (see the module docstring)."""
 
     name = "segipm"
+    per_set_rig = True  # set_rig rebuilds IPM's tables only; the segmenter holds no calibration
 
     @classmethod
     def preflight(cls, config: MapperConfig, rig_name: str, grid: BevGrid | None = None,
