@@ -10,24 +10,33 @@ run, per set for the set's problems, which the caller throttles).
 Per method (``Mapper.per_set_rig``): IPM and segipm rebuild numpy tables (~0.2 s for surround6
 with occlusion reasoning, ~0.05 s classical), paid once per change of the rounded placement.
 Learned methods bake the calibration into their model (Bi-Mapper's set_rig rebuilds its tables,
-~0.2 s on torch, and re-exports the model on an exported backend: tens of seconds), so they map
-every set with the calibrated rig, counted as ``sets_method`` with the offset they leave.
+~0.2 s on torch, and re-exports the model on an exported backend: tens of seconds), so they keep
+the calibrated rig and each moved camera's **image** is warped instead
+(:mod:`~bev_mapper_core.geometry.ground_warp`: the image the calibrated camera would have taken
+of the same ground; :meth:`RigPlacer.warp`), its maps computed once per rounded placement of the
+camera and kept; those sets count as ``sets_warped`` (beside ``sets_placed``).
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 
+import numpy as np
+
 from .geometry.grid import BevGrid
+from .geometry.ground_warp import ground_warp_maps, warp_image
 from .geometry.rig import Rig
 from .geometry.time_placement import Placement, PoseAt, TimePlacementConfig, place_cameras
 
 #: The counters of :attr:`RigPlacer.counts` (``max_offset_m`` is the largest seen, the rest are
 #: counts): sets placed, sets whose corrections all rounded to nothing, sets without an ego pose
-#: at the reference stamp, sets of a method that keeps its calibrated rig, cameras without a pose
-#: at their stamp, cameras whose stamp jumped, rebuilds of the mapper's tables.
-PLACEMENT_COUNTS = ("sets_placed", "sets_static", "sets_without_pose", "sets_method",
+#: at the reference stamp, sets placed by warping images (a method that keeps its calibrated rig;
+#: also counted in ``sets_placed``), cameras without a pose at their stamp, cameras whose stamp
+#: jumped, rebuilds of the mapper's tables or of a camera's warp maps.
+PLACEMENT_COUNTS = ("sets_placed", "sets_static", "sets_without_pose", "sets_warped",
                     "cameras_without_pose", "stamp_jumps", "rebuilds")
+#: warp maps kept (per camera and rounded placement): a steady speed reuses a handful
+WARP_CACHE = 32
 
 
 class RigPlacer:
@@ -44,12 +53,16 @@ class RigPlacer:
         self.base: Rig | None = None
         self._key: tuple = ()
         self._said: set[str] = set()
+        #: the set's image warps (camera -> remap maps) of a method that keeps its rig
+        self._warps: dict[str, tuple] = {}
+        self._warp_cache: dict[tuple, tuple] = {}
 
     def set_base(self, rig: Rig) -> None:
         """The calibrated rig the mapper was just built or re-calibrated with (the placement
         starts from it; the mapper holds it now).
         """
         self.base, self._key = rig, ()
+        self._warp_cache.clear()  # maps of the old calibration
 
     def place(self, mapper, stamps: Mapping[str, int | None], ref_stamp_ns: int,
               pose_at: PoseAt) -> tuple[Placement | None, list[tuple[str, str]]]:
@@ -60,16 +73,17 @@ class RigPlacer:
         ``(key, text)`` notes to log: ``placement:*`` once per run, ``placement_set:*`` for this
         set's problems (to throttle). Never raises on bad poses or stamps.
         """
+        self._warps = {}
         if not self.config.enabled or self.base is None:
             return None, []
         notes: list[tuple[str, str]] = []
         c = self.counts
-        if not getattr(mapper, "per_set_rig", False):  # no pose looked up: nothing would use it
-            c["sets_method"] += 1
+        keeps_rig = not getattr(mapper, "per_set_rig", False)
+        if keeps_rig:
             self._once(notes, "placement:method", f"method {mapper.name}: its model holds the calibration (a new "
-                       "rig per set would rebuild or re-export it), so its cameras stay as calibrated, at the "
-                       "set's stamp (counted: sets_method)")
-            return None, notes
+                       "rig per set would rebuild or re-export it), so the images of cameras that fired away "
+                       "from the set's stamp are warped to their calibrated pose by the ground plane "
+                       "(counted: sets_warped)")
         p = place_cameras(self.base, stamps, ref_stamp_ns, pose_at, self.grid, self.config)
         c["cameras_without_pose"] += len(p.no_pose)
         c["stamp_jumps"] += len(p.jumped)
@@ -90,11 +104,41 @@ class RigPlacer:
             notes.append(("placement_set:jump", f"cameras {list(p.jumped)} stamped more than "
                           f"{self.config.max_offset_s:g} s from the set's stamp: mapped as calibrated "
                           "(counted: stamp_jumps)"))
-        if p.key != self._key:
+        if keeps_rig:
+            if p.placed:
+                c["sets_warped"] += 1
+                self._warps = {name: self._warp_maps(name, D) for name, D in p.moves}
+        elif p.key != self._key:
             mapper.set_rig(p.rig if p.key else self.base)
             self._key = p.key
             c["rebuilds"] += 1
         return p, notes
+
+    def _warp_maps(self, name: str, D) -> tuple:
+        """The ground-plane warp of camera ``name`` moved by ``D`` (kept per rounded move)."""
+        key = (name, D.tobytes())
+        maps = self._warp_cache.get(key)
+        if maps is None:
+            cam = self.base[name]
+            maps = ground_warp_maps(cam, D @ cam.ego_from_cam_array)
+            if len(self._warp_cache) >= WARP_CACHE:
+                self._warp_cache.pop(next(iter(self._warp_cache)))
+            self._warp_cache[key] = maps
+            self.counts["rebuilds"] += 1
+        return maps
+
+    def warp(self, images: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """The set's images, those of moved cameras warped to their calibrated pose (for a
+        method that keeps its rig; every image as given otherwise). Call after :meth:`place`.
+        """
+        if not self._warps:
+            return dict(images)
+        out = dict(images)
+        for name, maps in self._warps.items():
+            img = out.get(name)
+            if img is not None and tuple(img.shape[:2]) == maps[0].shape:  # a wrong size: the mapper says so
+                out[name] = warp_image(img, maps)
+        return out
 
     def _once(self, notes: list, key: str, text: str) -> None:
         if key not in self._said:

@@ -163,7 +163,7 @@ class MapperNode(Node):
         method_cls = mapper_class(cfg.mapper.method)
         # each camera at its own time (issue #38): the ego pose at every camera's stamp
         self.placer = RigPlacer(cfg.grid, cfg.time_placement) if cfg.time_placement.enabled else None
-        placing = self.placer is not None and method_cls.per_set_rig
+        placing = self.placer is not None  # IPM and segipm: a placed rig; learned methods: warped images
         #: a memory (the fusion's or the method's) reads the set's pose, vetted
         self.needs_pose = self.fusion is not None or method_cls.uses_ego_pose
         # odometry vetted and counted before the memories see it; latency kept honest (issue #29)
@@ -440,7 +440,7 @@ class MapperNode(Node):
         if missing:
             self._throttled_warning("missing", f"mapping a set without cameras {missing} ({synced.reason}); "
                                                "/diagnostics counts them per camera (missing_by_camera)")
-        self._place(synced, images)
+        images = self._place(synced, images)
         pose = self.ego.at(stamp) if self.needs_pose else None
         if self.needs_pose:  # vetted: a pose the memories cannot align with resets them
             verdict = self.ego.watch.vet(stamp, pose)
@@ -487,13 +487,13 @@ class MapperNode(Node):
                                                   "(a bag looping with /clock?): that set's latency is not measured")
         self.stats.record_mapped(time.monotonic(), processing_ms, latency_ms, missing)
 
-    def _place(self, synced, images) -> None:
-        """Place each camera of the set with the ego pose of its own stamp (the mapper's rig
-        follows, counted in /diagnostics); what holds for the whole run is said once, a set's
-        problems throttled.
+    def _place(self, synced, images):
+        """Place each camera of the set with the ego pose of its own stamp (IPM's and segipm's
+        rig follows; a learned method's moved images are warped), counted in /diagnostics; what
+        holds for the whole run is said once, a set's problems throttled. Returns the images to map.
         """
         if self.placer is None:
-            return
+            return images
         stamps = {c: synced.stamps.get(c) for c in images}
         lookup = self.ego.lookup if self.ego is not None else (lambda stamp: None)
         _, notes = self.placer.place(self.mapper, stamps, synced.stamp_ns, lookup)
@@ -502,6 +502,7 @@ class MapperNode(Node):
                 self.get_logger().info(f"time placement: {text}")
             else:
                 self._throttled_warning(key, f"time placement: {text}")
+        return self.placer.warp(images)
 
     def _note_backend(self) -> None:
         """Say what runs the model whenever that changes (torch while the fast backend's model is

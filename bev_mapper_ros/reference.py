@@ -93,13 +93,14 @@ NODE_DIAGNOSTIC_KEYS: dict[str, str] = {
     "placement_sets_static": "sets with ego poses whose every correction was under half the rounding step "
                              "(`time_placement_step_cells`): mapped with the calibrated rig",
     "placement_sets_without_pose": "sets without an ego pose at their stamp: every camera as calibrated",
-    "placement_sets_method": "sets of a method whose model holds the calibration (Bi-Mapper, S2G2, FocusBEV): "
-                             "every camera as calibrated, no pose looked up",
+    "placement_sets_warped": "of the placed sets, those of a method whose model holds the calibration "
+                             "(Bi-Mapper, S2G2, FocusBEV): the moved cameras' images warped to their calibrated "
+                             "pose by the ground plane instead",
     "placement_cameras_without_pose": "cameras without an ego pose at their own stamp: mapped as calibrated",
     "placement_stamp_jumps": "cameras stamped more than `time_placement_max_offset_s` from their set's stamp: "
                              "mapped as calibrated",
     "placement_rebuilds": "times the mapper's tables were rebuilt for a new rounded placement (IPM: only the "
-                          "cameras that moved)",
+                          "cameras that moved), or a camera's warp maps computed (learned methods)",
     "placement_max_offset_m": "the largest displacement a camera's correction gave a grid corner or the camera "
                               "since start-up (m)",
 }

@@ -75,7 +75,7 @@ def map_frames(run: ReplayRun, finish: Callable, bar) -> MappingTally:
                 tally.skipped += 1
                 continue
             t0 = time.perf_counter()
-            _place(run, placer, frame, images)
+            images = _place(run, placer, frame, images)
             try:
                 pred = _map_frame(run.mapper, fusion, check, frame, images, tally.temporal)
             except BevMapperError as exc:  # this frame's input: keep the outputs so far
@@ -105,9 +105,10 @@ def map_frames(run: ReplayRun, finish: Callable, bar) -> MappingTally:
     return tally
 
 
-def _place(run, placer: RigPlacer, frame, images) -> None:
+def _place(run, placer: RigPlacer, frame, images):
     """Place the frame's cameras at their own times on the mapper (counted by ``placer``); what
     holds for the whole drive goes to the result's notes once, a frame's problems to the log.
+    Returns the images to map (a method that keeps its rig: moved cameras' images warped).
     """
     stamps = {c: frame.camera_stamps.get(c) for c in images}
     _, notes = placer.place(run.mapper, stamps, frame.stamp_ns, frame.pose_at)
@@ -116,6 +117,7 @@ def _place(run, placer: RigPlacer, frame, images) -> None:
             run.notes.append(f"time placement: {text}")
         else:
             log.info("frame %d: time placement: %s", frame.index, text)
+    return placer.warp(images)
 
 
 def _map_frame(mapper, fusion: TemporalFusion | None, check: OdometryCheck | None, frame, images,

@@ -1,7 +1,8 @@
 """The mapper kept on each set's time-placed rig (bev_mapper_core/placement.py): IPM mapping with
 per-camera placement equals IPM on a rig built by hand from the same poses; the static path is
 today's (no set_rig, the same output); tables rebuilt only when the rounded placement changes;
-a learned method keeps its calibrated rig (counted); bad poses counted, the rest mapped."""
+a learned method keeps its calibrated rig and its moved images are warped (counted); bad poses
+counted, the rest mapped."""
 
 from __future__ import annotations
 
@@ -122,14 +123,23 @@ def test_bad_poses_are_counted_and_the_rest_placed():
     assert placer.values()["placement_stamp_jumps"] == "1"
 
 
-def test_a_learned_method_keeps_its_calibrated_rig_and_the_sets_are_counted():
+def test_a_learned_method_keeps_its_calibrated_rig_and_its_moved_images_are_warped():
     mapper = create_mapper(RIG.scaled(4.0), BevGrid(), MapperConfig(method="bimapper", backend="torch", threads=1))
     rig = mapper.rig
     placer = RigPlacer(BevGrid())
     placer.set_base(rig)
-    p, notes = placer.place(mapper, {c.name: STAMPS[c.name] for c in rig.cameras}, T0, turning)
-    assert mapper.rig is rig and p is None  # nothing placed, no pose looked up
-    assert [k for k, _ in notes] == ["placement:method"] and "bimapper" in notes[0][1]
-    assert placer.counts["sets_method"] == 1 and placer.counts["rebuilds"] == 0
-    _, notes = placer.place(mapper, {c.name: STAMPS[c.name] for c in rig.cameras}, T0, turning)
-    assert notes == [] and placer.counts["sets_method"] == 2  # said once
+    stamps = {c.name: STAMPS[c.name] for c in rig.cameras}
+    p, notes = placer.place(mapper, stamps, T0, turning)
+    assert mapper.rig is rig and p is not None and p.placed  # the model keeps its rig
+    assert [k for k, _ in notes] == ["placement:method"] and "bimapper" in notes[0][1] and "warped" in notes[0][1]
+    assert placer.counts["sets_warped"] == 1 and placer.counts["sets_placed"] == 1
+    imgs = {c.name: np.random.default_rng(3).integers(0, 11, c.model.image_size[::-1], dtype=np.uint8)
+            for c in rig.cameras}
+    out = placer.warp(imgs)
+    for name, img in imgs.items():  # moved cameras' images warped, the others as given
+        assert (name in p.placed) == (not np.array_equal(out[name], img))
+    built = placer.counts["rebuilds"]
+    _, notes = placer.place(mapper, stamps, T0, turning)
+    assert notes == [] and placer.counts["sets_warped"] == 2 and placer.counts["rebuilds"] == built  # maps kept
+    placer.place(mapper, stamps, T0, lambda t: pose())  # standing still: nothing to warp
+    assert placer.warp(imgs) == imgs
