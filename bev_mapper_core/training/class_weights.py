@@ -18,7 +18,9 @@ def class_pos_weight(frames: FrameSet, max_weight: float = 10.0) -> tuple[float,
     cells) otherwise stay at zero IoU; the square root keeps the weighting mild.
     """
     m = frames.mask[:, None]  # (M, 1, H, W)
+    if frames.class_mask is not None:
+        m = m & frames.class_mask  # (M, K, H, W): each class's known cells
     pos = np.count_nonzero(frames.target & m, axis=(0, 2, 3)).astype(np.float64)
-    tot = float(np.count_nonzero(frames.mask))
+    tot = np.count_nonzero(np.broadcast_to(m, frames.target.shape), axis=(0, 2, 3)).astype(np.float64)
     w = np.sqrt(np.maximum(tot - pos, 1.0) / np.maximum(pos, 1.0))
     return tuple(float(round(v, 3)) for v in np.clip(w, 1.0, max_weight))
