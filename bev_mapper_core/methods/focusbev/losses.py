@@ -78,7 +78,8 @@ def focusbev_loss(logits: torch.Tensor, target: torch.Tensor, mask: torch.Tensor
                   pos_weight: torch.Tensor | None = None,
                   class_mask: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
     """Eq. 10: ``(total, parts)`` for logits / target ``(B, K, H, W)`` and the visible mask ``(B, H, W)``
-    (``class_mask`` ``(B, K, H, W)``: each class's known cells, for the BCE term)."""
+    (``class_mask`` ``(B, K, H, W)``: each class's known cells, for the BCE term).
+    """
     bce = weighted_bce(logits, target, mask, pos_weight, class_mask)
     unc = uncertainty_loss(logits, mask)
     iou = occupancy_agnostic_iou_loss(logits, target)
