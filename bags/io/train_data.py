@@ -104,6 +104,9 @@ def bag_frameset(paths: Sequence[str | Path], classes: Sequence[str], rig: Rig, 
                 raise ConfigError(f"{path}: cameras {list(r.rig().names)} differ from {list(rig.names)}")
             if not r.grid().isclose(grid):
                 raise ConfigError(f"{path}: GT grid {r.grid().describe()} differs from {grid.describe()}")
+            if labels and not any(r.image_topic(n, "labels") in r.topics for n in rig.names):
+                raise ConfigError(f"{path}: no label images (an imported dataset's bags hold RGB cameras only): "
+                                  "train a model on RGB input (--input rgb)")
             for f in r.frames(rgb=rgb, labels=labels, gt=True, odom=False, label_map=lm):
                 if f.gt is None or not all(n in (f.labels if labels else f.rgb) for n in rig.names):
                     skipped += 1
