@@ -21,7 +21,9 @@ def class_pos_weight(frames: FrameSet, max_weight: float = 10.0) -> tuple[float,
     pos, tot = 0.0, 0.0
     for f in sets:
         m = f.mask[:, None]  # (M, 1, H, W)
+        if f.class_mask is not None:
+            m = m & f.class_mask  # (M, K, H, W): each class's known cells
         pos = pos + np.count_nonzero(f.target & m, axis=(0, 2, 3)).astype(np.float64)
-        tot += float(np.count_nonzero(f.mask))
+        tot = tot + np.count_nonzero(np.broadcast_to(m, f.target.shape), axis=(0, 2, 3)).astype(np.float64)
     w = np.sqrt(np.maximum(tot - pos, 1.0) / np.maximum(pos, 1.0))
     return tuple(float(round(v, 3)) for v in np.clip(w, 1.0, max_weight))

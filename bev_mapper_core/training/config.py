@@ -121,7 +121,12 @@ class TrainConfig:
             Under ``torchrun`` the world size comes from torchrun (``nproc`` 1 or equal to it).
         resume: continue ``out``'s last checkpoint.
         time_budget_min: stop (checkpointed, resumable) once this much wall time has passed.
-        bag, val_bag: rosbag2 paths with GT topics to train / validate on instead of drives.
+        bag, val_bag: rosbag2 paths with GT topics to train / validate on instead of drives (a
+            folder of bags stands for the bags in it, as ``bev-bag import`` writes them).
+        split, val_split: a dataset's own split (``bev_mapper.split`` in a bag's metadata, which
+            ``bev-bag import`` records: nuScenes' ``train`` / ``val`` / ``mini_train`` /
+            ``mini_val``, Argoverse 2's ``train`` / ``val``): train on the bags of ``bag`` in
+            ``split`` and hold out those of ``val_bag`` (else of ``bag``) in ``val_split``.
         style: appearance style of the synthetic drives' RGB images (a
             :mod:`~bev_mapper_core.synth.styles` name; default ``mixed``: one training style per
             drive, never the held-out one); label images do not depend on it.
@@ -177,6 +182,8 @@ class TrainConfig:
     time_budget_min: float | None = None
     bag: tuple[str, ...] | None = None
     val_bag: tuple[str, ...] | None = None
+    split: str | None = None
+    val_split: str | None = None
     label_map: str = MapperConfig.label_map
     style: str = SynthConfig.style
     unlabeled_drives: int = 0
@@ -238,6 +245,14 @@ class TrainConfig:
             raise ConfigError("val_seeds must not be empty")
         if self.val_bag is not None and self.bag is None:
             raise ConfigError("val_bag needs bag")
+        if (self.split is not None or self.val_split is not None) and self.bag is None:
+            raise ConfigError("split and val_split select imported bags: they need bag")
+        if self.val_split is not None and self.split is None:
+            raise ConfigError("val_split needs split (the training bags' split)")
+        if self.split is not None and self.val_split is None and self.val_bag is None:
+            raise ConfigError(f"split {self.split!r} needs the held-out split (val_split) or held-out bags (val_bag)")
+        if self.split is not None and self.split == self.val_split:
+            raise ConfigError(f"split and val_split are both {self.split!r}: the held-out frames would be trained on")
         label_map(self.label_map)  # ConfigError: no preset, or a bad YAML file
         check_style(self.style)
         self._check_unlabeled()

@@ -286,19 +286,28 @@ class FrameSet:
     (which drive each frame is from; frames of a drive are consecutive and in order), when
     known, make the frames a sequence: batches carry ``poses`` / ``stamps`` / ``drives``, and with
     :attr:`window` > 1 every batch is a batch of windows (see :meth:`batch`).
+
+    ``class_mask`` (M, K, Hg, Wg) bool, when given, narrows ``mask`` per class: the cells whose
+    ground truth of that class is known (an imported dataset's class without a source, or a box
+    below its filter, is unknown there, not absent); batches carry it as ``class_mask``, and the
+    losses and the scoring train and score each class on ``mask & class_mask`` only.
     """
 
     def __init__(self, labels: np.ndarray, target: np.ndarray, mask: np.ndarray,
                  ground_mask: np.ndarray | None = None, camera_names: Sequence[str] = (),
                  rgb: np.ndarray | None = None, poses: np.ndarray | None = None,
-                 stamps: np.ndarray | None = None, drives: np.ndarray | None = None) -> None:
+                 stamps: np.ndarray | None = None, drives: np.ndarray | None = None,
+                 class_mask: np.ndarray | None = None) -> None:
         if not (len(labels) == len(target) == len(mask)) or (rgb is not None and len(rgb) != len(labels)):
             raise ConfigError("labels, rgb, target and mask must have the same number of frames")
         if (poses is None) != (stamps is None) or (poses is None) != (drives is None):
             raise ConfigError("poses, stamps and drives come together")
         if poses is not None and not (len(poses) == len(stamps) == len(drives) == len(labels)):
             raise ConfigError("poses, stamps and drives must have one entry per frame")
+        if class_mask is not None and class_mask.shape != target.shape:
+            raise ConfigError(f"class_mask {class_mask.shape} must have the target's shape {target.shape}")
         self.labels, self.target, self.mask, self.rgb = labels, target, mask, rgb
+        self.class_mask = class_mask
         self.ground_mask = mask if ground_mask is None else ground_mask
         self.camera_names = tuple(camera_names)
         self.poses, self.stamps, self.drives = poses, stamps, drives
@@ -324,7 +333,7 @@ class FrameSet:
     def batch(self, idx: np.ndarray) -> dict:
         """Torch batch of frames ``idx``: ``images`` (B, N, h, w) uint8, ``target`` float, ``mask``
         bool, ``index`` (B,) int64 (the frames' ids in this set, e.g. for cached features)[,
-        ``rgb``; ``poses`` (B, 4, 4) float64, ``stamps``, ``drives`` (B,)].
+        ``rgb``; ``class_mask`` (B, K, Hg, Wg) bool; ``poses`` (B, 4, 4) float64, ``stamps``, ``drives`` (B,)].
 
         With :attr:`window` ``T`` > 1, each sample is the window ending at its frame:
         ``images`` (B, T, N, h, w), ``rgb`` (B, T, N, h, w, 3), ``poses`` (B, T, 4, 4) and
@@ -335,6 +344,8 @@ class FrameSet:
         idx = np.asarray(idx)
         out = {"target": torch.from_numpy(self.target[idx]).float(), "mask": torch.from_numpy(self.mask[idx]),
                "index": torch.from_numpy(idx.astype(np.int64))}
+        if self.class_mask is not None:
+            out["class_mask"] = torch.from_numpy(self.class_mask[idx])
         if self.window > 1:
             ids, present = self.windows(idx, self.window)
             out["present"] = torch.from_numpy(present)

@@ -62,6 +62,8 @@ def score_frameset(predict: Callable[[dict], tuple[np.ndarray, np.ndarray]], fra
         t_pred += time.perf_counter() - t0
         for j, i in enumerate(idx):
             masks = scope_masks(class_names, frames.mask[i], frames.ground_mask[i], scope)
+            if frames.class_mask is not None:
+                masks &= frames.class_mask[i]  # a class unknown in a cell is not scored there
             acc.update(probs[j], frames.target[i], masks, known[j])
     res = acc.result()
     res["ms_per_frame"] = 1000.0 * t_pred / max(n, 1)

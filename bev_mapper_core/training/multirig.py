@@ -57,6 +57,7 @@ class MultiRigFrames:
         self.target = _Joined([f.target for _, f in self.parts])
         self.mask = _Joined([f.mask for _, f in self.parts])
         self.ground_mask = _Joined([f.ground_mask for _, f in self.parts])
+        self.class_mask = None  # synthetic drives score every class everywhere they see
         self.camera_names: tuple[str, ...] = ()
         self.rgb = self.poses = self.stamps = self.drives = None
         self.labels = None  # no joint array: the rigs' images differ in count and size

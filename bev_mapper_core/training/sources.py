@@ -47,6 +47,9 @@ class DataNeeds:
         rgb: each frame also carries its RGB camera images ``(N, h, w, 3)`` uint8 (batches:
             ``rgb``), at ``image_size`` (``None``: camera size), resized as the models' own
             preprocess would.
+        labels: the camera label images are read (model input, segmentation targets); False:
+            an RGB model that never reads them, which a source of RGB images alone (an imported
+            dataset's bags) can serve (its frames then hold zero label images).
     """
 
     image_size: tuple[int, int] | None = None
@@ -54,6 +57,7 @@ class DataNeeds:
     sequence_length: int = 1
     poses: bool = False
     rgb: bool = False
+    labels: bool = True
 
     def __post_init__(self) -> None:
         if self.sequence_length < 1:

@@ -6,6 +6,7 @@ r"""``bev-train [train]``: train a learned method on synthetic drives (or bags w
         [--config run.yaml] [--epochs E] [--frames-per-epoch F] [--batch B] [--lr 1e-3] [--seed S]
         [--val-seeds 900000000,900000001 | --val-drives N] [--cache DIR | --no-cache]
         [--device cpu|cuda] [--threads T] [--nproc N] [--resume] [--bag PATH ... --val-bag PATH ... [--label-map PRESET|YAML]]
+        [--bag DIR ... --split train --val-split val]   (imported datasets: their own split)
         [--unlabeled-drives N [--unlabeled-style STYLE] | --unlabeled BAG ...] [--unlabeled-real camvid:DIR]   (semi-supervised: s2g2)
         [method flags, Bi-Mapper's: --streams both|gv|lv|none --fusion sum|concat --no-asl
          --mutual async|sync|lv|gv|none --pos-weight auto|none --ipm-skip --lv-full-res ...]
@@ -101,6 +102,10 @@ def configure(p: argparse.ArgumentParser, argv: list[str]) -> None:
     p.add_argument("--time-budget", dest="time_budget_min", type=pos_float, help="minutes; stop (resumable) after")
     p.add_argument("--bag", nargs="+", help="rosbag2 paths with GT topics to train on")
     p.add_argument("--val-bag", dest="val_bag", nargs="+", help="held-out rosbag2 paths with GT")
+    p.add_argument("--split", help="train on the bags of --bag whose metadata names this split of their dataset "
+                   "(bev-bag import records it: nuScenes train / val / mini_train / mini_val, Argoverse 2 train / val)")
+    p.add_argument("--val-split", dest="val_split",
+                   help="hold out the bags of --val-bag (else of --bag) in this split (with --split)")
     p.add_argument("--label-map", dest="label_map", metavar="PRESET|YAML",
                    help=f"what the bags' label images hold: one of {', '.join(PRESET_NAMES)} or a YAML file "
                         f"(default {DEFAULTS['label_map']}: this package's ids)")

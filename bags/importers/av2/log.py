@@ -33,6 +33,8 @@ RING_CAMERAS = ("ring_front_center", "ring_front_right", "ring_rear_right", "rin
 VEHICLES = frozenset({"REGULAR_VEHICLE", "LARGE_VEHICLE", "BUS", "SCHOOL_BUS", "ARTICULATED_BUS", "BOX_TRUCK",
                       "TRUCK", "TRUCK_CAB", "VEHICULAR_TRAILER", "MOTORCYCLE", "BICYCLE"})
 PEDESTRIANS = frozenset({"PEDESTRIAN", "STROLLER", "WHEELCHAIR", "OFFICIAL_SIGNALER"})
+#: the sensor dataset's splits, the folder a log lies in (``sensor/<split>/<log_id>/``), recorded in its bag
+AV2_SPLITS = ("train", "val", "test")
 CLASSES = ("drivable", "lane_divider", "ped_crossing", "road_boundary", "vehicle", "pedestrian")
 LICENSE = ("Argoverse 2 (Argo AI), CC BY-NC-SA 4.0: non-commercial use, share alike, attribution; this bag is "
            "derived from it and under the same terms (https://www.argoverse.org/about.html#terms-of-use)")
@@ -175,8 +177,12 @@ def import_av2_log(logdir: str | Path, out: str | Path, *, grid: BevGrid | None 
             "unscored": [c for c in (*CLASSES, "sidewalk") if c not in classes], "license": LICENSE}
     custom = {"bev_mapper.rig": "av2_ring7" if len(cams) == 7 else "av2_ring", "bev_mapper.grid": json.dumps(grid.to_dict()),
               "bev_mapper.source": json.dumps(info), "bev_mapper.license": LICENSE}
+    split = logdir.resolve().parent.name  # the dataset's layout: sensor/<split>/<log_id>/
+    if split in AV2_SPLITS:
+        info["split"] = custom["bev_mapper.split"] = split
+        custom["bev_mapper.source"] = json.dumps(info)
     drive = ImportedDrive(logdir.name, tuple(cams), images, poses, keyframes, classes, grid, custom)
     return write_imported_drive(out, drive, force=force), notes
 
 
-__all__ = ["CLASSES", "LICENSE", "RING_CAMERAS", "VectorMap", "import_av2_log"]
+__all__ = ["AV2_SPLITS", "CLASSES", "LICENSE", "RING_CAMERAS", "VectorMap", "import_av2_log"]

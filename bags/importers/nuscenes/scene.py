@@ -28,6 +28,7 @@ from ..errors import DatasetLayoutError
 from ..raster import HDMAPNET_THICKNESS, Patch
 from .maps import MAP_SOURCES, NuScenesMap
 from .objects import OBJECT_CLASSES, BoxFilter, object_layers
+from .splits import scene_split
 from .tables import NuScenesTables, field
 
 #: nuScenes channel -> the ``surround6`` preset's camera name, in the preset's order
@@ -127,6 +128,7 @@ def scene_drive(tables: NuScenesTables, scene: dict, options: SceneOptions,
     info = {
         "dataset": "nuScenes", "version": tables.version, "scene": scene["name"],
         "description": scene.get("description", ""), "location": log.get("location", ""),
+        "split": scene_split(tables.version, scene["name"]),
         "key_frames": len(keyframes), "sweeps": options.sweeps,
         "gt": {c: f"map expansion {MAP_SOURCES[c][0]} of {', '.join(MAP_SOURCES[c][1])}" for c in MAP_SOURCES
                if nmap is not None} | ({c: "sample_annotation boxes" for c in OBJECT_CLASSES} if has_boxes else {}),
@@ -139,6 +141,8 @@ def scene_drive(tables: NuScenesTables, scene: dict, options: SceneOptions,
         "bev_mapper.source": json.dumps(info),
         "bev_mapper.license": LICENSE,
     }
+    if info["split"] is not None:
+        custom["bev_mapper.split"] = info["split"]
     if len(ordered) == len(CAMERAS):
         custom["bev_mapper.rig"] = "surround6"
     drive = ImportedDrive(scene["name"], ordered, images, poses, keyframes, classes, options.grid, custom)

@@ -51,4 +51,19 @@ def split_scenes(split: str, version: str, scene_names: list[str]) -> list[str]:
     return [n for n in scene_names if n in names]
 
 
-__all__ = ["SPLITS", "SPLIT_VERSION", "split_scenes"]
+#: version -> its splits that partition it (the one recorded in each scene's bag)
+VERSION_SPLITS = {"v1.0-mini": ("mini_train", "mini_val"), "v1.0-trainval": ("train", "val"), "v1.0-test": ("test",)}
+
+
+def scene_split(version: str, name: str) -> str | None:
+    """The official split of scene ``name`` among its version's (:data:`VERSION_SPLITS`:
+    ``mini_train`` / ``mini_val`` in v1.0-mini, ``train`` / ``val`` in v1.0-trainval, ``test``),
+    or ``None`` for a scene none of them lists (a version this package does not know).
+    """
+    for split in VERSION_SPLITS.get(version, ()):
+        if split_scenes(split, version, [name]):
+            return split
+    return None
+
+
+__all__ = ["SPLITS", "SPLIT_VERSION", "VERSION_SPLITS", "scene_split", "split_scenes"]

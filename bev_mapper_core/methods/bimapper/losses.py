@@ -34,7 +34,7 @@ import torch
 from torch.nn import functional as F
 
 from bev_mapper_core.errors import ConfigError
-from bev_mapper_core.nn.losses import masked_bce
+from bev_mapper_core.nn.losses import class_cells, masked_bce
 
 MUTUAL_MODES = ("async", "sync", "lv", "gv", "none")
 
@@ -108,22 +108,27 @@ def uncertainty_loss(logits: torch.Tensor, hidden: torch.Tensor) -> torch.Tensor
 
 
 def warp_target_to_planes(target: torch.Tensor, gt_grid: torch.Tensor, gt_valid: torch.Tensor,
-                          mask: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                          mask: torch.Tensor | None = None,
+                          class_mask: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Ground truth of the ego grid warped into every camera plane (nearest cell).
 
     Args:
         target: (B, K, H, W) ego-grid class layers; mask: (B, H, W) visibility or None.
         gt_grid: (N, Hp, Wp, 2) normalised ego-grid coordinates of each plane cell;
         gt_valid: (N, Hp, Wp) bool.
+        class_mask: (B, K, H, W) bool, each class's known cells, or None.
 
     Returns:
-        targets (B, N, K, Hp, Wp) and valid (B, N, Hp, Wp) bool.
+        targets (B, N, K, Hp, Wp) and valid (B, N, Hp, Wp) bool; with ``class_mask`` valid is
+        per class, (B, N, K, Hp, Wp).
     """
     B, K, H, W = target.shape
     N, Hp, Wp, _ = gt_grid.shape
     layers = target.to(gt_grid.dtype)
     if mask is not None:
         layers = torch.cat([layers, mask[:, None].to(gt_grid.dtype)], dim=1)  # (B, K+1, H, W)
+    if class_mask is not None:
+        layers = torch.cat([layers, class_mask.to(gt_grid.dtype)], dim=1)  # (B, K[+1]+K, H, W)
     Kx = layers.shape[1]
     grid = gt_grid.reshape(1, N * Hp, Wp, 2).expand(B, N * Hp, Wp, 2)  # (N, Hp, Wp, 2) -> (B, N*Hp, Wp, 2)
     s = F.grid_sample(layers, grid, mode="nearest", padding_mode="zeros", align_corners=False)  # (B, Kx, N*Hp, Wp)
@@ -131,23 +136,28 @@ def warp_target_to_planes(target: torch.Tensor, gt_grid: torch.Tensor, gt_valid:
     valid = gt_valid[None].expand(B, N, Hp, Wp)
     if mask is not None:
         valid = valid & (s[:, :, K] > 0.5)
+    if class_mask is not None:
+        valid = valid[:, :, None] & (s[:, :, Kx - K:] > 0.5)  # (B, N, Hp, Wp) -> (B, N, K, Hp, Wp)
     return s[:, :, :K], valid
 
 
 def across_space_loss(plane_logits: torch.Tensor, target: torch.Tensor, gt_grid: torch.Tensor,
                       gt_valid: torch.Tensor, mask: torch.Tensor | None = None,
-                      cam_mask: torch.Tensor | None = None) -> torch.Tensor:
+                      cam_mask: torch.Tensor | None = None,
+                      class_mask: torch.Tensor | None = None) -> torch.Tensor:
     """ASL (Eq. 3): per-view mean per-class BCE in the camera planes, summed over views.
 
     ``plane_logits`` (B, N, K, Hp, Wp); other arguments as :func:`warp_target_to_planes`;
     ``cam_mask`` (B, N) drops absent cameras.
     """
-    tgt, valid = warp_target_to_planes(target, gt_grid, gt_valid, mask)
+    tgt, valid = warp_target_to_planes(target, gt_grid, gt_valid, mask, class_mask)
+    if valid.dim() == 4:
+        valid = valid[:, :, None]  # (B, N, Hp, Wp) -> (B, N, 1, Hp, Wp)
     if cam_mask is not None:
-        valid = valid & cam_mask.bool()[:, :, None, None]
+        valid = valid & cam_mask.bool()[:, :, None, None, None]
     loss = F.binary_cross_entropy_with_logits(plane_logits, tgt, reduction="none")  # (B, N, K, Hp, Wp)
-    v = valid[:, :, None].to(loss.dtype)  # (B, N, 1, Hp, Wp)
-    per_view = (loss * v).sum((0, 2, 3, 4)) / (v.sum((0, 2, 3, 4)) * loss.shape[2]).clamp(min=1.0)  # (N,)
+    v = valid.to(loss.dtype).expand_as(loss)
+    per_view = (loss * v).sum((0, 2, 3, 4)) / v.sum((0, 2, 3, 4)).clamp(min=1.0)  # (N,)
     return per_view.sum()
 
 
@@ -171,7 +181,8 @@ def bimapper_loss(outputs: dict, batch: dict, epoch: int,
     Args:
         outputs: :meth:`BiMapper.forward` output.
         batch: ``target`` (B, K, H, W) ego class layers (bool/float), optional ``mask``
-            (B, H, W) bool visibility (None/missing = every cell).
+            (B, H, W) bool visibility (None/missing = every cell) and ``class_mask`` (B, K, H, W)
+            bool, the cells each class's ground truth is known in (BCE and ASL leave the others out).
         epoch: current epoch, 0-based (drives the mutual-learning schedule).
         config: weights and schedule; default :class:`BiMapperLossConfig`.
 
@@ -187,12 +198,15 @@ def bimapper_loss(outputs: dict, batch: dict, epoch: int,
     if mask is not None:
         mask = mask.to(logits.device).bool()
     pw = None if cfg.pos_weight is None else torch.tensor(cfg.pos_weight, dtype=logits.dtype, device=logits.device)
-    bce = masked_bce(logits, target, None if mask is None else mask[:, None], pw)
+    class_mask = batch.get("class_mask")
+    if class_mask is not None:
+        class_mask = class_mask.to(logits.device).bool()
+    bce = masked_bce(logits, target, class_cells(mask, class_mask), pw)
     zero = logits.new_zeros(())
     asl = zero
     if outputs.get("lv_plane_logits") is not None:
         asl = across_space_loss(outputs["lv_plane_logits"], target, outputs["gt_grid"], outputs["gt_valid"],
-                                mask, outputs.get("cam_mask"))
+                                mask, outputs.get("cam_mask"), class_mask)
     mutual = zero
     if outputs.get("gv_fg_logits") is not None and outputs.get("lv_fg_logits") is not None:
         lv_t, gv_t = mutual_teachers(epoch, cfg.mutual_start_epoch, cfg.mutual_mode)

@@ -263,7 +263,8 @@ class BiMapperMethod(TrainMethod):
         # stored resized, exactly as preprocess would).
         full = self.cfg.model.lv_full_res or self.cfg.model.ipm_skip or self.random_rigs  # random rigs: sizes differ
         rgb = self.cfg.model.input_kind == "rgb" or self.cfg.loss.segmenter is not None
-        return DataNeeds(image_size=None if full else self.model.input_size, rgb=rgb)
+        labels = self.cfg.model.input_kind == "labels" and self.cfg.loss.segmenter is None
+        return DataNeeds(image_size=None if full else self.model.input_size, rgb=rgb, labels=labels)
 
     def _augments(self) -> bool:
         """Training images are augmented: ``augment`` on RGB input."""

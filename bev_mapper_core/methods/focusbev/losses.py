@@ -23,6 +23,7 @@ import torch
 from torch.nn import functional as F
 
 from bev_mapper_core.errors import ConfigError
+from bev_mapper_core.nn.losses import class_cells
 
 #: A class whose ground truth and prediction both sum below this has no IoU term in a sample.
 EMPTY = 1.0
@@ -43,14 +44,15 @@ class FocusBEVLossConfig:
 
 
 def weighted_bce(logits: torch.Tensor, target: torch.Tensor, mask: torch.Tensor,
-                 pos_weight: torch.Tensor | None = None) -> torch.Tensor:
+                 pos_weight: torch.Tensor | None = None, class_mask: torch.Tensor | None = None) -> torch.Tensor:
     """Mean BCE of ``logits`` / ``target`` ``(B, K, H, W)`` over the cells of ``mask`` ``(B, H, W)``
-    (every class), positives weighted by ``pos_weight`` ``(K,)``.
+    (every class; with ``class_mask`` ``(B, K, H, W)`` only each class's known cells), positives
+    weighted by ``pos_weight`` ``(K,)``.
     """
     pw = None if pos_weight is None else pos_weight.view(1, -1, 1, 1).to(logits)
     per = F.binary_cross_entropy_with_logits(logits, target, pos_weight=pw, reduction="none")  # (B, K, H, W)
-    m = mask[:, None].to(per.dtype)  # (B, 1, H, W)
-    return (per * m).sum() / (m.sum() * logits.shape[1]).clamp(min=1.0)
+    m = class_cells(mask, class_mask).to(per.dtype).expand_as(per)  # (B, 1 or K, H, W) -> (B, K, H, W)
+    return (per * m).sum() / m.sum().clamp(min=1.0)
 
 
 def uncertainty_loss(logits: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -73,9 +75,12 @@ def occupancy_agnostic_iou_loss(logits: torch.Tensor, target: torch.Tensor) -> t
 
 
 def focusbev_loss(logits: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, cfg: FocusBEVLossConfig,
-                  pos_weight: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
-    """Eq. 10: ``(total, parts)`` for logits / target ``(B, K, H, W)`` and the visible mask ``(B, H, W)``."""
-    bce = weighted_bce(logits, target, mask, pos_weight)
+                  pos_weight: torch.Tensor | None = None,
+                  class_mask: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+    """Eq. 10: ``(total, parts)`` for logits / target ``(B, K, H, W)`` and the visible mask ``(B, H, W)``
+    (``class_mask`` ``(B, K, H, W)``: each class's known cells, for the BCE term).
+    """
+    bce = weighted_bce(logits, target, mask, pos_weight, class_mask)
     unc = uncertainty_loss(logits, mask)
     iou = occupancy_agnostic_iou_loss(logits, target)
     total = bce + cfg.uncertainty_weight * unc + cfg.iou_weight * iou

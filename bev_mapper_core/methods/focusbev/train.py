@@ -189,7 +189,7 @@ class FocusBEVMethod(TrainMethod):
     def data_needs(self) -> DataNeeds:
         w = self.cfg.model.window
         return DataNeeds(image_size=self.model.input_size, sequence_length=w, poses=w > 1,
-                         rgb=self.cfg.model.input_kind == "rgb")
+                         rgb=self.cfg.model.input_kind == "rgb", labels=self.cfg.model.input_kind == "labels")
 
     @override
     def prepare(self, data: TrainData, log: Callable[[str], None]) -> None:
@@ -222,8 +222,9 @@ class FocusBEVMethod(TrainMethod):
     @override
     def loss(self, batch: dict, epoch: int, step: int) -> tuple[torch.Tensor, dict[str, float]]:
         out = self._forward(batch, step_augment(self.cfg.seed, step, self.device) if self._augments() else None)
+        cm = batch.get("class_mask")
         return focusbev_loss(out["logits"], batch["target"].to(self.device), batch["mask"].to(self.device),
-                             self.loss_cfg, self.pos_weight)
+                             self.loss_cfg, self.pos_weight, None if cm is None else cm.to(self.device))
 
     @override
     def predict(self, batch: dict) -> tuple[np.ndarray, np.ndarray]:

@@ -35,7 +35,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from bev_mapper_core.errors import ConfigError
-from bev_mapper_core.nn.losses import masked_bce
+from bev_mapper_core.nn.losses import class_cells, masked_bce
 
 #: ``S2G2LossConfig.bev_tie`` choices.
 BEV_TIES = ("l1", "ce")
@@ -137,7 +137,8 @@ def consistency_loss(active_logits: torch.Tensor, passive_logits: torch.Tensor) 
 
 
 def s2g2_loss(outputs: dict, labeled: int, target: torch.Tensor, mask: torch.Tensor | None, step: int,
-              config: S2G2LossConfig | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+              config: S2G2LossConfig | None = None,
+              class_mask: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
     """Eq. 6 over a batch whose first ``labeled`` frames have ground truth.
 
     Args:
@@ -148,6 +149,7 @@ def s2g2_loss(outputs: dict, labeled: int, target: torch.Tensor, mask: torch.Ten
             None = every cell.
         step: optimizer steps so far (the ramp).
         config: loss weights; default :class:`S2G2LossConfig`.
+        class_mask: ``(labeled, K, H, W)`` bool, each class's known cells (None: all of ``mask``).
 
     Returns:
         ``(total, parts)``: floats ``seg``, ``cycle``, ``bev``, ``con``, ``gamma``, ``total``.
@@ -157,7 +159,8 @@ def s2g2_loss(outputs: dict, labeled: int, target: torch.Tensor, mask: torch.Ten
     if not 1 <= labeled <= logits.shape[0]:
         raise ValueError(f"labeled frames must be in 1..{logits.shape[0]}, got {labeled}")
     pw = None if cfg.pos_weight is None else torch.tensor(cfg.pos_weight, dtype=logits.dtype, device=logits.device)
-    m = None if mask is None else mask.to(logits.device).bool()[:, None]  # (B_l, 1, H, W)
+    m = class_cells(None if mask is None else mask.to(logits.device),
+                    None if class_mask is None else class_mask.to(logits.device))  # (B_l, 1 or K, H, W)
     seg = masked_bce(logits[:labeled], target.to(logits.device), m, pw)
     cyc = cycle_loss(outputs["front"], outputs["front_cycled"])
     tie = bev_tie_loss(outputs["f_i"], outputs["f_c"], cfg.bev_tie)

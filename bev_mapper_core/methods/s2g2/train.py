@@ -311,7 +311,7 @@ class S2G2Method(TrainMethod):
     @override
     def data_needs(self) -> DataNeeds:
         return DataNeeds(image_size=self.model.input_size, unlabeled=not self.cfg.loss.supervised_only,
-                         rgb=self.cfg.model.input_kind == "rgb")
+                         rgb=self.cfg.model.input_kind == "rgb", labels=self.cfg.model.input_kind == "labels")
 
     @override
     def prepare(self, data: TrainData, log: Callable[[str], None]) -> None:
@@ -390,7 +390,7 @@ class S2G2Method(TrainMethod):
             with running_batchnorm(self.model):
                 out_u = self._forward(self._inputs(unlabeled, aug), frozen)
             out = {k: torch.cat([out[k], out_u[k]]) for k in out}  # (B_l + B_u, ...) each
-        return s2g2_loss(out, n, labeled["target"], labeled["mask"], step, self.loss_cfg)
+        return s2g2_loss(out, n, labeled["target"], labeled["mask"], step, self.loss_cfg, labeled.get("class_mask"))
 
     def _cached_loss(self, labeled: dict, unlabeled: dict | None, step: int) -> tuple[torch.Tensor, dict[str, float]]:
         """:meth:`loss` on cached features: the same model and losses after the encoder."""
@@ -401,7 +401,7 @@ class S2G2Method(TrainMethod):
                 out_u = self._heads(self._cached("unlabeled", unlabeled["index"], step))
             out = {k: torch.cat([out[k], out_u[k]]) for k in out}  # (B_l + B_u, ...) each
         return s2g2_loss(out, n, labeled["target"].to(self.device), labeled["mask"].to(self.device), step,
-                         self.loss_cfg)
+                         self.loss_cfg, labeled.get("class_mask"))
 
     def _heads(self, front: torch.Tensor) -> dict[str, torch.Tensor]:
         """The model after its encoder on features ``front``, as :meth:`_forward` computes it."""

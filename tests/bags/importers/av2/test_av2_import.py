@@ -31,7 +31,7 @@ def _table(path, cols):
 
 
 def _log(root):
-    log = root / "0c6e62d7-bdfa-3061-8d3d-03b13aa21f68"
+    log = root / "val" / "0c6e62d7-bdfa-3061-8d3d-03b13aa21f68"  # the dataset's layout: <split>/<log_id>/
     ident = dict(qw=[1.0] * 2, qx=[0.0] * 2, qy=[0.0] * 2, qz=[0.0] * 2)
     # optical frame: z forward = ego x, x right = ego -y, y down = ego -z
     _table(log / "calibration" / "egovehicle_SE3_sensor.feather",
@@ -93,6 +93,7 @@ def test_an_av2_log_imports_with_its_ground_truth(tmp_path, capsys):
     assert np.array_equal(np.flatnonzero((layer["ped_crossing"][0] >= 0.5).any(axis=0)), np.arange(333, 361))
     meta = (bag / "metadata.yaml").read_text()
     assert "sidewalk" in meta and "Argoverse 2" in meta
+    assert "bev_mapper.split: val" in meta  # the folder it lies in, for bev-train --split
 
 
 def test_a_log_without_calibration_is_an_error(tmp_path, capsys):

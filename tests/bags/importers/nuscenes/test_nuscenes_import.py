@@ -183,3 +183,9 @@ def test_round_trip_into_replay(imported, tmp_path, capsys):
     assert status == 0, err
     metrics = json.loads((tmp_path / "r" / "metrics.json").read_text())
     assert metrics["complete"] is True
+    # the HDMapNet protocol's table: IoU per class on the whole grid, and by 10 m range band
+    # (the surround grid's cells reach 33.5 m: four bands)
+    gt = ["drivable", "ped_crossing", "sidewalk", "lane_divider", "road_boundary", "vehicle", "pedestrian"]
+    assert set(gt) <= set(metrics["classes"])
+    assert list(metrics["iou_by_range"]) == ["0-10", "10-20", "20-30", "30-40"]
+    assert all(set(gt) <= set(row) for row in metrics["iou_by_range"].values())
