@@ -230,7 +230,7 @@ def test_replay_errors(drive, tmp_path, capsys):
     # the default method (Bi-Mapper, shipped weights) does not fit this bag's small grid
     assert main(["replay", str(bags["mcap"]), "--out", str(tmp_path / "o"), "--quiet"]) == 1
     err = capsys.readouterr().err
-    assert "error: " in err and "grid" in err and "method 'ipm'" in err and "Traceback" not in err
+    assert "error: " in err and "grid" in err and "ipm (label images, any calibrated rig)" in err and "Traceback" not in err
     assert not (tmp_path / "o" / METRICS_FILE).exists() and no_partials(tmp_path) == []
 
 
