@@ -24,7 +24,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from .geometry.grid import BevGrid
-from .geometry.ground_warp import ground_warp_maps, warp_image
+from .geometry.ground_warp import GroundWarp, warp_image
 from .geometry.rig import Rig
 from .geometry.time_placement import Placement, PoseAt, TimePlacementConfig, place_cameras
 
@@ -56,6 +56,7 @@ class RigPlacer:
         #: the set's image warps (camera -> remap maps) of a method that keeps its rig
         self._warps: dict[str, tuple] = {}
         self._warp_cache: dict[tuple, tuple] = {}
+        self._warpers: dict[str, GroundWarp] = {}  # camera -> its rays (computed once)
 
     def set_base(self, rig: Rig) -> None:
         """The calibrated rig the mapper was just built or re-calibrated with (the placement
@@ -63,6 +64,7 @@ class RigPlacer:
         """
         self.base, self._key = rig, ()
         self._warp_cache.clear()  # maps of the old calibration
+        self._warpers.clear()
 
     def place(self, mapper, stamps: Mapping[str, int | None], ref_stamp_ns: int,
               pose_at: PoseAt) -> tuple[Placement | None, list[tuple[str, str]]]:
@@ -120,7 +122,10 @@ class RigPlacer:
         maps = self._warp_cache.get(key)
         if maps is None:
             cam = self.base[name]
-            maps = ground_warp_maps(cam, D @ cam.ego_from_cam_array)
+            warper = self._warpers.get(name)
+            if warper is None:
+                warper = self._warpers[name] = GroundWarp(cam)
+            maps = warper.maps(D @ cam.ego_from_cam_array)
             if len(self._warp_cache) >= WARP_CACHE:
                 self._warp_cache.pop(next(iter(self._warp_cache)))
             self._warp_cache[key] = maps

@@ -74,3 +74,29 @@ def test_distortion_and_no_motion():
     labels = (ground_view(cam, E)[..., 0] // 64).astype(np.uint8)  # label images: nearest, ids kept
     out = warp_image(labels, ground_warp_maps(cam, _moved(E, 0.3, 0.0, 0.0)))
     assert out.dtype == np.uint8 and set(np.unique(out)) <= set(np.unique(labels)) | {0}
+
+
+def test_a_large_camera_is_warped_from_samples_as_exactly():
+    """A 1600 x 900 camera's maps come from at most MAX_SAMPLES rays, interpolated: within a
+    tenth of a pixel of the maps of every pixel, away from the horizon.
+    """
+    import bev_mapper_core.geometry.ground_warp as gw
+
+    cam = preset_rig("surround6")["front_right"]
+    cam = replace(cam, model=cam.model.scaled(4.0))  # 1600 x 900
+    warp = gw.GroundWarp(cam)
+    assert warp.step > 1
+    placed = _moved(cam.ego_from_cam_array, 0.4, -0.05, math.radians(0.6))
+    mx, my = warp.maps(placed)
+    full = gw.GroundWarp.__new__(gw.GroundWarp)
+    saved = gw.MAX_SAMPLES
+    try:
+        gw.MAX_SAMPLES = 10**9  # every pixel
+        full.__init__(cam)
+    finally:
+        gw.MAX_SAMPLES = saved
+    fx, fy = full.maps(placed)
+    assert fx.shape == mx.shape == (900, 1600)
+    near = np.zeros_like(fx, bool)
+    near[600:] = True  # the ground below the horizon band
+    assert np.abs(mx - fx)[near].max() < 0.1 and np.abs(my - fy)[near].max() < 0.1
