@@ -213,13 +213,19 @@ def run_tasks(ray, fn: Callable, items: Iterable, *args, max_in_flight: int | No
     ``max_in_flight`` tasks are submitted at once (``None``: all). ``poll()`` is called at least
     every ``poll_every_s`` while tasks run (e.g. to refresh progress bars).
 
-    Leaving early (an exception in the consumer, Ctrl-C) cancels the tasks still running.
+    Leaving early (an exception in the consumer) cancels the tasks still running. Ctrl-C or
+    SIGTERM (a ``KeyboardInterrupt`` while waiting here) cancels nothing: the caller's
+    ``ray.shutdown()`` stops them (a local runtime stops; on a cluster Ray kills the tasks of a
+    driver that left). Cancelling then raced their replies, and Ray's core aborted the driver
+    (``task_manager.cc: Tried to complete task that was not pending``, exit 1 instead of 143;
+    ray-project/ray#54260), with plain cancels as with forced ones.
     """
     remote = ray.remote(num_cpus=num_cpus, max_retries=max_retries)(fn)
     shared = [ray.put(a) for a in args]  # once, not once per task
     todo = list(items)
     todo.reverse()
     pending: dict[Any, Any] = {}
+    interrupted = False
     try:
         while todo or pending:
             while todo and (max_in_flight is None or len(pending) < max_in_flight):
@@ -235,8 +241,12 @@ def run_tasks(ray, fn: Callable, items: Iterable, *args, max_in_flight: int | No
                 yield item, result
             if poll is not None:
                 poll()
+    except KeyboardInterrupt:  # Ctrl-C, SIGTERM (bags.cli.dispatch.Terminated): the shutdown stops the tasks
+        interrupted = True
+        raise
     finally:
-        _cancel(ray, list(pending))
+        if not interrupted:
+            _cancel(ray, list(pending))
 
 
 #: Seconds :func:`run_tasks` waits, when it leaves early, for its cancelled tasks to end before
