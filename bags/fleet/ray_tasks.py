@@ -38,7 +38,9 @@ UPLOAD_EXCLUDES = ("__pycache__", "*.pyc")
 #: ... unless the tasks map with the shipped weights: also not those.
 WEIGHTS_EXCLUDES = ("*.safetensors",)
 #: Ray's authentication setting: a local runtime gets ``token`` when the user has set none (what
-#: Ray chooses anyway, said explicitly so that Ray prints no warning about it).
+#: Ray chooses anyway, said explicitly so that Ray prints no warning about it); so does joining a
+#: cluster when this machine holds a token (what ``ray start --head`` chooses: a head started here
+#: checks tokens, and a driver without one is refused only after ~20 s of retries).
 AUTH_MODE_ENV = "RAY_AUTH_MODE"
 #: ``--ray-address`` forms: ``auto`` (the cluster this machine is part of), ``HOST:PORT`` of a
 #: head node's GCS, or ``ray://HOST:PORT`` (Ray client, needs ``ray[client]``).
@@ -125,7 +127,9 @@ def ray_runtime(options: RayOptions, weights: bool = False) -> Iterator[Any]:
     ``weights``: a joined cluster also gets the shipped weights (tasks that map).
 
     ``ray.init`` replaces the SIGTERM handler; the previous one is put back, so that the
-    command's own handling (see :mod:`bags.cli.main`) still applies.
+    command's own handling (see :mod:`bags.cli.main`) still applies. Without ``RAY_AUTH_MODE``
+    set, Ray's token authentication is used (and unset again at the end) for a local runtime, and
+    for a joined cluster when a token is found here (see :data:`AUTH_MODE_ENV`).
 
     Raises:
         BagError: Ray is not installed, or the cluster cannot be joined / the runtime started.
@@ -136,6 +140,10 @@ def ray_runtime(options: RayOptions, weights: bool = False) -> Iterator[Any]:
         os.environ[AUTH_MODE_ENV] = "token"
         _refresh_ray_config()
     ray = import_ray()
+    if not local and AUTH_MODE_ENV not in os.environ and _has_token():
+        auth_set = True  # a cluster without token authentication accepts a driver that sends one
+        os.environ[AUTH_MODE_ENV] = "token"
+        _refresh_ray_config()
     main = threading.current_thread() is threading.main_thread()
     previous = signal.getsignal(signal.SIGTERM) if main else None
     kw: dict[str, Any] = dict(log_to_driver=False, logging_level=logging.WARNING,
@@ -151,7 +159,10 @@ def ray_runtime(options: RayOptions, weights: bool = False) -> Iterator[Any]:
     except (ConnectionError, RuntimeError, ValueError, TimeoutError) as exc:
         _unset_auth(auth_set)
         where = "start a local Ray runtime" if local else f"join the Ray cluster at {options.address!r}"
-        raise BagError(f"cannot {where}: {exc}") from None
+        hint = "" if local or os.environ.get(AUTH_MODE_ENV) == "token" else (
+            " (a cluster with token authentication needs its token here: RAY_AUTH_TOKEN, or the file "
+            "~/.ray/auth_token)")
+        raise BagError(f"cannot {where}: {exc}{hint}") from None
     finally:
         if main and previous is not None:
             signal.signal(signal.SIGTERM, previous)
@@ -173,6 +184,18 @@ def _refresh_ray_config() -> None:
             from ray._raylet import Config  # noqa: PLC0415
 
             Config.initialize("")
+
+
+def _has_token() -> bool:
+    """Whether Ray finds an authentication token here (``RAY_AUTH_TOKEN``, ``RAY_AUTH_TOKEN_PATH``
+    or ``~/.ray/auth_token``), whatever ``RAY_AUTH_MODE`` says.
+    """
+    try:
+        from ray._raylet import AuthenticationTokenLoader  # noqa: PLC0415
+
+        return bool(AuthenticationTokenLoader.instance().has_token(ignore_auth_mode=True))
+    except Exception:  # noqa: BLE001 - a Ray without token authentication: nothing to send
+        return False
 
 
 def _unset_auth(was_set: bool) -> None:

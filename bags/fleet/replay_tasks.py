@@ -232,7 +232,7 @@ def evaluate_bags(ray, jobs: list[tuple[str, ReplayOptions]], workers: int, *, s
             if isinstance(record, ray_tasks.TaskFailure):  # the worker died, the task was cancelled ...
                 record = {"name": name, "bag": str(options.bag), "status": FAILED,
                           "error": record.message, "metrics": None, "scoring": None, "latencies_ms": [],
-                          "seconds": None, "cpu_seconds": None}
+                          "seconds": None, "cpu_seconds": None, "node": None}
             on_record(record)
             bags_bar.update(1)
     finally:
@@ -241,9 +241,13 @@ def evaluate_bags(ray, jobs: list[tuple[str, ReplayOptions]], workers: int, *, s
 
 
 def _evaluate_job(job: tuple[str, ReplayOptions], board) -> dict:
-    """The task body: :func:`evaluate_bag` of one ``(name, options)`` job."""
+    """The task body: :func:`evaluate_bag` of one ``(name, options)`` job, its record with the
+    ``node`` (Ray node id) it ran on.
+    """
     name, options = job
-    return evaluate_bag(options, name, board)
+    import ray  # noqa: PLC0415 - in a Ray worker
+
+    return {**evaluate_bag(options, name, board), "node": ray.get_runtime_context().get_node_id()}
 
 
 def _progress_board(ray):
