@@ -82,6 +82,9 @@ def run(args: argparse.Namespace) -> int:
             print(f"error: {r['name']} ({r['bag']}): {r['status']}: {r['error']}", file=sys.stderr)
     for e in result.summary["aggregate"]["excluded"]:
         print(f"error: {e['name']} left out of the aggregate: {e['reason']}", file=sys.stderr)
+    if any(r["status"] != "ok" for r in result.records):
+        print("note: the same command with --resume replays only the bags that are not ok "
+              "(a bag lost with its node, a damaged bag repaired since)", file=sys.stderr)
     return 0 if result.ok else 1
 
 

@@ -4,11 +4,12 @@
 
 * ``bags/<name>/``: what ``bev-bag replay`` writes for that bag (``metrics.json`` last), and
   ``evaluate.json``: the bag's record (status, error, the options that define its results, its
-  mergeable scoring state and per-frame latencies), written when its task is done;
+  mergeable scoring state and per-frame latencies, the Ray node it ran on), written when its
+  task is done (a bag whose node died is ``failed`` with Ray's ``NodeDiedError``);
 * ``summary.json``: the aggregate over the complete bags (dataset-level IoU from the summed
   intersections and unions, Chamfer weighted by frames, latency percentiles over all frames),
-  one entry per bag (status ``ok`` / ``damaged`` / ``failed`` with its error), the options and
-  timings. Written last.
+  one entry per bag (status ``ok`` / ``damaged`` / ``failed`` with its error, its node), the
+  options, the nodes the tasks ran on and timings. Written last.
 
 Every file is written under a temporary name and renamed. With ``resume`` the bags whose
 ``evaluate.json`` says ``ok`` for the same bag, identity and options are not replayed again
@@ -144,7 +145,8 @@ def evaluate(options: EvaluateOptions) -> EvaluateResult:
             workers = workers or cluster_cpus(ray)
             t = time.perf_counter()
             try:
-                evaluate_bags(ray, jobs, workers, show_progress=options.progress, on_record=on_record)
+                evaluate_bags(ray, jobs, workers, show_progress=options.progress, on_record=on_record,
+                              watch_nodes=options.ray_address is not None)
             finally:
                 t_stop = time.perf_counter()
                 timing["tasks_s"] = t_stop - t
@@ -164,7 +166,8 @@ def evaluate(options: EvaluateOptions) -> EvaluateResult:
         "per_bag": [_entry(r) for r in ordered],
         "redone": redone,
         "options": wanted,
-        "ray": {"address": options.ray_address or "local", "workers": workers},
+        "ray": {"address": options.ray_address or "local", "workers": workers,
+                "nodes": sorted({r["node"] for r in ordered if r.get("node") and not r["resumed"]})},
         "timing": {k: round(v, 3) for k, v in timing.items()},
     }
     write_atomic(out / SUMMARY_FILE, _json(summary))
@@ -197,7 +200,7 @@ def _entry(r: dict) -> dict:
             "out": f"{BAGS_DIR}/{r['name']}", "frames": m.get("frames"),
             "frames_scored": m.get("frames_scored"), "miou": m.get("miou"),
             "latency_p50_ms": lat.get("p50"), "sync": m.get("sync"), "seconds": _round(r["seconds"]),
-            "cpu_seconds": _round(r.get("cpu_seconds")), "resumed": r["resumed"]}
+            "cpu_seconds": _round(r.get("cpu_seconds")), "resumed": r["resumed"], "node": r.get("node")}
 
 
 def _round(v: float | None) -> float | None:

@@ -18,6 +18,7 @@ import os
 import signal
 import socket
 import threading
+import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,7 +39,9 @@ UPLOAD_EXCLUDES = ("__pycache__", "*.pyc")
 #: ... unless the tasks map with the shipped weights: also not those.
 WEIGHTS_EXCLUDES = ("*.safetensors",)
 #: Ray's authentication setting: a local runtime gets ``token`` when the user has set none (what
-#: Ray chooses anyway, said explicitly so that Ray prints no warning about it).
+#: Ray chooses anyway, said explicitly so that Ray prints no warning about it); so does joining a
+#: cluster when this machine holds a token (what ``ray start --head`` chooses: a head started here
+#: checks tokens, and a driver without one is refused only after ~20 s of retries).
 AUTH_MODE_ENV = "RAY_AUTH_MODE"
 #: ``--ray-address`` forms: ``auto`` (the cluster this machine is part of), ``HOST:PORT`` of a
 #: head node's GCS, or ``ray://HOST:PORT`` (Ray client, needs ``ray[client]``).
@@ -125,7 +128,9 @@ def ray_runtime(options: RayOptions, weights: bool = False) -> Iterator[Any]:
     ``weights``: a joined cluster also gets the shipped weights (tasks that map).
 
     ``ray.init`` replaces the SIGTERM handler; the previous one is put back, so that the
-    command's own handling (see :mod:`bags.cli.main`) still applies.
+    command's own handling (see :mod:`bags.cli.main`) still applies. Without ``RAY_AUTH_MODE``
+    set, Ray's token authentication is used (and unset again at the end) for a local runtime, and
+    for a joined cluster when a token is found here (see :data:`AUTH_MODE_ENV`).
 
     Raises:
         BagError: Ray is not installed, or the cluster cannot be joined / the runtime started.
@@ -136,6 +141,10 @@ def ray_runtime(options: RayOptions, weights: bool = False) -> Iterator[Any]:
         os.environ[AUTH_MODE_ENV] = "token"
         _refresh_ray_config()
     ray = import_ray()
+    if not local and AUTH_MODE_ENV not in os.environ and _has_token():
+        auth_set = True  # a cluster without token authentication accepts a driver that sends one
+        os.environ[AUTH_MODE_ENV] = "token"
+        _refresh_ray_config()
     main = threading.current_thread() is threading.main_thread()
     previous = signal.getsignal(signal.SIGTERM) if main else None
     kw: dict[str, Any] = dict(log_to_driver=False, logging_level=logging.WARNING,
@@ -151,7 +160,10 @@ def ray_runtime(options: RayOptions, weights: bool = False) -> Iterator[Any]:
     except (ConnectionError, RuntimeError, ValueError, TimeoutError) as exc:
         _unset_auth(auth_set)
         where = "start a local Ray runtime" if local else f"join the Ray cluster at {options.address!r}"
-        raise BagError(f"cannot {where}: {exc}") from None
+        hint = "" if local or os.environ.get(AUTH_MODE_ENV) == "token" else (
+            " (a cluster with token authentication needs its token here: RAY_AUTH_TOKEN, or the file "
+            "~/.ray/auth_token)")
+        raise BagError(f"cannot {where}: {exc}{hint}") from None
     finally:
         if main and previous is not None:
             signal.signal(signal.SIGTERM, previous)
@@ -173,6 +185,18 @@ def _refresh_ray_config() -> None:
             from ray._raylet import Config  # noqa: PLC0415
 
             Config.initialize("")
+
+
+def _has_token() -> bool:
+    """Whether Ray finds an authentication token here (``RAY_AUTH_TOKEN``, ``RAY_AUTH_TOKEN_PATH``
+    or ``~/.ray/auth_token``), whatever ``RAY_AUTH_MODE`` says.
+    """
+    try:
+        from ray._raylet import AuthenticationTokenLoader  # noqa: PLC0415
+
+        return bool(AuthenticationTokenLoader.instance().has_token(ignore_auth_mode=True))
+    except Exception:  # noqa: BLE001 - a Ray without token authentication: nothing to send
+        return False
 
 
 def _unset_auth(was_set: bool) -> None:
@@ -206,12 +230,17 @@ def failure_message(exc: BaseException) -> str:
 
 def run_tasks(ray, fn: Callable, items: Iterable, *args, max_in_flight: int | None = None,
               num_cpus: float = 1, max_retries: int = 3, poll: Callable[[], None] | None = None,
-              poll_every_s: float = 0.2) -> Iterator[tuple[Any, Any]]:
+              poll_every_s: float = 0.2, watch_nodes: bool = False) -> Iterator[tuple[Any, Any]]:
     """Run ``fn(item, *args)`` as one Ray task per item (``num_cpus`` each; a task whose worker
     dies is run again up to ``max_retries`` times, Ray's default); yield ``(item, result)`` in
     completion order, ``result`` a :class:`TaskFailure` when the task failed. At most
     ``max_in_flight`` tasks are submitted at once (``None``: all). ``poll()`` is called at least
     every ``poll_every_s`` while tasks run (e.g. to refresh progress bars).
+
+    ``watch_nodes`` (a cluster of several nodes): each task tells a small actor on this node
+    where it runs, and a task whose node the cluster has declared dead fails at once
+    (``NodeDiedError``) instead of when Ray's connection to its worker times out, which takes
+    up to 7 minutes when the node vanished without closing it (a machine gone, a partition).
 
     Leaving early (an exception in the consumer) cancels the tasks still running. Ctrl-C or
     SIGTERM (a ``KeyboardInterrupt`` while waiting here) cancels nothing: the caller's
@@ -220,25 +249,36 @@ def run_tasks(ray, fn: Callable, items: Iterable, *args, max_in_flight: int | No
     (``task_manager.cc: Tried to complete task that was not pending``, exit 1 instead of 143;
     ray-project/ray#54260), with plain cancels as with forced ones.
     """
-    remote = ray.remote(num_cpus=num_cpus, max_retries=max_retries)(fn)
+    watch = _NodeWatch(ray) if watch_nodes else None
+    remote = ray.remote(num_cpus=num_cpus, max_retries=max_retries)(_reporting if watch else fn)
     shared = [ray.put(a) for a in args]  # once, not once per task
-    todo = list(items)
+    todo = list(enumerate(items))
     todo.reverse()
-    pending: dict[Any, Any] = {}
+    pending: dict[Any, tuple[int, Any]] = {}
     interrupted = False
+    timeout = None if poll is None else poll_every_s
+    if watch is not None:
+        timeout = min(timeout or NODE_CHECK_S, NODE_CHECK_S)
     try:
         while todo or pending:
             while todo and (max_in_flight is None or len(pending) < max_in_flight):
-                item = todo.pop()
-                pending[remote.remote(item, *shared)] = item
-            done, _ = ray.wait(list(pending), num_returns=1, timeout=None if poll is None else poll_every_s)
+                key, item = todo.pop()
+                head = (fn, watch.board, key, item) if watch else (item,)
+                pending[remote.remote(*head, *shared)] = (key, item)
+            done, _ = ray.wait(list(pending), num_returns=1, timeout=timeout)
             for ref in done:
-                item = pending.pop(ref)
+                _, item = pending.pop(ref)
                 try:
                     result = ray.get(ref)
                 except ray.exceptions.RayError as exc:
                     result = TaskFailure(failure_message(exc))
                 yield item, result
+            if watch is not None:
+                for ref, message in watch.lost(pending):
+                    _, item = pending.pop(ref)
+                    with contextlib.suppress(Exception):
+                        ray.cancel(ref, force=False)
+                    yield item, TaskFailure(message)
             if poll is not None:
                 poll()
     except KeyboardInterrupt:  # Ctrl-C, SIGTERM (bags.cli.dispatch.Terminated): the shutdown stops the tasks
@@ -247,6 +287,63 @@ def run_tasks(ray, fn: Callable, items: Iterable, *args, max_in_flight: int | No
     finally:
         if not interrupted:
             _cancel(ray, list(pending))
+
+
+#: Seconds between two looks at the cluster's dead nodes (``watch_nodes``).
+NODE_CHECK_S = 1.0
+
+
+def _reporting(fn: Callable, board, key: int, item, *args):
+    """A watched task's body: tell ``board`` this node, then ``fn(item, *args)``."""
+    import ray  # noqa: PLC0415 - in a Ray worker
+
+    board.started.remote(key, ray.get_runtime_context().get_node_id())
+    return fn(item, *args)
+
+
+class _StartBoard:
+    """Where each watched task started: task key -> node id (an actor on the driver's node)."""
+
+    def __init__(self) -> None:
+        self.nodes: dict[int, str] = {}
+
+    def started(self, key: int, node: str) -> None:
+        self.nodes[key] = node
+
+    def where(self) -> dict[int, str]:
+        return self.nodes
+
+
+class _NodeWatch:
+    """The tasks of :func:`run_tasks` whose node died (``watch_nodes``)."""
+
+    def __init__(self, ray) -> None:
+        from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy  # noqa: PLC0415
+
+        self._ray = ray
+        here = NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=False)
+        self.board = ray.remote(num_cpus=0)(_StartBoard).options(scheduling_strategy=here).remote()
+        self._next = 0.0
+
+    def lost(self, pending: dict[Any, tuple[int, Any]]) -> list[tuple[Any, str]]:
+        """``(ref, message)`` of the pending tasks on nodes the cluster calls dead (at most every
+        :data:`NODE_CHECK_S`).
+        """
+        now = time.monotonic()
+        if not pending or now < self._next:
+            return []
+        self._next = now + NODE_CHECK_S
+        dead = {n["NodeID"]: n for n in self._ray.nodes() if not n["Alive"]}
+        if not dead:
+            return []
+        where = self._ray.get(self.board.where.remote())
+        lost = []
+        for ref, (key, _) in pending.items():
+            node = dead.get(where.get(key))
+            if node is not None:
+                lost.append((ref, f"NodeDiedError: the node this task ran on died (node {node['NodeID']}, "
+                                  f"{node.get('NodeManagerAddress', '?')})"))
+        return lost
 
 
 #: Seconds :func:`run_tasks` waits, when it leaves early, for its cancelled tasks to end before

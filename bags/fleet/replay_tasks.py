@@ -203,12 +203,13 @@ def aggregate(records: list[dict]) -> dict:
 
 # ------------------------------------------------------------------ Ray
 def evaluate_bags(ray, jobs: list[tuple[str, ReplayOptions]], workers: int, *, show_progress: bool,
-                  on_record: Callable[[dict], None]) -> None:
+                  on_record: Callable[[dict], None], watch_nodes: bool = False) -> None:
     """Run :func:`evaluate_bag` for every ``(name, options)`` as Ray tasks of one CPU each, at
     most ``workers`` at a time (:func:`bags.fleet.ray_tasks.run_tasks`), on the runtime ``ray`` is
     connected to. Each record is handed to ``on_record`` as it arrives (in completion order),
     also for a task whose worker died (a ``failed`` record). With ``show_progress``: tqdm bars
-    over bags and frames.
+    over bags and frames. ``watch_nodes`` (a joined cluster): a bag whose node dies fails as soon
+    as the cluster declares the node dead (see :func:`~bags.fleet.ray_tasks.run_tasks`).
     """
     from tqdm import tqdm  # noqa: PLC0415
 
@@ -228,11 +229,12 @@ def evaluate_bags(ray, jobs: list[tuple[str, ReplayOptions]], workers: int, *, s
     try:
         # a bag that kills its worker fails alone at once, not after retries
         for (name, options), record in ray_tasks.run_tasks(ray, _evaluate_job, jobs, board, max_in_flight=workers,
-                                                           max_retries=0, poll=refresh, poll_every_s=PROGRESS_EVERY_S):
+                                                           max_retries=0, poll=refresh, poll_every_s=PROGRESS_EVERY_S,
+                                                           watch_nodes=watch_nodes):
             if isinstance(record, ray_tasks.TaskFailure):  # the worker died, the task was cancelled ...
                 record = {"name": name, "bag": str(options.bag), "status": FAILED,
                           "error": record.message, "metrics": None, "scoring": None, "latencies_ms": [],
-                          "seconds": None, "cpu_seconds": None}
+                          "seconds": None, "cpu_seconds": None, "node": None}
             on_record(record)
             bags_bar.update(1)
     finally:
@@ -241,9 +243,13 @@ def evaluate_bags(ray, jobs: list[tuple[str, ReplayOptions]], workers: int, *, s
 
 
 def _evaluate_job(job: tuple[str, ReplayOptions], board) -> dict:
-    """The task body: :func:`evaluate_bag` of one ``(name, options)`` job."""
+    """The task body: :func:`evaluate_bag` of one ``(name, options)`` job, its record with the
+    ``node`` (Ray node id) it ran on.
+    """
     name, options = job
-    return evaluate_bag(options, name, board)
+    import ray  # noqa: PLC0415 - in a Ray worker
+
+    return {**evaluate_bag(options, name, board), "node": ray.get_runtime_context().get_node_id()}
 
 
 def _progress_board(ray):
