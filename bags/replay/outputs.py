@@ -312,8 +312,11 @@ def _weights_name(mapper) -> str | None:
     """The file name of the weights a learned mapper runs (e.g. the shipped weights for any rig),
     None for a training-free one.
     """
-    path = getattr(mapper, "weights_path", None) or getattr(mapper, "weights_file", None)
-    return None if path is None else Path(path).name
+    for name in ("weights_file", "weights_path"):  # the monocular methods' weights_path is a classmethod
+        path = getattr(mapper, name, None)
+        if isinstance(path, (str, Path)):
+            return Path(path).name
+    return None
 
 
 def metrics_document(run: ReplayRun, scorer: ReplayScorer, tally: MappingTally, bag_counts: dict) -> dict:

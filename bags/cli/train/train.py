@@ -71,7 +71,8 @@ def configure(p: argparse.ArgumentParser, argv: list[str]) -> None:
     p.add_argument("--config", help="YAML file of TrainConfig fields (flags override it)")
     p.add_argument("--method", choices=list(train_methods()))
     p.add_argument("--rig", choices=sorted(PRESETS) + [RANDOM_RIGS],
-                   help=f"a preset rig, or {RANDOM_RIGS}: every drive its own random rig (a rig-free Bi-Mapper: --streams lv)")
+                   help=f"a preset rig, or {RANDOM_RIGS}: every drive its own random rig (a rig-free model: Bi-Mapper's "
+                        "LV stream alone)")
     p.add_argument("--input", choices=list(INPUT_KINDS), help="the model's input kind")
     p.add_argument("--classes", help=f"{AUTO_CLASSES} | standard | cam2bev | s2g2 | comma list ({AUTO_CLASSES}: cam2bev for cam2bev4)")
     p.add_argument("--grid", type=grid_name, metavar="NAME", help=grid_help() + " (default surround)")

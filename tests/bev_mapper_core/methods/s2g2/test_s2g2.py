@@ -586,6 +586,7 @@ def test_replay_maps_a_front1_bag_with_the_shipped_s2g2_weights(tmp_path):
                  "--no-report", "--quiet"]) == 0
     m = json.loads((out / METRICS_FILE).read_text())
     assert m["method"] == "s2g2" and m["input"] == "rgb" and 0.0 < m["miou"] <= 1.0
+    assert m["weights"] == shipped_s2g2("front1", "rgb").name  # the file that ran
     assert set(m["classes"]) == set(read_s2g2_metadata(shipped_s2g2("front1", "rgb"))["classes"])
     with BagReader(bag) as r:
         assert r.grid() == grid_preset("ahead")
