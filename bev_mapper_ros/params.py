@@ -114,8 +114,8 @@ _DECLARATIONS: dict[str, tuple] = {
     "temporal_window": (_T.PARAMETER_INTEGER, "fuse the flat layers over the last N frames, aligned by odometry "
                         "(log-odds; 1 = off)"),
     "time_placement": (_T.PARAMETER_STRING, f"one of {list(PLACEMENT_MODES)}: auto = place each camera with the ego "
-                       "pose (pose_source) of its own stamp, in base_frame at the set's stamp (ipm, segipm; learned "
-                       "methods keep their calibration, counted); off = every camera as calibrated"),
+                       "pose (pose_source) of its own stamp, in base_frame at the set's stamp (ipm, segipm: a placed "
+                       "rig; learned methods: the moved cameras' images warped); off = every camera as calibrated"),
     "time_placement_step_cells": (_T.PARAMETER_DOUBLE, "round each camera's correction to this many grid cells "
                                   "(under half of it: skipped, counted as static; 0 = exact, tables rebuilt every set)"),
     "time_placement_max_offset_s": (_T.PARAMETER_DOUBLE, "a camera stamped farther than this from its set's stamp "

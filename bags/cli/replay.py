@@ -118,7 +118,7 @@ def add_replay_args(p: argparse.ArgumentParser) -> None:
     tp = TimePlacementConfig
     p.add_argument("--time-placement", choices=PLACEMENT_MODES, default=tp.mode,
                    help="place each camera with the ego pose (the bag's /odom or /tf) of its own stamp, in base_link "
-                        "at the frame's stamp (IPM, segipm; learned methods keep their calibration, counted); "
+                        "at the frame's stamp (IPM, segipm: a placed rig; learned methods: moved images warped); "
                         "auto: where the bag has poses (default: %(default)s)")
     p.add_argument("--placement-step-cells", type=float, default=tp.step_cells, metavar="CELLS",
                    help="round each camera's correction to this many grid cells (under half of it: skipped, "

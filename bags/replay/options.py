@@ -80,7 +80,7 @@ class ReplayOptions:
             win over the ``--params-file``'s ``ego_mask.<camera>``.
         placement: each camera placed with the ego pose (the bag's odometry or ``/tf``) of its own
             stamp, in ``base_link`` at the frame's stamp (:mod:`bev_mapper_core.placement`:
-            IPM and segipm; learned methods keep their calibrated rig, counted); counted in
+            IPM and segipm a placed rig, learned methods the moved images warped); counted in
             ``metrics.json``'s ``placement``.
     """
 

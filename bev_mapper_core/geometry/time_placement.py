@@ -55,8 +55,9 @@ class TimePlacementConfig:
     """Placing each camera of a set with the ego pose of its own stamp.
 
     Args:
-        mode: ``auto`` (the default: place the cameras where ego poses exist, odometry or TF, and
-            the method can take a new rig per set; else map as calibrated and say so once) or
+        mode: ``auto`` (the default: place the cameras where ego poses exist, odometry or TF: a
+            placed rig, or for a method that keeps its rig the moved images warped,
+            :mod:`~bev_mapper_core.placement`; without poses map as calibrated, said once) or
             ``off`` (always the static rig).
         step_cells: the quantization step, in grid cells: a correction's translation is rounded
             to a multiple of ``step_cells * grid.resolution`` m and its angles to the angle that
