@@ -43,6 +43,7 @@ RUNS = (
     ("bench_node_rate.py", ["--hz", "10", "--seconds", "15", "--node-arg", "backend:=torch"]),
     ("bench_replay.py", []),
     ("bench_replay_rate.py", []),
+    ("bench_replay_e2e.py", ["--repeat", "2", "--loads", "0", "1", "--settings", "auto", "off"]),
     ("bench_node_startup.py", ["--methods", "--runs", "1"]),
     ("bench_full_resolution.py", []),
 )

@@ -9,6 +9,7 @@ chained through intermediate frames (``base_link -> camera_link -> camera_optica
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
@@ -68,9 +69,8 @@ def quaternion_to_rotation(q: Any, what: str = "quaternion") -> np.ndarray:
             (within :data:`QUATERNION_TOLERANCE`).
     """
     xyzw = _floats(q, "xyzw", what, finite=False)
-    with np.errstate(over="ignore"):  # 1e300 components: inf, refused below
-        norm = float(np.linalg.norm(xyzw)) if np.all(np.isfinite(xyzw)) else float("nan")
-    if not np.isfinite(norm) or abs(norm - 1.0) > QUATERNION_TOLERANCE:
+    norm = math.sqrt(math.fsum(v * v for v in xyzw.tolist()))  # 1e300 components: inf; NaN stays NaN
+    if not math.isfinite(norm) or abs(norm - 1.0) > QUATERNION_TOLERANCE:
         raise TransformError(f"{what} (x, y, z, w) = {tuple(xyzw.tolist())} is not a unit quaternion")
     try:
         return quat_to_rot(*xyzw)

@@ -59,6 +59,7 @@ def replay_outputs(out: pathlib.Path):
     """
     metrics = json.loads((out / METRICS_FILE).read_text())
     metrics.pop("latency_ms")
+    metrics.pop("score_process")  # where the frames were scored (and the load then): not an output
     metrics.pop("bag")
     pictures = {p.name: p.read_bytes() for p in sorted((out / FRAMES_DIR).glob("*.png"))}
     bag = {p.name: p.read_bytes() for p in sorted((out / BAG_DIR).iterdir())}
@@ -69,6 +70,6 @@ def replay_outputs(out: pathlib.Path):
 def replay_scores(out: pathlib.Path) -> dict:
     """A replay's metrics.json without its timings and paths (two replays compare equal on it)."""
     m = json.loads((out / METRICS_FILE).read_text())
-    for key in ("latency_ms", "bag"):
+    for key in ("latency_ms", "score_process", "bag"):
         m.pop(key)
     return m

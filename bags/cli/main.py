@@ -18,6 +18,7 @@ import importlib
 import logging
 import sys
 
+from ..mcap_checksums import check_in_background
 from .dispatch import exit_status, run_guarded
 
 #: Subcommand name -> module implementing it (add new subcommands here).
@@ -49,8 +50,15 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: subcommands that read the bags named on their command line: their MCAP checksums start at once
+READS_BAGS = frozenset({"replay", "info", "play", "segment", "propose-mask"})
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``bev-bag``; returns the exit status."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] in READS_BAGS:  # the checks (GIL-free reading) run beside the imports below
+        check_in_background(a for a in argv[1:] if not a.startswith("-"))
     try:
         args = build_parser().parse_args(argv)
     except SystemExit as exc:  # --help or a usage error; argparse printed the message

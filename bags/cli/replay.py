@@ -24,7 +24,7 @@ from ..io.writer import STORAGES
 from ..memory import keep_freed_memory
 from ..replay import ReplayOptions, replay
 from ..replay.options import SCORE_PROCESS
-from ..replay.score_process import AUTO_MIN_FRAMES
+from ..replay.score_process import AUTO_MIN_FRAMES, AUTO_MIN_SPARE
 from .grid_args import add_grid_args, grid_from_args
 
 HELP = ("map every frame of a bag offline (no DDS), write a BEV bag, pictures, report.html and "
@@ -141,8 +141,8 @@ def add_replay_args(p: argparse.ArgumentParser) -> None:
                         "thread, every stage in turn; the outputs are the same; default: %(default)s)")
     p.add_argument("--score-process", choices=SCORE_PROCESS, default=ReplayOptions.score_process,
                    help="score the frames in a process of their own (auto: drives of "
-                        f"{AUTO_MIN_FRAMES} frames or more on 2 cores or more; the outputs are the same; "
-                        "default: %(default)s)")
+                        f"{AUTO_MIN_FRAMES} frames or more on 2 cores or more, where other jobs leave "
+                        f"{AUTO_MIN_SPARE} of a core free; the outputs are the same; default: %(default)s)")
     p.add_argument("--storage", choices=STORAGES, default=ReplayOptions.storage, help="storage of bev_bag/")
     p.add_argument("--force", action="store_true", help="replace existing outputs in DIR")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

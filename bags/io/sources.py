@@ -24,10 +24,11 @@ streams); without MCAP files it is a :class:`BagFormatError`.
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator
+import threading
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from ..errors import BagCorruptError, BagFormatError
 from .integrity import check_mcap, check_sqlite, data_crc_verified
@@ -38,6 +39,7 @@ from .raw import IndexedMcap
 BAG_SUFFIXES = (".mcap", ".db3")
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -65,7 +67,8 @@ class AnyReaderSource:
     :class:`BagCorruptError` at the end, like a stream that reached its damage.
     """
 
-    def __init__(self, path: Path, meta: dict, damage: str | None = None, mcap_files: list[Path] = ()) -> None:
+    def __init__(self, path: Path, meta: dict, damage: str | None = None, mcap_files: list[Path] = (),
+                 damaged: Callable[[], list[str]] | None = None) -> None:
         from rosbags.highlevel import AnyReader
 
         self.path = path
@@ -74,7 +77,10 @@ class AnyReaderSource:
         self._reader = AnyReader([path])
         self._reader.open()  # errors handled by open_source
         self._indexed = None
-        if len(mcap_files) == 1 and not damage and meta.get("compression_mode", "") != "message":
+        # damaged(): the MCAP checksums' findings (checked beside the opening; damaged: not indexed,
+        # the caller reads the files as a stream)
+        bad = damaged() if damaged is not None else []
+        if len(mcap_files) == 1 and not damage and not bad and meta.get("compression_mode", "") != "message":
             self._indexed = IndexedMcap.open(mcap_files[0], data_crc_verified(mcap_files[0]))
         self.topics = {
             name: TopicSummary(name, info.msgtype or "", int(info.msgcount))
@@ -299,14 +305,16 @@ def open_source(path: str | Path):
                 return McapStreamSource(path, files, meta, "metadata.yaml is missing")
             raise BagFormatError(f"{path}: not a rosbag2 directory (no metadata.yaml)")
     files = _mcap_files(path, meta)
-    bad = [p for p in map(check_mcap, files) if p]
-    if bad:
-        log.warning("%s: %s; reading it as a stream up to the damage", path, bad[0])
-        return McapStreamSource(path, files, meta, "; ".join(bad))
+    # the MCAP checksums (reading every byte of the files) run beside rosbags' opening of the
+    # bag (mostly Python): both are done before a message is read, and a damaged file is read
+    # as a stream, as if it had been checked first
+    damaged = _in_background(lambda: [p for p in map(check_mcap, files) if p])
     damage = "; ".join(p for p in map(check_sqlite, _sqlite_files(path, meta)) if p) or None
     try:
-        return AnyReaderSource(path, meta, damage, files)
+        source = AnyReaderSource(path, meta, damage, files, damaged)
     except Exception as exc:  # rosbags' ReaderError/AnyReaderError, sqlite3 errors, ...
+        if damaged():
+            return _damaged_stream(path, files, meta, damaged())
         reason = f"{type(exc).__name__}: {exc}"
         if files and not isinstance(exc, FileNotFoundError):
             log.warning("%s: rosbags cannot open it (%s); reading it as a stream", path, reason)
@@ -314,3 +322,37 @@ def open_source(path: str | Path):
         if isinstance(exc, AnyReaderError) and "malformed" not in str(exc):
             raise BagFormatError(f"{path}: cannot open bag: {reason}") from None
         raise BagCorruptError(f"{path}: cannot open bag: {reason}") from None
+    if damaged():
+        source.close()
+        return _damaged_stream(path, files, meta, damaged())
+    return source
+
+
+def _damaged_stream(path: Path, files: list[Path], meta: dict, bad: list[str]) -> McapStreamSource:
+    """The stream source of a bag whose MCAP files failed their checksums (``bad``: what is wrong)."""
+    log.warning("%s: %s; reading it as a stream up to the damage", path, bad[0])
+    return McapStreamSource(path, files, meta, "; ".join(bad))
+
+
+def _in_background(fn: Callable[[], T]) -> Callable[[], T]:
+    """Start ``fn()`` in a thread; returns a function that waits for its result (re-raising its
+    exception), any number of times.
+    """
+    box: dict[str, Any] = {}
+
+    def run() -> None:
+        try:
+            box["value"] = fn()
+        except BaseException as exc:  # noqa: BLE001 - re-raised by the caller's wait
+            box["error"] = exc
+
+    thread = threading.Thread(target=run, name="bag-checksums", daemon=True)
+    thread.start()
+
+    def result() -> T:
+        thread.join()
+        if "error" in box:
+            raise box["error"]
+        return box["value"]
+
+    return result

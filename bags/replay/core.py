@@ -61,8 +61,9 @@ from ..io.writer import BagWriter
 from .mapping import map_frames
 from .options import BAG_DIR, FRAMES_DIR, ReplayOptions, ReplayResult, ReplayRun, check_outputs
 from .outputs import FrameSink, write_outputs
-from .score_process import Pictures, ScoringError, ScoringProcess, use_process
+from .score_process import Pictures, ScoringError, ScoringProcess, start_child, stop_child, use_process
 from .scoring import scorer_for
+from .spare_cpu import CpuWatch
 
 
 def replay(options: ReplayOptions, progress: Callable | None = None) -> ReplayResult:
@@ -78,6 +79,7 @@ def replay(options: ReplayOptions, progress: Callable | None = None) -> ReplayRe
             is written then. Damage met *while reading frames* is not raised: it is returned in
             :attr:`ReplayResult.damage` after the outputs of the intact frames were written.
     """
+    watch = CpuWatch()  # the other jobs' load while the bag opens: does a scoring process pay?
     out = Path(options.out)
     check_outputs(out, options.force)
     hints = options.rig.hints()
@@ -86,45 +88,69 @@ def replay(options: ReplayOptions, progress: Callable | None = None) -> ReplayRe
     masks = {cam: load_ego_mask(path) for cam, path in mask_paths.items()}
     with BagReader(options.bag, hints=hints) as reader:
         rig = with_ego_masks(reader.rig(), masks)
-        grid = reader.grid()
-        notes: list[str] = mask_notes(rig)
-        if reader.unknown_gt_classes:
-            notes.append(f"GT layers of unknown classes skipped (not scored): "
-                         f"{', '.join(T.gt_topic(c) for c in reader.unknown_gt_classes)} (known classes: "
-                         f"{', '.join(known_class_names())})")
-        if grid is None:
-            grid = options.grid or (hints and hints.grid) or BevGrid()
-            notes.append(f"the bag has no GT layers: mapping onto {grid.describe()}, no metrics")
-        elif options.grid is not None and not options.grid.isclose(grid):
-            raise BagContentError(
-                f"the bag's GT grid is {grid.describe()}; grid flags only apply to bags without GT")
+        # a scoring process this replay will want starts now: its start overlaps the mapper's
+        spare = watch.spare_cores()
+        wanted = use_process(options.score_process, _expected_frames(options, reader, rig), spare)
+        child, failed = None, None
+        if wanted:
+            try:
+                child = start_child()
+            except OSError as exc:  # no interpreter to run (an embedded Python): scored here, said
+                failed = exc
         try:
-            mapper = create_mapper(rig, grid, options.mapper)
-        except BevMapperError as exc:
-            if "rig" not in str(exc) or hints is not None or rig.name in PRESETS:  # a preset is no guess
-                raise
-            raise type(exc)(f"{exc} (the bag's rig was taken as {rig.name!r}: {RIG_FLAGS_HINT})") from None
-        notes += list(mapper.notes)  # e.g. the weights for any rig chosen for a rig its own do not fit
-        out.mkdir(parents=True, exist_ok=True)
-        run = ReplayRun(options, reader, rig, grid, mapper, out, partial_name(out / FRAMES_DIR), notes)
-        shutil.rmtree(run.tmp_frames, ignore_errors=True)
-        try:
-            result = _run(run, progress)
+            return _replay(options, progress, reader, rig, out, child, spare, failed)
         finally:
-            shutil.rmtree(run.tmp_frames, ignore_errors=True)
+            stop_child(child)  # unless taken over (then already stopped): e.g. the mapper failed
+
+
+def _replay(options: ReplayOptions, progress: Callable | None, reader: BagReader, rig, out: Path,
+            child, spare: float | None, failed: OSError | None = None) -> ReplayResult:
+    """:func:`replay` with the bag open (``child``: the scoring process started for it, or
+    ``None``; ``spare``: the cores the other jobs left free while the bag opened; ``failed``:
+    why a scoring process asked for did not start).
+    """
+    hints = options.rig.hints()
+    grid = reader.grid()
+    notes: list[str] = mask_notes(rig)
+    if failed is not None:
+        notes.append(f"scored in the replay's own process: the scoring process did not start ({failed})")
+    if reader.unknown_gt_classes:
+        notes.append(f"GT layers of unknown classes skipped (not scored): "
+                     f"{', '.join(T.gt_topic(c) for c in reader.unknown_gt_classes)} (known classes: "
+                     f"{', '.join(known_class_names())})")
+    if grid is None:
+        grid = options.grid or (hints and hints.grid) or BevGrid()
+        notes.append(f"the bag has no GT layers: mapping onto {grid.describe()}, no metrics")
+    elif options.grid is not None and not options.grid.isclose(grid):
+        raise BagContentError(
+            f"the bag's GT grid is {grid.describe()}; grid flags only apply to bags without GT")
+    try:
+        mapper = create_mapper(rig, grid, options.mapper)
+    except BevMapperError as exc:
+        if "rig" not in str(exc) or hints is not None or rig.name in PRESETS:  # a preset is no guess
+            raise
+        raise type(exc)(f"{exc} (the bag's rig was taken as {rig.name!r}: {RIG_FLAGS_HINT})") from None
+    notes += list(mapper.notes)  # e.g. the weights for any rig chosen for a rig its own do not fit
+    out.mkdir(parents=True, exist_ok=True)
+    run = ReplayRun(options, reader, rig, grid, mapper, out, partial_name(out / FRAMES_DIR), notes, spare)
+    shutil.rmtree(run.tmp_frames, ignore_errors=True)
+    try:
+        result = _run(run, progress, child)
+    finally:
+        shutil.rmtree(run.tmp_frames, ignore_errors=True)
     return result
 
 
-def _run(run: ReplayRun, progress: Callable | None) -> ReplayResult:
+def _run(run: ReplayRun, progress: Callable | None, child) -> ReplayResult:
     """Map, score and write every frame into the output bag, then the other outputs."""
     options = run.options
     scorer = scorer_for(run)
-    total = _expected_frames(run)
+    total = _expected_frames(options, run.reader, run.rig)
     bar = progress(total) if progress is not None else _tqdm_bar(run, total)
     if options.pictures:
         run.tmp_frames.mkdir()
     with BagWriter(run.out / BAG_DIR, storage=options.storage, force=options.force) as bw:
-        remote = _scoring_process(run, scorer, total)
+        remote = _scoring_process(run, scorer, child)
         try:
             sink = FrameSink(run, bw, scorer, remote)
         except BaseException:
@@ -143,29 +169,28 @@ def _run(run: ReplayRun, progress: Callable | None) -> ReplayResult:
     return write_outputs(run, sink, tally)
 
 
-def _scoring_process(run: ReplayRun, scorer, total: int | None) -> ScoringProcess | None:
-    """The scoring process ``options.score_process`` asks for (``None``: score here). One that
-    does not start (no shared memory, no interpreter to run) leaves the scoring here, with a
-    note: the outputs are the same either way.
+def _scoring_process(run: ReplayRun, scorer, child) -> ScoringProcess | None:
+    """The scoring process ``options.score_process`` asked for (``child``: its interpreter,
+    started by :func:`replay`; ``None``: score here). One that does not start (no shared memory,
+    no interpreter to run) leaves the scoring here, with a note: the outputs are the same either way.
     """
     options = run.options
-    if scorer.acc is None or not use_process(options.score_process, total):
+    if scorer.acc is None or child is None:
         return None
     try:
         pictures = Pictures(options.mapper.method, tuple(run.mapper.classes), str(run.tmp_frames))
         return ScoringProcess(scorer, len(run.mapper.class_names), run.grid.shape, pictures=pictures,
-                              published=tuple(run.mapper.classes))
+                              published=tuple(run.mapper.classes), child=child)
     except (OSError, ScoringError) as exc:
         run.notes.append(f"scored in the replay's own process: the scoring process did not start ({exc})")
         return None
 
 
-def _expected_frames(run: ReplayRun) -> int | None:
+def _expected_frames(options: ReplayOptions, reader: BagReader, rig) -> int | None:
     """The frames the replay expects to map (``None``: unknown): the first camera's images,
     at most ``max_frames``.
     """
-    options, reader = run.options, run.reader
-    image_topic = reader.image_topic(run.rig.names[0], run.input_kind)
+    image_topic = reader.image_topic(rig.names[0], options.mapper.input_kind)
     total = reader.topics[image_topic].count if image_topic in reader.topics else None
     if options.max_frames is not None:
         total = min(total or options.max_frames, options.max_frames)

@@ -69,8 +69,11 @@ class ReplayOptions:
             are measured while the other stages run (0: the mapper's time alone).
         score_process: score the frames in a process of their own (:mod:`bags.replay.score_process`):
             ``'on'``, ``'off'`` or ``'auto'`` (a drive of at least
-            :data:`~bags.replay.score_process.AUTO_MIN_FRAMES` frames on 2 cores or more; starting
-            the process costs about a second). The outputs are the same either way. ``bev-bag
+            :data:`~bags.replay.score_process.AUTO_MIN_FRAMES` frames on 2 cores or more, where
+            the other jobs left at least :data:`~bags.replay.score_process.AUTO_MIN_SPARE` of a
+            core free while the bag opened: :mod:`bags.replay.spare_cpu`; the process is started
+            then, so its start overlaps the mapper's). The outputs are the same either way;
+            ``metrics.json`` ``score_process`` says where the frames were scored. ``bev-bag
             evaluate`` turns it off: its workers already keep every core busy.
         rig: what the bag lacks about its rig (``--rig``, ``--params-file``;
             :mod:`bags.io.rig_source`).
@@ -158,6 +161,9 @@ class ReplayRun:
     out: Path
     tmp_frames: Path
     notes: list[str] = field(default_factory=list)
+    #: the cores the other jobs left free while the bag opened (``None``: unknown); ``metrics.json``
+    #: ``score_process``
+    spare_cores: float | None = None
 
     @property
     def input_kind(self) -> str:

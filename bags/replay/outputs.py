@@ -129,6 +129,8 @@ class FrameSink:
         self.run, self.bw, self.scorer = run, bw, scorer
         #: the scoring process (None: the frames are scored here); the frames it scores, oldest first
         self._remote, self._waiting = remote, deque()
+        #: whether the frames were scored in a process of their own (``metrics.json`` ``score_process``)
+        self.scored_apart = remote is not None
         options, mapper = run.options, run.mapper
         for c in mapper.class_names:
             bw.add_topic(OUT_PREFIX + c, T.GRID_TYPE)
@@ -283,7 +285,7 @@ def write_outputs(run: ReplayRun, sink: FrameSink, tally: MappingTally) -> Repla
         run.notes.append(gif_note)
     if gif_path is None:
         _remove_stale(out / GIF_FILE)
-    metrics = metrics_document(run, sink.scorer, tally, sink.bag_counts)
+    metrics = metrics_document(run, sink.scorer, tally, sink.bag_counts, sink.scored_apart)
     sync_note = run.reader.sync_report.summary()
     if sync_note:
         run.notes.append(sync_note)
@@ -319,9 +321,11 @@ def _weights_name(mapper) -> str | None:
     return None
 
 
-def metrics_document(run: ReplayRun, scorer: ReplayScorer, tally: MappingTally, bag_counts: dict) -> dict:
-    """The ``metrics.json`` document: the scores, what was mapped, the reader's input problems and
-    the temporal fusion's counts.
+def metrics_document(run: ReplayRun, scorer: ReplayScorer, tally: MappingTally, bag_counts: dict,
+                     scored_apart: bool = False) -> dict:
+    """The ``metrics.json`` document: the scores, what was mapped, the reader's input problems,
+    the temporal fusion's counts and where the frames were scored (``scored_apart``: in a process
+    of their own).
     """
     options, res = run.options, scorer.result()
     doc = {
@@ -356,4 +360,7 @@ def metrics_document(run: ReplayRun, scorer: ReplayScorer, tally: MappingTally, 
     doc["rig"] = {"name": run.rig.name, "cameras": list(run.rig.names)}
     doc["temporal"] = tally.temporal
     doc["placement"] = tally.placement
+    spare = run.spare_cores
+    doc["score_process"] = {"setting": options.score_process, "ran": "process" if scored_apart else "replay",
+                            "spare_cores": None if spare is None else round(spare, 2)}
     return doc

@@ -50,12 +50,18 @@ from ..report.pictures import save_comparison
 from .frame_messages import prediction_cells
 from .frame_scores import FrameScores, caption
 from .scoring import FrameLayers, ReplayScorer
+from .spare_cpu import usable_cpus
 
 #: frames in flight between the replay's process and the scoring process (one shared-memory slot each)
 DEPTH = 3
 #: ``ReplayOptions.score_process`` ``"auto"`` scores in a process of its own only for drives at
 #: least this long (starting the process costs about a second) on machines with 2 cores or more
 AUTO_MIN_FRAMES = 100
+#: ``"auto"`` scores in a process of its own only where the other jobs leave at least this much of
+#: a core free beside the replay's own: with another replay on the 2 cores, a scoring process made
+#: the command slower (18.1 against 17.2 ms a frame), on a quiet machine faster
+#: (``bench/bench_replay_e2e.py``, docs/SPEED.md)
+AUTO_MIN_SPARE = 0.5
 #: seconds to wait for the child to exit before it is killed
 _JOIN_S = 10.0
 #: the child draws a frame's ``/bev/image`` while the replay's process waits less than this for
@@ -117,14 +123,45 @@ def _views(buffer, fields: tuple[_Field, ...], size: int, slot: int) -> dict[str
             for f in fields}
 
 
-def use_process(setting: str, frames: int | None) -> bool:
+def start_child() -> subprocess.Popen:
+    """Start a scoring process's interpreter now (its start and imports take about 0.4 s, which
+    then overlap the replay's own start); :class:`ScoringProcess` takes it over, :func:`stop_child`
+    stops it (also one taken over or already stopped).
+    """
+    return subprocess.Popen([sys.executable, "-c", f"from {__name__} import main; main()"],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+
+
+def stop_child(proc: subprocess.Popen | None) -> None:
+    """Close a child's input (it exits at its end), make sure it did (killed after
+    :data:`_JOIN_S` seconds); ``None`` or a stopped child: nothing to do.
+    """
+    if proc is None:
+        return
+    for stream in (proc.stdin, proc.stdout):
+        try:
+            stream.close()
+        except OSError:
+            pass
+    try:
+        proc.wait(_JOIN_S)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
+def use_process(setting: str, frames: int | None, spare: float | None = None) -> bool:
     """Whether a replay of ``frames`` frames (``None``: unknown) scores in a process of its own
-    for ``ReplayOptions.score_process`` = ``setting`` (``"auto"``: a long drive on 2 cores or more).
+    for ``ReplayOptions.score_process`` = ``setting``. ``"auto"``: a long drive on 2 cores or
+    more, where the other jobs leave at least :data:`AUTO_MIN_SPARE` of a core free beside the
+    replay's own (``spare``: :meth:`~bags.replay.spare_cpu.CpuWatch.spare_cores`; ``None``:
+    unknown, taken as free).
     """
     if setting != "auto":
         return setting == "on"
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    return cores >= 2 and frames is not None and frames >= AUTO_MIN_FRAMES
+    if len(usable_cpus()) < 2 or frames is None or frames < AUTO_MIN_FRAMES:
+        return False
+    return spare is None or spare >= AUTO_MIN_SPARE
 
 
 class ScoringProcess:
@@ -135,6 +172,8 @@ class ScoringProcess:
         n_pred: classes of the mapper's predictions; ``shape``: the grid's ``(H, W)``.
         depth: frames in flight (slots of shared memory).
         pictures: what the child needs to draw the comparison pictures (``None``: none asked).
+        child: the child, started earlier by :func:`start_child` (``None``: started here); from
+            here on this object owns it.
         published: the mapper's classes: the child also computes each frame's OccupancyGrid
             cells and, while the replay waits less than :data:`DRAW_WAIT_S` for its answers,
             its ``/bev/image`` picture (:meth:`take` returns them); ``None``: neither.
@@ -144,7 +183,8 @@ class ScoringProcess:
     """
 
     def __init__(self, scorer: ReplayScorer, n_pred: int, shape: tuple[int, int], depth: int = DEPTH,
-                 pictures: Pictures | None = None, published: tuple | None = None) -> None:
+                 pictures: Pictures | None = None, published: tuple | None = None,
+                 child: subprocess.Popen | None = None) -> None:
         self.depth = depth
         self._published = published is not None
         image = (0, 0, 3)
@@ -161,10 +201,10 @@ class ScoringProcess:
             raise
         finally:
             os.close(fd)
-        self._proc = None
+        self._proc = child
         try:
-            self._proc = subprocess.Popen([sys.executable, "-c", f"from {__name__} import main; main()"],
-                                          stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+            if self._proc is None:
+                self._proc = start_child()
             grid, *rest = scorer.args
             self._send((path, self._fields, self._size, depth, (grid.to_dict(), *rest), pictures,
                         published))  # no cached arrays
@@ -285,17 +325,7 @@ class ScoringProcess:
         """Close the child's input (it exits at its end), make sure it did; release the map."""
         proc, self._proc = self._proc, None
         try:
-            if proc is not None:
-                for stream in (proc.stdin, proc.stdout):
-                    try:
-                        stream.close()
-                    except OSError:
-                        pass
-                try:
-                    proc.wait(_JOIN_S)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait()
+            stop_child(proc)
         finally:
             self._slots = None  # the views of the map, which would keep it open
             try:
@@ -314,7 +344,10 @@ def _serve(inp, out) -> None:
     order, and answer its IoU (or the exception it raised); answer ``("state",)`` with the
     scorer's state; exit at the end of the input.
     """
-    path, fields, size, depth, (grid, *args), pictures, published = pickle.load(inp)
+    try:
+        path, fields, size, depth, (grid, *args), pictures, published = pickle.load(inp)
+    except EOFError:  # stopped before it was needed (stop_child)
+        return
     with open(path, "r+b") as f:
         shared = mmap.mmap(f.fileno(), size * depth)
     slots = [_views(shared, fields, size, k) for k in range(depth)]
@@ -378,4 +411,5 @@ def main() -> None:
         pass
 
 
-__all__ = ["AUTO_MIN_FRAMES", "DEPTH", "Pictures", "ScoringError", "ScoringProcess", "use_process"]
+__all__ = ["AUTO_MIN_FRAMES", "AUTO_MIN_SPARE", "DEPTH", "Pictures", "ScoringError", "ScoringProcess", "start_child", "stop_child",
+           "use_process"]

@@ -187,6 +187,8 @@ def place_cameras(rig: Rig, stamps: Mapping[str, int | None], ref_stamp_ns: int,
     cams = [c for c in rig.cameras if stamps.get(c.name) is not None]
     if ref is None:
         return Placement(rig, no_pose=tuple(c.name for c in cams))
+    if all(int(stamps[c.name]) == ref_stamp_ns for c in cams):  # one stamp for all: nothing moves
+        return Placement(rig, static=tuple(c.name for c in cams))
     step_m, step_rad = steps(grid, config)
     corners = grid_corners(grid)
     limit_ns = config.max_offset_s * 1e9
@@ -194,6 +196,9 @@ def place_cameras(rig: Rig, stamps: Mapping[str, int | None], ref_stamp_ns: int,
     worst = 0.0
     for cam in cams:
         stamp = int(stamps[cam.name])
+        if stamp == ref_stamp_ns:  # taken at the set's stamp: in place (what the correction, I, would say)
+            static.append(cam.name)
+            continue
         if abs(stamp - ref_stamp_ns) > limit_ns:
             jumped.append(cam.name)
             continue

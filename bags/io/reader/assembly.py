@@ -184,7 +184,7 @@ def _stamp_poses(poses: PoseBuffer | None, stamps) -> dict[int, np.ndarray | Non
     """
     if poses is None:
         return None
-    return {int(t): poses.at(int(t)) for t in stamps if t is not None}
+    return {t: poses.at(t) for t in {int(t) for t in stamps if t is not None}}  # each stamp once
 
 
 class FrameAssembler:

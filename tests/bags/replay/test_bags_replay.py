@@ -37,7 +37,7 @@ def load_metrics(out: Path) -> dict:
 
 def without_run_details(m: dict) -> dict:
     m = dict(m)
-    for key in ("latency_ms", "bag"):
+    for key in ("latency_ms", "score_process", "bag"):
         m.pop(key)
     return m
 

@@ -14,7 +14,8 @@ from bag_helpers import replay_ipm, replay_outputs, synth_small
 
 from bags.replay import ReplayOptions, replay
 from bags.replay.frame_messages import prediction_cells
-from bags.replay.score_process import AUTO_MIN_FRAMES, ScoringError, ScoringProcess, use_process
+from bags.replay.score_process import (AUTO_MIN_FRAMES, AUTO_MIN_SPARE, ScoringError, ScoringProcess, start_child,
+                                       stop_child, use_process)
 from bags.replay.scoring import FrameLayers, ReplayScorer
 from bev_mapper_core.errors import InputError
 from bev_mapper_core.geometry.grid import BevGrid
@@ -113,11 +114,44 @@ def test_the_scorers_error_in_the_process_is_raised_in_the_replay():
     assert not _children()
 
 
-def test_auto_scores_in_a_process_only_long_drives_on_two_cores():
+def test_auto_scores_in_a_process_only_long_drives_on_two_cores_with_a_core_free():
     cores = len(os.sched_getaffinity(0))
     assert use_process("on", 1) and not use_process("off", 10 ** 6)
+    assert use_process("on", 1, spare=-3.0)  # asked for: the load does not matter
     assert not use_process("auto", None) and not use_process("auto", AUTO_MIN_FRAMES - 1)
-    assert use_process("auto", AUTO_MIN_FRAMES) == (cores >= 2)
+    assert use_process("auto", AUTO_MIN_FRAMES) == (cores >= 2)  # the load unknown: taken as free
+    assert use_process("auto", AUTO_MIN_FRAMES, spare=AUTO_MIN_SPARE) == (cores >= 2)
+    assert not use_process("auto", AUTO_MIN_FRAMES, spare=AUTO_MIN_SPARE - 0.01)  # the cores are busy
+
+
+def test_metrics_say_where_the_frames_were_scored(tmp_path):
+    bag = synth_small(tmp_path / "drive", frames=3, seed=36)
+    for setting, ran in (("on", "process"), ("off", "replay"), ("auto", "replay")):  # auto: 3 frames
+        result = replay(ReplayOptions(bag=bag, out=tmp_path / setting, mapper=MapperConfig(method="ipm"),
+                                      score_process=setting, pictures=False, report=False))
+        doc = result.metrics["score_process"]
+        assert doc["setting"] == setting and doc["ran"] == ran
+        assert doc["spare_cores"] is None or doc["spare_cores"] <= len(os.sched_getaffinity(0))
+    assert not _children()
+
+
+def test_a_child_started_early_and_never_used_exits_quietly():
+    """The replay starts its scoring process before it knows it needs it (the mapper may fail):
+    stopped unused, it exits 0 at once; stopping it twice, or ``None``, is harmless."""
+    child = start_child()
+    stop_child(child)
+    assert child.returncode == 0
+    stop_child(child)
+    stop_child(None)
+    assert not _children()
+
+
+def test_a_replay_whose_mapper_fails_leaves_no_scoring_process(tmp_path):
+    bag = synth_small(tmp_path / "drive", frames=3, seed=37)
+    with pytest.raises(Exception, match="weights"):
+        replay(ReplayOptions(bag=bag, out=tmp_path / "out", score_process="on",
+                             mapper=MapperConfig(method="bimapper", weights=str(tmp_path / "missing.safetensors"))))
+    assert not _children()
 
 
 def test_a_scoring_process_that_cannot_start_leaves_the_scoring_here(tmp_path, monkeypatch):
