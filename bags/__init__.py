@@ -10,6 +10,8 @@ Subpackages, by role (each ``__init__`` names its public names):
 * :mod:`bags.fleet`: many bags or drives as Ray tasks (``bev-bag evaluate`` / ``synth-many``);
 * :mod:`bags.cli`: the ``bev-bag`` and ``bev-train`` command lines.
 
-Beside them, :mod:`bags.errors` (the exception types) and :mod:`bags.files` (atomic writes).
+Beside them, :mod:`bags.errors` (the exception types), :mod:`bags.files` (atomic writes),
+:mod:`bags.memory` (the allocator's settings) and :mod:`bags.mcap_checksums` (the MCAP checks,
+importing nothing else of the package so that ``bev-bag`` starts them before loading the rest).
 Importing ``bags`` imports none of them.
 """
