@@ -14,8 +14,7 @@ from bag_helpers import replay_ipm, replay_outputs, synth_small
 
 from bags.replay import ReplayOptions, replay
 from bags.replay.frame_messages import prediction_cells
-from bags.replay.score_process import (AUTO_MIN_FRAMES, AUTO_MIN_SPARE, ScoringError, ScoringProcess, start_child,
-                                       stop_child, use_process)
+from bags.replay.score_process import AUTO_MIN_FRAMES, AUTO_MIN_SPARE, ScoringError, ScoringProcess, start_child, stop_child, use_process
 from bags.replay.scoring import FrameLayers, ReplayScorer
 from bev_mapper_core.errors import InputError
 from bev_mapper_core.geometry.grid import BevGrid

@@ -97,15 +97,12 @@ def test_int8_export_agrees_with_f32_and_a_damaged_file_is_rebuilt(frames, tmp_p
     data[len(data) // 2] ^= 0xFF
     model.write_bytes(bytes(data))
     caplog.clear()
-    stage = SegmenterStage(PATH, backend=backends[-1], threads=1, precision="int8")
-    assert _agreement(stage.segment(frames[0]), want[0]) > AGREEMENT
-    assert "is not used: its contents differ from its record" in caplog.text
-    assert file_sha256(model) == sha  # the calibration and the quantizer are deterministic
-
-    model.unlink()  # missing: built again
     stage = SegmenterStage(PATH, backend=backends[0], threads=1, precision="int8")
     assert _agreement(stage.segment(frames[1]), want[1]) > AGREEMENT
-    assert file_sha256(model) == sha
+    assert "is not used: its contents differ from its record" in caplog.text
+    assert file_sha256(model) == sha  # the calibration and the quantizer are deterministic
+    # (a missing file is exported again like any other: tests/bev_mapper_core/nn/test_export_cache.py;
+    # a third 20-45 s quantization here would test nothing more)
 
 
 @pytest.mark.slow
