@@ -321,3 +321,45 @@ def test_bimapper_on_labels_withholds_the_cells_no_ray_reaches(box_scene, tmp_pa
     known = drivable_only.map({"front": labels}).known
     assert known[depth & (xs < 11.5)].all()
     assert not known[depth & (xs > 12.6)].any()
+
+
+def test_bimapper_keeps_a_pedestrian_a_camera_sees_and_withholds_its_shadow(tmp_path):
+    """Issue #39: a 1.7 m pedestrian (0.4 m deep) 8 m ahead of a camera 1.5 m high hides every
+    ground cell behind it. The cells up to the learned pedestrian depth beyond its near edge
+    stay known, also those between IPM's 0.5 m footprint and that depth (withheld before,
+    though the model maps a pedestrian seen there), and the farther cells of its shadow, whose
+    pixel shows the pedestrian, are unknown."""
+    from dataclasses import replace
+
+    import torch
+    from model_helpers import TINY
+
+    from bev_mapper_core.methods.bimapper.mapper import BiMapperMapper
+    from bev_mapper_core.methods.bimapper.model import BiMapper
+    from bev_mapper_core.methods.bimapper.weights import save_weights
+    from bev_mapper_core.methods.ipm.occlusion import NEAR_EDGE_SLACK_CELLS, OBJECT_FOOTPRINT_M, OBJECT_MAX_DEPTH_M
+
+    grid = BevGrid(0.0, 40.0, -10.0, 10.0, 0.25)
+    rig = _level_rig()
+    labels = _render(rig["front"], [(8.0, 8.4, -0.2, 0.2, 1.7, Label.PEDESTRIAN)])
+    torch.manual_seed(0)
+    path = tmp_path / "ped.safetensors"
+    save_weights(BiMapper(replace(TINY, ipm_skip=True, classes=("drivable", "pedestrian")), rig, grid).eval(), path)
+    preds = {occ: BiMapperMapper(rig, grid, MapperConfig(backend="torch", weights=str(path), ipm_occlusion=occ)).map(
+        {"front": labels}) for occ in (False, True)}
+    xs, ys = grid.centers
+    frustum = preds[False].known
+    slack = NEAR_EDGE_SLACK_CELLS * grid.resolution
+    ipm_end = 8.0 + OBJECT_FOOTPRINT_M[Label.PEDESTRIAN][1] + slack  # IPM's footprint reaches this far
+    depth_end = 8.0 + OBJECT_MAX_DEPTH_M[Label.PEDESTRIAN] + slack
+    column = np.abs(ys) < 0.2  # the cells right behind the pedestrian
+    front = column & (xs > 3.0) & (xs < 7.8)
+    body = column & (xs > 8.0) & (xs < 8.4)
+    beyond_ipm = column & (xs > ipm_end + 0.1) & (xs < ipm_end + 0.4)  # unknown with IPM's 0.5 m
+    shadow = column & (xs > max(depth_end, ipm_end + 0.4) + 0.5) & frustum
+    assert beyond_ipm.sum() >= 2 and shadow.sum() > 100 and frustum[front | body | beyond_ipm].all()
+    honest = preds[True].known
+    assert honest[front | body | beyond_ipm].all()
+    assert not honest[shadow].any()
+    assert not (honest & ~frustum).any()
+    np.testing.assert_array_equal(preds[True].probs, preds[False].probs)
