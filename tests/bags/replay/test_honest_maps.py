@@ -363,3 +363,52 @@ def test_bimapper_keeps_a_pedestrian_a_camera_sees_and_withholds_its_shadow(tmp_
     assert not honest[shadow].any()
     assert not (honest & ~frustum).any()
     np.testing.assert_array_equal(preds[True].probs, preds[False].probs)
+
+
+def test_the_visibility_head_keeps_the_objects_a_camera_sees(tmp_path):
+    """Issue #39: a visibility head that calls every cell unseen (its bias at -50) still lets
+    the cells through that the camera sees as an object the model maps: the car's cells up to
+    IPM's face-width depth (the box seen end-on, 2 m wide: 1.8 * 4.5 / 2 = 4.05 m) and the
+    pedestrian's. The open road, the ground beside them and the car's shadow stay withheld.
+    Without the line of sight (``ipm_occlusion`` false) or without an object class mapped, the
+    head alone decides, as before."""
+    from dataclasses import replace
+
+    import torch
+    from model_helpers import TINY
+
+    from bev_mapper_core.methods.bimapper.mapper import BiMapperMapper
+    from bev_mapper_core.methods.bimapper.model import BiMapper
+    from bev_mapper_core.methods.bimapper.weights import save_weights
+
+    grid = BevGrid(0.0, 40.0, -10.0, 10.0, 0.25)
+    rig = _level_rig()
+    labels = _render(rig["front"], [(8.0, 12.0, -1.0, 1.0, 2.0, Label.VEHICLE),
+                                    (8.0, 8.4, 4.8, 5.2, 1.7, Label.PEDESTRIAN)])
+    torch.manual_seed(0)
+    model = BiMapper(replace(TINY, ipm_skip=True, visibility_head=True,
+                             classes=("drivable", "vehicle", "pedestrian")), rig, grid).eval()
+    with torch.no_grad():
+        model.decoder.vis_head[-1].weight.zero_()
+        model.decoder.vis_head[-1].bias.fill_(-50.0)  # p_visible ~ 0 everywhere
+    path = tmp_path / "blind_head.safetensors"
+    save_weights(model, path)
+
+    def known(**kw):
+        config = MapperConfig(backend="torch", weights=str(path), **{"unknown_below": 0.05, **kw})
+        return BiMapperMapper(rig, grid, config).map({"front": labels}).known
+
+    xs, ys = grid.centers
+    frustum = known(unknown_below=0.0, ipm_occlusion=False)
+    car = (xs > 8.2) & (xs < 11.8) & (np.abs(ys) < 0.8)
+    person = (xs > 8.0) & (xs < 8.4) & (np.abs(ys - 5.0) < 0.2)
+    road = (xs > 3.0) & (xs < 7.5) & (np.abs(ys) < 3.0)
+    beside = (xs > 9.0) & (xs < 15.0) & (np.abs(ys) > 2.0) & (np.abs(ys) < 3.5)
+    shadow = (xs > 13.0) & (np.abs(ys) < 0.5) & frustum
+    assert car.sum() > 50 and person.sum() >= 2 and frustum[car | person | road | beside].all() and shadow.sum() > 300
+    honest = known()
+    assert honest[car | person].all()
+    assert not honest[road | beside | shadow].any()
+    assert not (honest & ~frustum).any()
+    assert not known(ipm_occlusion=False).any()  # the head alone: nothing is seen
+    assert not known(classes=("drivable",)).any()  # no object class mapped: no object kept
