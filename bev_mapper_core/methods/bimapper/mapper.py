@@ -222,7 +222,7 @@ class BiMapperMapper(Mapper):
             #: labels of the object classes mapped (vehicle, pedestrian): where a camera sees one,
             #: the visibility head does not withhold the cell (:meth:`map`)
             self.object_labels = sorted({label for c in self.classes if not c.flat for label in c.labels})
-            if self.object_labels:  # IPM's priors (face-width rule), the same ground tables and rays
+            if self.object_labels and self._weights.config.visibility_head:  # IPM's priors, the same tables and rays
                 self.faces = LineOfSight(rig, self.grid, OcclusionModel(), tables=self.sight.tables,
                                          rasters=self.sight.rays)
         if self.model is None:
