@@ -49,8 +49,10 @@ class MapperConfig:
             the frustum (and visibility head) only.
         unknown_below: Bi-Mapper with a visibility head only: cells whose predicted probability
             of being seen by some camera is below this are published as unknown
-            (``known = frustum & p_visible >= unknown_below``); 0 = every in-frustum cell is
-            known. 0.05 was chosen on both validation sets (seeds 900000000-05 and
+            (``known = frustum & p_visible >= unknown_below``; with ``ipm_occlusion`` on label
+            input, a cell a camera's labels show as an object the model maps stays known: issue
+            #39, see :class:`~bev_mapper_core.methods.bimapper.mapper.BiMapperMapper`); 0 = every
+            in-frustum cell is known. 0.05 was chosen on both validation sets (seeds 900000000-05 and
             900000010-12, see docs/RESULTS.md "Honest maps"): the largest threshold tried (0.03-0.7)
             that keeps the visible mIoU within 1 point of the head-less model on both. Weights
             without the head ignore it.

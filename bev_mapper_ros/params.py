@@ -75,7 +75,8 @@ _DECLARATIONS: dict[str, tuple] = {
                       "camera sees are unknown to it (IPM: not the flat-ground smear; learned "
                       "methods: beyond the object's full length)"),
     "unknown_below": (_T.PARAMETER_DOUBLE, "Bi-Mapper with a visibility head: cells predicted seen with "
-                      "probability below this are unknown (0 = all in-frustum cells known)"),
+                      "probability below this are unknown, but for those a camera's labels show as a mapped "
+                      "object (ipm_occlusion) (0 = all in-frustum cells known)"),
     "segmenter": (_T.PARAMETER_STRING, "RGB input: 2-D segmenter of segipm and of label weights run on RGB "
                   "(auto = camvid, the default; camvid: trained with CamVid, non-commercial; open: commercial use "
                   "allowed; none; or a safetensors file)"),

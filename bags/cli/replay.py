@@ -108,7 +108,8 @@ def add_replay_args(p: argparse.ArgumentParser) -> None:
                         "that camera, not the object's flat-ground smear (default: %(default)s)")
     p.add_argument("--unknown-below", type=float, default=MapperConfig.unknown_below,
                    help="Bi-Mapper with a visibility head: cells predicted seen with probability below "
-                        "this are unknown (0 = every in-frustum cell known; default: %(default)s)")
+                        "this are unknown, but for those a camera's labels show as a mapped object "
+                        "(--ipm-occlusion) (0 = every in-frustum cell known; default: %(default)s)")
     p.add_argument("--segmenter", default=MapperConfig.segmenter, metavar="auto|camvid|open|none|FILE",
                    help="RGB input: the 2-D segmenter of segipm and of label weights run on RGB (auto = camvid, "
                         "trained with CamVid: non-commercial; open: commercial use allowed; default: %(default)s)")

@@ -48,7 +48,12 @@ class BiMapperMapper(Mapper):
     label input with ``ipm_occlusion``, only those some camera's ray reaches: a cell farther than
     an object's largest depth (:func:`~bev_mapper_core.methods.ipm.occlusion.learned_footprints`)
     beyond the near edge of an object in that camera's labels is hidden from it
-    (:class:`~bev_mapper_core.methods.ipm.mapper.LineOfSight`).
+    (:class:`~bev_mapper_core.methods.ipm.mapper.LineOfSight`). There the head does not
+    withhold the cells a camera sees as an object the model maps (vehicle, pedestrian): its
+    pixel shows the object and the cell lies within IPM's face-width depth of its near edge
+    (:meth:`~bev_mapper_core.methods.ipm.mapper.LineOfSight.seen_objects`), so
+    ``known = frustum & line of sight & (p_visible >= unknown_below | seen object)``
+    (issue #39: the head called the far parts of seen cars unseen).
     Class probabilities are ``sigmoid(logit / T_k)`` with the weights' per-class temperature.
     Cameras missing from a frame are zeroed and masked out of both streams.
 
@@ -210,10 +215,16 @@ class BiMapperMapper(Mapper):
         afterwards rebuild its calibration tables.
         """
         super().set_rig(rig)
-        self.sight = None
+        self.sight = self.faces = None
         if self.config.ipm_occlusion and self.model_input == "labels":
             mapped = {label for c in self.classes for label in c.labels}
             self.sight = LineOfSight(rig, self.grid, OcclusionModel(footprints=learned_footprints(mapped)))
+            #: labels of the object classes mapped (vehicle, pedestrian): where a camera sees one,
+            #: the visibility head does not withhold the cell (:meth:`map`)
+            self.object_labels = sorted({label for c in self.classes if not c.flat for label in c.labels})
+            if self.object_labels and self._weights.config.visibility_head:  # IPM's priors, the same tables and rays
+                self.faces = LineOfSight(rig, self.grid, OcclusionModel(), tables=self.sight.tables,
+                                         rasters=self.sight.rays)
         if self.model is None:
             self.model = self._weights.build_model(rig, self.grid, input_kind=self.model_input,
                                                    classes=self._weight_classes, device=self.device)
@@ -263,13 +274,17 @@ class BiMapperMapper(Mapper):
                 out = {**out, "logits": self.model.calibrated(out["logits"])}
             logits = out["logits"]  # per-class temperature applied (1 if uncalibrated)
             probs = torch.sigmoid(logits[0, self._layers]).float().cpu().numpy()  # (K_wanted, H, W)
-            known_t = self.model.known(cam_mask)[0]  # (H, W)
+            known = self.model.known(cam_mask)[0].cpu().numpy()  # (H, W)
             vis = out.get("visibility_logits")
+            head = None
             if vis is not None and self.config.unknown_below > 0:
-                known_t = known_t & (torch.sigmoid(vis[0, 0]) >= self.config.unknown_below)
-            known = known_t.cpu().numpy()
+                head = (torch.sigmoid(vis[0, 0]) >= self.config.unknown_below).cpu().numpy()  # (H, W)
         if self.sight is not None:
             known = known & self.sight.known(images)
+        if head is not None:
+            if self.faces is not None:  # a camera sees an object there: the head does not overrule it
+                head = head | self.faces.seen_objects(images, self.object_labels)
+            known = known & head
         return BevPrediction(self.class_names, np.ascontiguousarray(probs, dtype=np.float32), known.astype(bool))
 
 

@@ -182,6 +182,23 @@ class LineOfSight:
             known |= self.camera_valid(name, warped)
         return known
 
+    def seen_objects(self, images: Mapping[str, np.ndarray], objects) -> np.ndarray:
+        """``(H, W)`` bool: the cells some camera in ``images`` (name -> label image) sees as
+        one of the labels ``objects``: its pixel of the cell's ground point shows such an object
+        and the cell is not hidden from it, i.e. lies within the object's assumed depth beyond
+        its near edge (this line of sight's footprint priors). With IPM's priors: the cells IPM
+        maps as that object.
+        """
+        lut = np.zeros(256, bool)
+        lut[[int(x) for x in objects]] = True
+        seen = np.zeros(self.grid.shape, bool)
+        for name, labels in images.items():
+            warped = self.tables[name].warp(labels, cv2.INTER_NEAREST)
+            shows = self.tables[name].valid & lut[warped]
+            if shows.any():
+                seen |= shows & self.camera_valid(name, warped, labels)
+        return seen
+
 
 class IpmMapper(Mapper):
     """IPM of semantic label images onto the ground plane.

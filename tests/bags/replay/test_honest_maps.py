@@ -321,3 +321,94 @@ def test_bimapper_on_labels_withholds_the_cells_no_ray_reaches(box_scene, tmp_pa
     known = drivable_only.map({"front": labels}).known
     assert known[depth & (xs < 11.5)].all()
     assert not known[depth & (xs > 12.6)].any()
+
+
+def test_bimapper_keeps_a_pedestrian_a_camera_sees_and_withholds_its_shadow(tmp_path):
+    """Issue #39: a 1.7 m pedestrian (0.4 m deep) 8 m ahead of a camera 1.5 m high hides every
+    ground cell behind it. The cells up to the learned pedestrian depth beyond its near edge
+    stay known, also those between IPM's 0.5 m footprint and that depth (withheld before,
+    though the model maps a pedestrian seen there), and the farther cells of its shadow, whose
+    pixel shows the pedestrian, are unknown."""
+    from dataclasses import replace
+
+    import torch
+    from model_helpers import TINY
+
+    from bev_mapper_core.methods.bimapper.mapper import BiMapperMapper
+    from bev_mapper_core.methods.bimapper.model import BiMapper
+    from bev_mapper_core.methods.bimapper.weights import save_weights
+    from bev_mapper_core.methods.ipm.occlusion import NEAR_EDGE_SLACK_CELLS, OBJECT_FOOTPRINT_M, OBJECT_MAX_DEPTH_M
+
+    grid = BevGrid(0.0, 40.0, -10.0, 10.0, 0.25)
+    rig = _level_rig()
+    labels = _render(rig["front"], [(8.0, 8.4, -0.2, 0.2, 1.7, Label.PEDESTRIAN)])
+    torch.manual_seed(0)
+    path = tmp_path / "ped.safetensors"
+    save_weights(BiMapper(replace(TINY, ipm_skip=True, classes=("drivable", "pedestrian")), rig, grid).eval(), path)
+    preds = {occ: BiMapperMapper(rig, grid, MapperConfig(backend="torch", weights=str(path), ipm_occlusion=occ)).map(
+        {"front": labels}) for occ in (False, True)}
+    xs, ys = grid.centers
+    frustum = preds[False].known
+    slack = NEAR_EDGE_SLACK_CELLS * grid.resolution
+    ipm_end = 8.0 + OBJECT_FOOTPRINT_M[Label.PEDESTRIAN][1] + slack  # IPM's footprint reaches this far
+    depth_end = 8.0 + OBJECT_MAX_DEPTH_M[Label.PEDESTRIAN] + slack
+    column = np.abs(ys) < 0.2  # the cells right behind the pedestrian
+    front = column & (xs > 3.0) & (xs < 7.8)
+    body = column & (xs > 8.0) & (xs < 8.4)
+    beyond_ipm = column & (xs > ipm_end + 0.1) & (xs < ipm_end + 0.4)  # unknown with IPM's 0.5 m
+    shadow = column & (xs > max(depth_end, ipm_end + 0.4) + 0.5) & frustum
+    assert beyond_ipm.sum() >= 2 and shadow.sum() > 100 and frustum[front | body | beyond_ipm].all()
+    honest = preds[True].known
+    assert honest[front | body | beyond_ipm].all()
+    assert not honest[shadow].any()
+    assert not (honest & ~frustum).any()
+    np.testing.assert_array_equal(preds[True].probs, preds[False].probs)
+
+
+def test_the_visibility_head_keeps_the_objects_a_camera_sees(tmp_path):
+    """Issue #39: a visibility head that calls every cell unseen (its bias at -50) still lets
+    the cells through that the camera sees as an object the model maps: the car's cells up to
+    IPM's face-width depth (the box seen end-on, 2 m wide: 1.8 * 4.5 / 2 = 4.05 m) and the
+    pedestrian's. The open road, the ground beside them and the car's shadow stay withheld.
+    Without the line of sight (``ipm_occlusion`` false) or without an object class mapped, the
+    head alone decides, as before."""
+    from dataclasses import replace
+
+    import torch
+    from model_helpers import TINY
+
+    from bev_mapper_core.methods.bimapper.mapper import BiMapperMapper
+    from bev_mapper_core.methods.bimapper.model import BiMapper
+    from bev_mapper_core.methods.bimapper.weights import save_weights
+
+    grid = BevGrid(0.0, 40.0, -10.0, 10.0, 0.25)
+    rig = _level_rig()
+    labels = _render(rig["front"], [(8.0, 12.0, -1.0, 1.0, 2.0, Label.VEHICLE),
+                                    (8.0, 8.4, 4.8, 5.2, 1.7, Label.PEDESTRIAN)])
+    torch.manual_seed(0)
+    model = BiMapper(replace(TINY, ipm_skip=True, visibility_head=True,
+                             classes=("drivable", "vehicle", "pedestrian")), rig, grid).eval()
+    with torch.no_grad():
+        model.decoder.vis_head[-1].weight.zero_()
+        model.decoder.vis_head[-1].bias.fill_(-50.0)  # p_visible ~ 0 everywhere
+    path = tmp_path / "blind_head.safetensors"
+    save_weights(model, path)
+
+    def known(**kw):
+        config = MapperConfig(backend="torch", weights=str(path), **{"unknown_below": 0.05, **kw})
+        return BiMapperMapper(rig, grid, config).map({"front": labels}).known
+
+    xs, ys = grid.centers
+    frustum = known(unknown_below=0.0, ipm_occlusion=False)
+    car = (xs > 8.2) & (xs < 11.8) & (np.abs(ys) < 0.8)
+    person = (xs > 8.0) & (xs < 8.4) & (np.abs(ys - 5.0) < 0.2)
+    road = (xs > 3.0) & (xs < 7.5) & (np.abs(ys) < 3.0)
+    beside = (xs > 9.0) & (xs < 15.0) & (np.abs(ys) > 2.0) & (np.abs(ys) < 3.5)
+    shadow = (xs > 13.0) & (np.abs(ys) < 0.5) & frustum
+    assert car.sum() > 50 and person.sum() >= 2 and frustum[car | person | road | beside].all() and shadow.sum() > 300
+    honest = known()
+    assert honest[car | person].all()
+    assert not honest[road | beside | shadow].any()
+    assert not (honest & ~frustum).any()
+    assert not known(ipm_occlusion=False).any()  # the head alone: nothing is seen
+    assert not known(classes=("drivable",)).any()  # no object class mapped: no object kept
