@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 from torch import nn
+from torch.nn import functional as F
 
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.geometry.grid import BevGrid
@@ -86,6 +87,9 @@ class S2G2Config(DictConfig):
             branch's head (:class:`~bev_mapper_core.nn.decoder.BevDecoder`'s skip input, whose
             last layer starts at zero) and is projected onto the logits by ``prior_proj``, which
             starts at ``8 p - 4`` per class: the untrained model maps as segipm does.
+        prior_pool: with ``prior_skip``, the prior also enters each branch's first layer,
+            average-pooled to the BEV feature map (the branch then sees the whole prior, not only
+            the head's 5 x 5 cells).
     """
 
     input_kind: str = "rgb"
@@ -102,6 +106,7 @@ class S2G2Config(DictConfig):
     inter_view_attention: bool = True
     decoder_channels: int = 32
     prior_skip: bool = False
+    prior_pool: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "classes", tuple(self.classes))
@@ -116,7 +121,7 @@ class S2G2Config(DictConfig):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
                 raise ConfigError(f"{name} must be an integer in [{lo}, {hi}], got {v!r}")
-        for name in ("cross_view_attention", "inter_view_attention", "prior_skip"):
+        for name in ("cross_view_attention", "inter_view_attention", "prior_skip", "prior_pool"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"{name} must be true or false, got {getattr(self, name)!r}")
         v = self.drop_connect_rate
@@ -124,6 +129,8 @@ class S2G2Config(DictConfig):
             raise ConfigError(f"drop_connect_rate must be a finite number >= 0, got {v!r}")
         if self.prior_skip and self.input_kind != "rgb":
             raise ConfigError("prior_skip is segipm's map of an RGB image: it needs input_kind 'rgb'")
+        if self.prior_pool and not self.prior_skip:
+            raise ConfigError("prior_pool pools the prior_skip input: it needs prior_skip")
         self.encoder_config()  # validates the encoder (variant, multipliers, sanity bounds)
 
     @classmethod
@@ -184,7 +191,8 @@ class S2G2(nn.Module):
         self.inter_view = InterViewAttention(C) if config.inter_view_attention else None
         #: channels of the ``prior_skip`` input: K class probabilities + coverage (0 without it)
         self.prior_channels = self.num_classes + 1 if config.prior_skip else 0
-        self.active = BevDecoder(C, config.decoder_channels, self.num_classes, self.bev_hw, grid.shape,
+        self._pool = self.prior_channels if config.prior_pool else 0  # prior channels into the stem
+        self.active = BevDecoder(C + self._pool, config.decoder_channels, self.num_classes, self.bev_hw, grid.shape,
                                  skip_channels=self.prior_channels)
         self.passive = copy.deepcopy(self.active)  # starts equal to the active branch
         self.passive.requires_grad_(False)
@@ -276,6 +284,8 @@ class S2G2(nn.Module):
             raise ValueError(f"a prior_skip model needs the prior (B, {self.prior_channels}, {self.grid.shape[0]}, "
                              f"{self.grid.shape[1]}), got {got}")
         prior = prior.to(f.dtype)
+        if self._pool:
+            f = torch.cat([f, F.adaptive_avg_pool2d(prior, f.shape[-2:])], dim=1)  # (B, C + K + 1, hb, wb)
         return branch(f, prior)[0] + self.prior_proj(prior)
 
     def logits(self, x: torch.Tensor, branch: str = "active", prior: torch.Tensor | None = None) -> torch.Tensor:

@@ -276,6 +276,8 @@ class S2G2Method(TrainMethod):
         CliFlag("--prior-skip", "prior_skip", action="store_true",
                 help="segipm's map of the same image (segmenter + IPM) enters both branches and their logits "
                      "(they start as segipm's); computed once per training frame"),
+        CliFlag("--prior-pool", "prior_pool", action="store_true",
+                help="with --prior-skip: the prior, pooled to the BEV feature map, also enters each branch's first layer"),
         CliFlag("--pos-weight-max", "pos_weight_max", number=True, help="cap of the auto BCE positive weights"),
         CliFlag("--frozen-encoder", "frozen_encoder", action="store_true",
                 help="the encoder (the shipped segmenter's trunk) never trains"),

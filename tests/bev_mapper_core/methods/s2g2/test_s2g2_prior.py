@@ -38,8 +38,9 @@ def drive():
     return render_drive(RIG, GRID, CLASSES, seed=900000003, frames=2, stride=6, rgb=(h, w))
 
 
-def test_untrained_prior_skip_model_gives_the_priors_logits():
-    model = S2G2(S2G2Config(classes=CLASSES, prior_skip=True, **SMALL), RIG, GRID).eval()
+@pytest.mark.parametrize("pool", [False, True])
+def test_untrained_prior_skip_model_gives_the_priors_logits(pool):
+    model = S2G2(S2G2Config(classes=CLASSES, prior_skip=True, prior_pool=pool, **SMALL), RIG, GRID).eval()
     assert model.prior_channels == len(CLASSES) + 1
     x = torch.randn(2, 3, *model.input_size)
     prior = torch.rand(2, len(CLASSES) + 1, *GRID.shape)
@@ -55,6 +56,10 @@ def test_untrained_prior_skip_model_gives_the_priors_logits():
         model.logits(x, prior=prior[:, :2])
     with pytest.raises(ConfigError, match="input_kind 'rgb'"):
         S2G2Config(input_kind="labels", prior_skip=True)
+    with pytest.raises(ConfigError, match="needs prior_skip"):
+        S2G2Config(prior_pool=True)
+    if pool:  # the pooled prior reaches the branch's first layer: its input is C + K + 1 wide
+        assert model.active.stem[0][0].in_channels == model.encoder.out_channels + len(CLASSES) + 1
 
 
 def test_prior_is_segipms_map(drive):
