@@ -159,6 +159,9 @@ class S2G2Training:
             uncached frozen step's.
         pos_weight_max: the cap of the ``auto`` positive weights (10: Bi-Mapper's; the rare
             pedestrian layer reaches it).
+        pos_weight_classes: ``name=w,name=w``: these classes' positive weights set to ``w``
+            (with ``pos_weight`` ``auto``; e.g. a low cap for the thin layers and
+            ``pedestrian=10``, whose layer collapses without a weight).
     """
 
     cycle_weight: float = S2G2LossConfig.cycle_weight
@@ -180,6 +183,7 @@ class S2G2Training:
     frozen_encoder: bool = False
     feature_copies: int = 0
     pos_weight_max: float = 10.0
+    pos_weight_classes: str = ""
 
     def __post_init__(self) -> None:
         check_encoder_init(self.encoder_init)
@@ -207,9 +211,31 @@ class S2G2Training:
         v = self.pos_weight_max
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 1:
             raise ConfigError(f"pos_weight_max must be a finite number >= 1, got {v!r}")
+        self.class_pos_weights()  # validates pos_weight_classes
         if self.frozen_encoder and (self.cycle_into_encoder or self.unlabeled_into_encoder):
             raise ConfigError("a frozen encoder trains from no loss: drop cycle_into_encoder / unlabeled_into_encoder")
         self.loss_config()  # validates the weights and the ramp
+
+    def class_pos_weights(self) -> dict[str, float]:
+        """``pos_weight_classes`` parsed: class name -> weight (>= 1).
+
+        Raises:
+            ConfigError: not ``name=w`` items, a weight that is not a finite number >= 1, or set
+                without ``pos_weight`` ``auto``.
+        """
+        out: dict[str, float] = {}
+        for item in filter(None, (t.strip() for t in str(self.pos_weight_classes).split(","))):
+            name, _, w = item.partition("=")
+            try:
+                v = float(w)
+            except ValueError:
+                v = float("nan")
+            if not name.strip() or not math.isfinite(v) or v < 1:
+                raise ConfigError(f"pos_weight_classes items are name=weight (weight >= 1), got {item!r}")
+            out[name.strip()] = v
+        if out and self.pos_weight != "auto":
+            raise ConfigError("pos_weight_classes sets some of the auto weights: it needs pos_weight 'auto'")
+        return out
 
     def loss_config(self, pos_weight: tuple[float, ...] | None = None) -> S2G2LossConfig:
         """The loss configuration of a run."""
@@ -279,6 +305,8 @@ class S2G2Method(TrainMethod):
         CliFlag("--prior-pool", "prior_pool", action="store_true",
                 help="with --prior-skip: the prior, pooled to the BEV feature map, also enters each branch's first layer"),
         CliFlag("--pos-weight-max", "pos_weight_max", number=True, help="cap of the auto BCE positive weights"),
+        CliFlag("--pos-weight-classes", "pos_weight_classes",
+                help="name=w,...: these classes' auto BCE positive weights set to w (e.g. pedestrian=10)"),
         CliFlag("--frozen-encoder", "frozen_encoder", action="store_true",
                 help="the encoder (the shipped segmenter's trunk) never trains"),
         CliFlag("--feature-copies", "feature_copies", min_value=0,
@@ -334,6 +362,12 @@ class S2G2Method(TrainMethod):
         if data.unlabeled is None and not self.cfg.loss.supervised_only:
             raise ConfigError("S2G2 trains on unlabeled frames too, and the data source gave none")
         pw = class_pos_weight(data.train, self.cfg.loss.pos_weight_max) if self.cfg.loss.pos_weight == "auto" else None
+        over = self.cfg.loss.class_pos_weights()
+        unknown = sorted(set(over) - set(self.cfg.class_names))
+        if unknown:
+            raise ConfigError(f"pos_weight_classes names {unknown}, not among the classes {list(self.cfg.class_names)}")
+        if pw is not None:
+            pw = tuple(over.get(c, w) for c, w in zip(self.cfg.class_names, pw))
         self.loss_cfg = self.cfg.loss.loss_config(pw)
         if pw is not None:
             log(f"BCE positive weights {dict(zip(self.cfg.class_names, pw))}")

@@ -145,3 +145,24 @@ def m1_data_rgb(drive, seed_frame: int) -> torch.Tensor:
     """The RGB image of the first training frame of :func:`_data` ``(1, 1, H, W, 3)``."""
     idx = np.random.default_rng(0).integers(0, 2, 4)
     return torch.from_numpy(drive["rgb"][idx[seed_frame:seed_frame + 1]])
+
+
+def test_class_pos_weights_override_the_auto_weights(drive):
+    from bev_mapper_core.methods.s2g2.train import S2G2Training
+
+    assert S2G2Training(pos_weight_classes="pedestrian=10, vehicle=2.5").class_pos_weights() == {
+        "pedestrian": 10.0, "vehicle": 2.5}
+    for bad in ("pedestrian", "pedestrian=0.5", "=3", "vehicle=x"):
+        with pytest.raises(ConfigError, match="name=weight"):
+            S2G2Training(pos_weight_classes=bad)
+    with pytest.raises(ConfigError, match="needs pos_weight 'auto'"):
+        S2G2Training(pos_weight="none", pos_weight_classes="pedestrian=10")
+    cfg = TrainConfig.from_dict({**RUN, "pos_weight_max": 1.5, "pos_weight_classes": "pedestrian=7"})
+    m = method_class("s2g2")(cfg, RIG, cfg.grid)
+    data = _data(drive)
+    m.prepare(data, lambda _: None)
+    pw = dict(zip(CLASSES, m.loss_cfg.pos_weight))
+    assert pw["pedestrian"] == 7.0 and 1.0 <= pw["vehicle"] <= 1.5 and pw["drivable"] <= 1.5
+    bad = TrainConfig.from_dict({**RUN, "pos_weight_classes": "cyclist=3"})
+    with pytest.raises(ConfigError, match="cyclist"):
+        method_class("s2g2")(bad, RIG, bad.grid).prepare(data, lambda _: None)
