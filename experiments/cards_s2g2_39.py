@@ -90,8 +90,8 @@ def main(argv=None) -> int:
                        "With segipm's map of the same image as a prior (`prior_skip`, issue #39): the default "
                        "segmenter's labels projected by IPM enter both branches, which learn its correction from the "
                        "image's BEV features. Trained supervised on a frozen encoder (cached features).",
-            "input": "the RGB image of the front camera (resized to the model input for the encoder; at its own size "
-                     "for the segmenter of the prior)",
+            "input": "the RGB image of the front camera, resized to 192x108 (w x h, from 400x225) for the encoder; "
+                     "at its own 400x225 for the segmenter of the prior (which resizes it to its own 480 px)",
             "classes": ["drivable", "lane_divider", "ped_crossing", "road_boundary", "sidewalk", "vehicle",
                         "pedestrian"],
             "training_data": [SYNTH_F1, TRUNK, PRIOR], "license": LICENSE_NC,
