@@ -86,7 +86,8 @@ def test_exported_monocular_methods_map_as_torch_does(method, backend, tmp_path_
     tmp_path = tmp_path_factory.getbasetemp() / f"onnx_cache_{method}"  # shared by both backends: one export
     monkeypatch.setenv(backends.CACHE_ENV, str(tmp_path))
     rig, grid = preset_rig("front1"), grid_preset("ahead")
-    cfg = MapperConfig(backend="torch", method=method, input_kind="rgb", threads=1)
+    # f32: S2G2's prior runs the segmenter stage, whose OpenVINO default may be bf16 (other labels)
+    cfg = MapperConfig(backend="torch", method=method, input_kind="rgb", threads=1, segmenter_precision="f32")
     ref, fast = create_mapper(rig, grid, cfg), create_mapper(rig, grid, MapperConfig(**{**cfg.__dict__, "backend": backend}))
     frames = list(generate_drive(rig, grid, SynthConfig(frames=3, seed=950_000_011)))
     for k, f in enumerate(frames):
