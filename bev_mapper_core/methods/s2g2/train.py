@@ -73,6 +73,11 @@ default :class:`~bev_mapper_core.methods.s2g2.model.S2G2Config` has the segmente
 semi-supervised runs start from the same encoder, so comparisons between them stay fair.
 A resumed run then loads its own checkpoint over it.
 
+**segipm's prior** (``S2G2Config.prior_skip``, issue #39). The prior of every training and
+unlabeled frame (:class:`~bev_mapper_core.methods.s2g2.prior.SegIpmPrior`, from the camera-size
+image as it is, never augmented) is computed once in :meth:`S2G2Method.prepare` and indexed by
+the batches' frame ids; validation computes it per frame, as the mapper does.
+
 Validation scores the branch the weights will map with (``inference_branch``, saved in the
 weights' metadata).
 """
