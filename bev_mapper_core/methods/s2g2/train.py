@@ -95,12 +95,11 @@ import torch
 from typing_extensions import override
 
 from bev_mapper_core.errors import ConfigError
+from bev_mapper_core.mapper import MapperConfig
 from bev_mapper_core.nn.augment import Augment, AugmentConfig, step_augment
 from bev_mapper_core.training.class_weights import POS_WEIGHTS, class_pos_weight
 from bev_mapper_core.training.method import CliFlag, TrainMethod
 from bev_mapper_core.training.sources import DataNeeds, TrainData
-
-from bev_mapper_core.mapper import MapperConfig
 
 from ..segmenter.trunk import check_encoder_init, init_encoder
 from .blocks import VIEW_TRANSFORMS
