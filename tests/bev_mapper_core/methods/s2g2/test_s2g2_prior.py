@@ -166,3 +166,31 @@ def test_class_pos_weights_override_the_auto_weights(drive):
     bad = TrainConfig.from_dict({**RUN, "pos_weight_classes": "cyclist=3"})
     with pytest.raises(ConfigError, match="cyclist"):
         method_class("s2g2")(bad, RIG, bad.grid).prepare(data, lambda _: None)
+
+
+def _run(drive, out, logs=None, **extra):
+    """A tiny prior_skip run through the trainer on :func:`_data` (two cached, augmented copies):
+    ``(loss_total per epoch, last weights)``; ``logs`` collects the trainer's messages."""
+    from safetensors.torch import load_file
+
+    from bev_mapper_core.training.sources import InMemorySource
+    from bev_mapper_core.training.trainer import train
+
+    cfg = TrainConfig.from_dict({**RUN, "augment": True, "feature_copies": 2, "epochs": 2, "threads": 1,
+                                 "out": str(out), **extra})
+    data = _data(drive)
+    doc = train(cfg, log=(logs.append if logs is not None else lambda m: None),
+                data=InMemorySource(data.train, data.val, data.unlabeled))
+    return [r["loss_total"] for r in doc["history"]], load_file(str(out / "last.safetensors"))
+
+
+@pytest.mark.slow
+def test_resume_with_the_prior_equals_an_uninterrupted_run(tmp_path, drive):
+    losses, a = _run(drive, tmp_path / "a")
+    _run(drive, tmp_path / "b", epochs=1)
+    logs: list[str] = []
+    losses_b, b = _run(drive, tmp_path / "b", logs, resume=True)
+    assert any(m.startswith("resumed") and "after epoch 1" in m for m in logs)  # only epoch 2 trained here
+    assert len(losses) == 2 and losses_b == losses
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    assert "prior_proj.weight" in a
