@@ -7,6 +7,9 @@ camera. Without ``weights`` the shipped file of the rig and input kind is used,
 the node's ``config/front1_s2g2.yaml`` sets that grid). The weights' metadata names the branch
 that maps (``inference_branch``: ``active`` or ``passive``). With ``classes=None`` the weights' classes are used; otherwise they
 must be among them (a subset, any order).
+
+Weights with ``prior_skip`` (issue #39) also run segipm on the image (:class:`~.prior.SegIpmPrior`,
+the segmenter of ``MapperConfig.segmenter``) and hand its map to the network as a second input.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from bev_mapper_core.nn.runtime import inference_device
 
 from .. import shipped_weights
 from .model import S2G2
+from .prior import SegIpmPrior
 from .weights import load_s2g2, read_s2g2_metadata, validate_s2g2
 
 
@@ -59,11 +63,17 @@ class S2G2Mapper(MonocularMapper):
         self.model: S2G2 | None = None
         #: runs image -> logits by ``MapperConfig.backend``
         self._runner = backend_runner(config, self.device)
+        #: segipm's map of the image, the second input of ``prior_skip`` weights (None otherwise)
+        self.prior: SegIpmPrior | None = None
+        if meta["config"].get("prior_skip"):
+            self.prior = SegIpmPrior(rig, grid, meta["classes"], config)
         super().__init__(rig, grid, config)
 
     def set_rig(self, rig: Rig) -> None:
         """The model for this calibration (see :class:`MonocularMapper`); export again if exported."""
         super().set_rig(rig)
+        if self.prior is not None:
+            self.prior.set_rig(rig)
         self._runner.reset(_Logits(self.model, self.branch))
 
     def map(self, images: Mapping[str, np.ndarray], ego_pose=None, stamp_ns=None) -> BevPrediction:
@@ -72,7 +82,11 @@ class S2G2Mapper(MonocularMapper):
         img = np.ascontiguousarray(images[self.rig.names[0]])
         with torch.inference_mode():
             raw = torch.from_numpy(img)[None, None].to(self.device)  # (1, 1, H, W[, 3])
-            logits = self._runner(self.model.preprocess(raw))[0]  # (1, K, H, W)
+            if self.prior is None:
+                logits = self._runner(self.model.preprocess(raw))[0]  # (1, K, H, W)
+            else:
+                prior = torch.from_numpy(self.prior.one(img))[None].to(self.device)  # (1, K + 1, H, W)
+                logits = self._runner(self.model.preprocess(raw), prior)[0]  # (1, K, H, W)
             probs = torch.sigmoid(logits[0, self._layers]).float().cpu().numpy()  # (K_wanted, H, W)
             known = self.model.known().cpu().numpy()
         return BevPrediction(self.class_names, np.ascontiguousarray(probs, dtype=np.float32), known.astype(bool))
@@ -87,8 +101,8 @@ class _Logits(torch.nn.Module):
         super().__init__()
         self.model, self.branch = model, branch
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.model.logits(x, self.branch)
+    def forward(self, x: torch.Tensor, prior: torch.Tensor | None = None) -> torch.Tensor:
+        return self.model.logits(x, self.branch, prior)
 
 
 __all__ = ["S2G2Mapper", "shipped_s2g2"]

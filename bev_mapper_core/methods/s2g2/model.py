@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 from torch import nn
+from torch.nn import functional as F
 
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.geometry.grid import BevGrid
@@ -55,6 +56,9 @@ from .blocks import VIEW_TRANSFORMS, CrossViewAttention, InterViewAttention, Vie
 
 #: The two branches of the double branch generator.
 BRANCHES = ("active", "passive")
+#: ``prior_skip`` initialisation: logit ``8 p - 4`` for a prior class probability ``p`` (as
+#: Bi-Mapper's ``ipm_skip``).
+PRIOR_LOGIT_SCALE = 8.0
 
 
 @dataclass(frozen=True)
@@ -77,6 +81,15 @@ class S2G2Config(DictConfig):
         cross_view_attention, inter_view_attention: the two attentions (ablations OIVA / OCVA:
             the ablated one passes ``F_BEV`` through).
         decoder_channels: width of each branch at the BEV feature resolution.
+        prior_skip: a strong prior the branches correct (not in the paper; issue #39): segipm's
+            map of the same image (the 2-D segmenter's labels projected by IPM, :mod:`.prior`),
+            ``K`` class probabilities + the coverage channel on the full grid, enters each
+            branch's head (:class:`~bev_mapper_core.nn.decoder.BevDecoder`'s skip input, whose
+            last layer starts at zero) and is projected onto the logits by ``prior_proj``, which
+            starts at ``8 p - 4`` per class: the untrained model maps as segipm does.
+        prior_pool: with ``prior_skip``, the prior also enters each branch's first layer,
+            average-pooled to the BEV feature map (the branch then sees the whole prior, not only
+            the head's 5 x 5 cells).
     """
 
     input_kind: str = "rgb"
@@ -92,6 +105,8 @@ class S2G2Config(DictConfig):
     cross_view_attention: bool = True
     inter_view_attention: bool = True
     decoder_channels: int = 32
+    prior_skip: bool = False
+    prior_pool: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "classes", tuple(self.classes))
@@ -106,12 +121,16 @@ class S2G2Config(DictConfig):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
                 raise ConfigError(f"{name} must be an integer in [{lo}, {hi}], got {v!r}")
-        for name in ("cross_view_attention", "inter_view_attention"):
+        for name in ("cross_view_attention", "inter_view_attention", "prior_skip", "prior_pool"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"{name} must be true or false, got {getattr(self, name)!r}")
         v = self.drop_connect_rate
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
             raise ConfigError(f"drop_connect_rate must be a finite number >= 0, got {v!r}")
+        if self.prior_skip and self.input_kind != "rgb":
+            raise ConfigError("prior_skip is segipm's map of an RGB image: it needs input_kind 'rgb'")
+        if self.prior_pool and not self.prior_skip:
+            raise ConfigError("prior_pool pools the prior_skip input: it needs prior_skip")
         self.encoder_config()  # validates the encoder (variant, multipliers, sanity bounds)
 
     @classmethod
@@ -170,9 +189,19 @@ class S2G2(nn.Module):
         self.to_front = ViewTransform(C, self.bev_hw, self.front_hw, config.view_transform, to_bev=False)
         self.cross_view = CrossViewAttention(C) if config.cross_view_attention else None
         self.inter_view = InterViewAttention(C) if config.inter_view_attention else None
-        self.active = BevDecoder(C, config.decoder_channels, self.num_classes, self.bev_hw, grid.shape)
+        #: channels of the ``prior_skip`` input: K class probabilities + coverage (0 without it)
+        self.prior_channels = self.num_classes + 1 if config.prior_skip else 0
+        self._pool = self.prior_channels if config.prior_pool else 0  # prior channels into the stem
+        self.active = BevDecoder(C + self._pool, config.decoder_channels, self.num_classes, self.bev_hw, grid.shape,
+                                 skip_channels=self.prior_channels)
         self.passive = copy.deepcopy(self.active)  # starts equal to the active branch
         self.passive.requires_grad_(False)
+        if config.prior_skip:
+            self.prior_proj = nn.Conv2d(self.prior_channels, self.num_classes, 1)
+            with torch.no_grad():  # logits start as the prior's: 8 p - 4 per class
+                self.prior_proj.weight.zero_()
+                self.prior_proj.weight[:, :self.num_classes, 0, 0] = PRIOR_LOGIT_SCALE * torch.eye(self.num_classes)
+                self.prior_proj.bias.fill_(-PRIOR_LOGIT_SCALE / 2)
         mean, std = rgb_stats(config.encoder_config().lite)  # a Lite encoder reads ImageNet-Lite's scaling
         self.register_buffer("rgb_mean", torch.tensor(mean), persistent=False)
         self.register_buffer("rgb_std", torch.tensor(std), persistent=False)
@@ -229,22 +258,40 @@ class S2G2(nn.Module):
         f_i = bev if self.inter_view is None else self.inter_view(bev)
         return {"front": front, "front_cycled": front_cycled, "bev": bev, "f_c": f_c, "f_i": f_i}
 
-    def forward(self, x: torch.Tensor, frozen_encoder: bool = False) -> dict[str, torch.Tensor]:
+    def forward(self, x: torch.Tensor, frozen_encoder: bool = False,
+                prior: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """Model inputs ``(B, C_in, h, w)`` -> :meth:`features` (``frozen_encoder``: see there) plus ``active_logits`` (B, K, H, W)
         of the active branch on ``F_C`` and ``passive_logits`` (B, K, H, W) of the passive branch
-        on ``F_I``, computed without gradient (the consistency target).
+        on ``F_I``, computed without gradient (the consistency target). ``prior``: see :meth:`heads`.
         """
-        return self.heads(self.features(x, frozen_encoder))
+        return self.heads(self.features(x, frozen_encoder), prior)
 
-    def heads(self, out: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        """:meth:`features`' outputs ``out`` with both branches' logits added (see :meth:`forward`)."""
-        out["active_logits"] = self.active(out["f_c"])[0]
+    def heads(self, out: dict[str, torch.Tensor], prior: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """:meth:`features`' outputs ``out`` with both branches' logits added (see :meth:`forward`);
+        ``prior`` ``(B, K + 1, H, W)`` (:mod:`.prior`) is required by ``prior_skip`` models.
+        """
+        out["active_logits"] = self._branch(self.active, out["f_c"], prior)
         with torch.no_grad():
-            out["passive_logits"] = self.passive(out["f_i"])[0]
+            out["passive_logits"] = self._branch(self.passive, out["f_i"], prior)
         return out
 
-    def logits(self, x: torch.Tensor, branch: str = "active") -> torch.Tensor:
-        """Per-class logits ``(B, K, H, W)`` of one branch (inference: only what it needs runs)."""
+    def _branch(self, branch: nn.Module, f: torch.Tensor, prior: torch.Tensor | None) -> torch.Tensor:
+        """One branch's logits ``(B, K, H, W)`` on BEV features ``f`` (+ the prior's skip and projection)."""
+        if not self.prior_channels:
+            return branch(f)[0]
+        if prior is None or tuple(prior.shape[1:]) != (self.prior_channels, *self.grid.shape):
+            got = None if prior is None else tuple(prior.shape)
+            raise ValueError(f"a prior_skip model needs the prior (B, {self.prior_channels}, {self.grid.shape[0]}, "
+                             f"{self.grid.shape[1]}), got {got}")
+        prior = prior.to(f.dtype)
+        if self._pool:
+            f = torch.cat([f, F.adaptive_avg_pool2d(prior, f.shape[-2:])], dim=1)  # (B, C + K + 1, hb, wb)
+        return branch(f, prior)[0] + self.prior_proj(prior)
+
+    def logits(self, x: torch.Tensor, branch: str = "active", prior: torch.Tensor | None = None) -> torch.Tensor:
+        """Per-class logits ``(B, K, H, W)`` of one branch (inference: only what it needs runs;
+        ``prior``: see :meth:`heads`).
+        """
         if branch not in BRANCHES:
             raise ConfigError(f"branch must be one of {BRANCHES}, got {branch!r}")
         if tuple(x.shape[-2:]) != tuple(self.input_size):
@@ -252,14 +299,14 @@ class S2G2(nn.Module):
         front = self.encoder(x)[-1]  # (B, C, hf, wf)
         bev = self.to_bev(front)  # (B, C, hb, wb)
         if branch == "passive":
-            return self.passive(bev if self.inter_view is None else self.inter_view(bev))[0]
+            return self._branch(self.passive, bev if self.inter_view is None else self.inter_view(bev), prior)
         if self.cross_view is not None:
             bev = self.cross_view(front, bev, self.to_front(bev))
-        return self.active(bev)[0]
+        return self._branch(self.active, bev, prior)
 
     def known(self) -> torch.Tensor:
         """(H, W) bool: grid cells on the ground inside the camera's image."""
         return self.frustum
 
 
-__all__ = ["BRANCHES", "S2G2", "S2G2Config", "input_size"]
+__all__ = ["BRANCHES", "PRIOR_LOGIT_SCALE", "S2G2", "S2G2Config", "input_size"]

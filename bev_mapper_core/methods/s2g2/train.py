@@ -73,6 +73,11 @@ default :class:`~bev_mapper_core.methods.s2g2.model.S2G2Config` has the segmente
 semi-supervised runs start from the same encoder, so comparisons between them stay fair.
 A resumed run then loads its own checkpoint over it.
 
+**segipm's prior** (``S2G2Config.prior_skip``, issue #39). The prior of every training and
+unlabeled frame (:class:`~bev_mapper_core.methods.s2g2.prior.SegIpmPrior`, from the camera-size
+image as it is, never augmented) is computed once in :meth:`S2G2Method.prepare` and indexed by
+the batches' frame ids; validation computes it per frame, as the mapper does.
+
 Validation scores the branch the weights will map with (``inference_branch``, saved in the
 weights' metadata).
 """
@@ -90,6 +95,7 @@ import torch
 from typing_extensions import override
 
 from bev_mapper_core.errors import ConfigError
+from bev_mapper_core.mapper import MapperConfig
 from bev_mapper_core.nn.augment import Augment, AugmentConfig, step_augment
 from bev_mapper_core.training.class_weights import POS_WEIGHTS, class_pos_weight
 from bev_mapper_core.training.method import CliFlag, TrainMethod
@@ -99,6 +105,7 @@ from ..segmenter.trunk import check_encoder_init, init_encoder
 from .blocks import VIEW_TRANSFORMS
 from .losses import BEV_TIES, S2G2LossConfig, ema_decay_at, ema_update, s2g2_loss
 from .model import BRANCHES, S2G2, S2G2Config
+from .prior import SegIpmPrior
 from .weights import load_state_s2g2, save_s2g2
 
 #: ``S2G2Training.optimizer`` choices.
@@ -154,6 +161,11 @@ class S2G2Training:
             1..n-1 of augmented images (each step draws one copy per frame); 0 = no cache (the
             encoder runs every step). With one copy and ``augment`` off, a step's loss equals the
             uncached frozen step's.
+        pos_weight_max: the cap of the ``auto`` positive weights (10: Bi-Mapper's; the rare
+            pedestrian layer reaches it).
+        pos_weight_classes: ``name=w,name=w``: these classes' positive weights set to ``w``
+            (with ``pos_weight`` ``auto``; e.g. a low cap for the thin layers and
+            ``pedestrian=10``, whose layer collapses without a weight).
     """
 
     cycle_weight: float = S2G2LossConfig.cycle_weight
@@ -174,6 +186,8 @@ class S2G2Training:
     augment: bool = True
     frozen_encoder: bool = False
     feature_copies: int = 0
+    pos_weight_max: float = 10.0
+    pos_weight_classes: str = ""
 
     def __post_init__(self) -> None:
         check_encoder_init(self.encoder_init)
@@ -198,9 +212,34 @@ class S2G2Training:
             raise ConfigError("feature_copies caches the encoder's features: it needs frozen_encoder")
         if n > 1 and not self.augment:
             raise ConfigError("feature_copies > 1 caches augmented copies: it needs augment")
+        v = self.pos_weight_max
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 1:
+            raise ConfigError(f"pos_weight_max must be a finite number >= 1, got {v!r}")
+        self.class_pos_weights()  # validates pos_weight_classes
         if self.frozen_encoder and (self.cycle_into_encoder or self.unlabeled_into_encoder):
             raise ConfigError("a frozen encoder trains from no loss: drop cycle_into_encoder / unlabeled_into_encoder")
         self.loss_config()  # validates the weights and the ramp
+
+    def class_pos_weights(self) -> dict[str, float]:
+        """``pos_weight_classes`` parsed: class name -> weight (>= 1).
+
+        Raises:
+            ConfigError: not ``name=w`` items, a weight that is not a finite number >= 1, or set
+                without ``pos_weight`` ``auto``.
+        """
+        out: dict[str, float] = {}
+        for item in filter(None, (t.strip() for t in str(self.pos_weight_classes).split(","))):
+            name, _, w = item.partition("=")
+            try:
+                v = float(w)
+            except ValueError:
+                v = float("nan")
+            if not name.strip() or not math.isfinite(v) or v < 1:
+                raise ConfigError(f"pos_weight_classes items are name=weight (weight >= 1), got {item!r}")
+            out[name.strip()] = v
+        if out and self.pos_weight != "auto":
+            raise ConfigError("pos_weight_classes sets some of the auto weights: it needs pos_weight 'auto'")
+        return out
 
     def loss_config(self, pos_weight: tuple[float, ...] | None = None) -> S2G2LossConfig:
         """The loss configuration of a run."""
@@ -264,6 +303,14 @@ class S2G2Method(TrainMethod):
                      "(--config keys encoder_variant lite0, width_mult 1.0, depth_mult 1.0)"),
         CliFlag("--augment", "augment", action="boolean",
                 help="photometric augmentation (colour, exposure, blur, noise) of every training image (RGB input)"),
+        CliFlag("--prior-skip", "prior_skip", action="store_true",
+                help="segipm's map of the same image (segmenter + IPM) enters both branches and their logits "
+                     "(they start as segipm's); computed once per training frame"),
+        CliFlag("--prior-pool", "prior_pool", action="store_true",
+                help="with --prior-skip: the prior, pooled to the BEV feature map, also enters each branch's first layer"),
+        CliFlag("--pos-weight-max", "pos_weight_max", number=True, help="cap of the auto BCE positive weights"),
+        CliFlag("--pos-weight-classes", "pos_weight_classes",
+                help="name=w,...: these classes' auto BCE positive weights set to w (e.g. pedestrian=10)"),
         CliFlag("--frozen-encoder", "frozen_encoder", action="store_true",
                 help="the encoder (the shipped segmenter's trunk) never trains"),
         CliFlag("--feature-copies", "feature_copies", min_value=0,
@@ -310,17 +357,33 @@ class S2G2Method(TrainMethod):
 
     @override
     def data_needs(self) -> DataNeeds:
-        return DataNeeds(image_size=self.model.input_size, unlabeled=not self.cfg.loss.supervised_only,
+        size = None if self.cfg.model.prior_skip else self.model.input_size  # the prior reads camera-size images
+        return DataNeeds(image_size=size, unlabeled=not self.cfg.loss.supervised_only,
                          rgb=self.cfg.model.input_kind == "rgb", labels=self.cfg.model.input_kind == "labels")
 
     @override
     def prepare(self, data: TrainData, log: Callable[[str], None]) -> None:
         if data.unlabeled is None and not self.cfg.loss.supervised_only:
             raise ConfigError("S2G2 trains on unlabeled frames too, and the data source gave none")
-        pw = class_pos_weight(data.train) if self.cfg.loss.pos_weight == "auto" else None
+        pw = class_pos_weight(data.train, self.cfg.loss.pos_weight_max) if self.cfg.loss.pos_weight == "auto" else None
+        over = self.cfg.loss.class_pos_weights()
+        unknown = sorted(set(over) - set(self.cfg.class_names))
+        if unknown:
+            raise ConfigError(f"pos_weight_classes names {unknown}, not among the classes {list(self.cfg.class_names)}")
+        if pw is not None:
+            pw = tuple(over.get(c, w) for c, w in zip(self.cfg.class_names, pw))
         self.loss_cfg = self.cfg.loss.loss_config(pw)
         if pw is not None:
             log(f"BCE positive weights {dict(zip(self.cfg.class_names, pw))}")
+        if self.cfg.model.prior_skip:
+            t0 = time.monotonic()
+            self._prior_fn = SegIpmPrior(self.rig, self.grid, self.cfg.class_names,
+                                         MapperConfig(threads=1, device=str(self.device)))
+            self._priors = {name: self._prior_all(fs) for name, fs in (("train", data.train), ("unlabeled", data.unlabeled))
+                            if fs is not None}
+            mib = sum(c.numel() * c.element_size() for c in self._priors.values()) / 2**20
+            log(f"segipm prior of {sum(len(c) for c in self._priors.values())} frames, {mib:.0f} MiB, "
+                f"{time.monotonic() - t0:.1f} s")
         if self.cfg.loss.feature_copies:
             t0 = time.monotonic()
             self._cache = {name: self._encode_all(fs) for name, fs in (("train", data.train), ("unlabeled", data.unlabeled))
@@ -348,6 +411,18 @@ class S2G2Method(TrainMethod):
                 feats.append(self.model.encoder(self._inputs(batch, aug))[-1])  # (b, C, hf, wf)
             copies.append(torch.cat(feats))
         return torch.stack(copies)  # n x (M, C, hf, wf) -> (n, M, C, hf, wf)
+
+    @torch.no_grad()
+    def _prior_all(self, fs) -> torch.Tensor:
+        """The segipm prior ``(M, K + 1, H, W)`` of every frame of ``fs`` (its images as they are)."""
+        return torch.cat([self._prior_fn.batch(fs.batch(np.arange(s, min(s + CACHE_BATCH, len(fs))))["rgb"])
+                          for s in range(0, len(fs), CACHE_BATCH)])
+
+    def _prior(self, name: str, batch: dict) -> torch.Tensor | None:
+        """The cached prior ``(B, K + 1, H, W)`` of a batch of set ``name`` (None without ``prior_skip``)."""
+        if not self.cfg.model.prior_skip:
+            return None
+        return self._priors[name][batch["index"].cpu()].to(self.device)
 
     def _cached(self, name: str, index: torch.Tensor, step: int) -> torch.Tensor:
         """Cached features ``(B, C, hf, wf)`` of frames ``index`` of set ``name``, one copy each
@@ -380,38 +455,43 @@ class S2G2Method(TrainMethod):
         aug = step_augment(self.cfg.seed, step, self.device) if self._augments() else None
         x = self._inputs(labeled, aug)  # (B_l, C_in, h, w)
         n = x.shape[0]
+        prior = self._prior("train", labeled)
         if unlabeled is None:
-            out = self._forward(x)
+            out = self._forward(x, prior=prior)
         elif self.cfg.loss.unlabeled_bn == "batch" and self.cfg.loss.unlabeled_into_encoder:
-            out = self._forward(torch.cat([x, self._inputs(unlabeled, aug)]))  # (B_l + B_u, ...): one pass, shared BN
+            both = None if prior is None else torch.cat([prior, self._prior("unlabeled", unlabeled)])
+            out = self._forward(torch.cat([x, self._inputs(unlabeled, aug)]), prior=both)  # (B_l + B_u, ...): one pass, shared BN
         else:
             frozen = not self.cfg.loss.unlabeled_into_encoder
-            out = self._forward(x)
+            out = self._forward(x, prior=prior)
             with running_batchnorm(self.model):
-                out_u = self._forward(self._inputs(unlabeled, aug), frozen)
+                out_u = self._forward(self._inputs(unlabeled, aug), frozen, self._prior("unlabeled", unlabeled))
             out = {k: torch.cat([out[k], out_u[k]]) for k in out}  # (B_l + B_u, ...) each
         return s2g2_loss(out, n, labeled["target"], labeled["mask"], step, self.loss_cfg, labeled.get("class_mask"))
 
     def _cached_loss(self, labeled: dict, unlabeled: dict | None, step: int) -> tuple[torch.Tensor, dict[str, float]]:
         """:meth:`loss` on cached features: the same model and losses after the encoder."""
-        out = self._heads(self._cached("train", labeled["index"], step))
+        out = self._heads(self._cached("train", labeled["index"], step), self._prior("train", labeled))
         n = out["active_logits"].shape[0]
         if unlabeled is not None:
             with running_batchnorm(self.model):
-                out_u = self._heads(self._cached("unlabeled", unlabeled["index"], step))
+                out_u = self._heads(self._cached("unlabeled", unlabeled["index"], step),
+                                    self._prior("unlabeled", unlabeled))
             out = {k: torch.cat([out[k], out_u[k]]) for k in out}  # (B_l + B_u, ...) each
         return s2g2_loss(out, n, labeled["target"].to(self.device), labeled["mask"].to(self.device), step,
                          self.loss_cfg, labeled.get("class_mask"))
 
-    def _heads(self, front: torch.Tensor) -> dict[str, torch.Tensor]:
+    def _heads(self, front: torch.Tensor, prior: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """The model after its encoder on features ``front``, as :meth:`_forward` computes it."""
-        return self._detached_cycle(self.model.heads(self.model.from_front(front.to(self.device))))
+        return self._detached_cycle(self.model.heads(self.model.from_front(front.to(self.device)), prior))
 
-    def _forward(self, x: torch.Tensor, frozen_encoder: bool = False) -> dict[str, torch.Tensor]:
-        """The model's outputs on inputs ``x``; unless ``cycle_into_encoder``, the cycle's input
-        and target are the encoder's features detached (computed once more for the loss).
+    def _forward(self, x: torch.Tensor, frozen_encoder: bool = False,
+                 prior: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """The model's outputs on inputs ``x`` (and the ``prior_skip`` input ``prior``); unless
+        ``cycle_into_encoder``, the cycle's input and target are the encoder's features detached
+        (computed once more for the loss).
         """
-        return self._detached_cycle(self.model(x, frozen_encoder))
+        return self._detached_cycle(self.model(x, frozen_encoder, prior))
 
     def _detached_cycle(self, out: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """Unless ``cycle_into_encoder``: ``out`` with the cycle computed once more from the
@@ -429,7 +509,8 @@ class S2G2Method(TrainMethod):
 
     @override
     def predict(self, batch: dict) -> tuple[np.ndarray, np.ndarray]:
-        logits = self.model.logits(self._inputs(batch), self.cfg.loss.inference_branch)
+        prior = self._prior_fn.batch(batch["rgb"]).to(self.device) if self.cfg.model.prior_skip else None
+        logits = self.model.logits(self._inputs(batch), self.cfg.loss.inference_branch, prior)
         probs = torch.sigmoid(logits).float().cpu().numpy()  # (B, K, H, W)
         known = self.model.known().cpu().numpy()  # (H, W), the same for every frame
         return probs, np.broadcast_to(known, (len(probs), *known.shape))

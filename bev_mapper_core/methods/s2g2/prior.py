@@ -1,0 +1,64 @@
+"""S2G2's ``prior_skip`` input: segipm's map of the same front image (issue #39).
+
+The shipped 2-D segmenter (:class:`~bev_mapper_core.methods.segmenter.stage.SegmenterStage`,
+``MapperConfig.segmenter``: ``auto`` = the default shipped one) labels the camera image at its
+own size and :class:`~bev_mapper_core.methods.ipm.mapper.IpmMapper` projects the labels onto the
+grid (occlusion reasoning included): exactly the ``segipm`` baseline
+(:class:`~bev_mapper_core.methods.segipm.mapper.SegIpmMapper`). Its ``K`` class probabilities and
+its ``known`` mask (as a 0/1 coverage channel) are the prior, ``(K + 1, H, W)`` float32. It is a
+fixed function of the image (no parameter of S2G2 reaches it), so training computes it once
+per frame (:meth:`~bev_mapper_core.methods.s2g2.train.S2G2Method.prepare`), from the image
+before any photometric augmentation.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import replace
+
+import numpy as np
+import torch
+
+from bev_mapper_core.geometry.grid import BevGrid
+from bev_mapper_core.geometry.rig import Rig
+from bev_mapper_core.mapper import MapperConfig
+
+
+class SegIpmPrior:
+    """segipm's map of one camera image as a ``(K + 1, H, W)`` prior (see the module docstring).
+
+    Args:
+        rig: the one-camera rig; grid: the model's grid; classes: the model's classes, in order.
+        config: the mapper's configuration (its ``segmenter``, ``backend``, ``threads``,
+            ``device``, ``ipm_occlusion`` are used); None = the defaults.
+    """
+
+    def __init__(self, rig: Rig, grid: BevGrid, classes: Sequence[str], config: MapperConfig | None = None) -> None:
+        from ..segipm.mapper import SegIpmMapper
+
+        base = config or MapperConfig()
+        cfg = replace(base, method="segipm", input_kind="rgb", classes=tuple(classes), weights=None)
+        self.classes = tuple(classes)
+        self.mapper = SegIpmMapper(rig, grid, cfg)
+        self.camera = rig.names[0]
+
+    def set_rig(self, rig: Rig) -> None:
+        """A new calibration of the camera (IPM's tables are rebuilt)."""
+        self.mapper.set_rig(rig)
+        self.camera = rig.names[0]
+
+    def one(self, image: np.ndarray) -> np.ndarray:
+        """One camera image ``(H_img, W_img, 3)`` uint8 -> the prior ``(K + 1, H, W)`` float32."""
+        pred = self.mapper.map({self.camera: np.ascontiguousarray(image)})
+        probs = np.stack([pred.layer(c) for c in self.classes]).astype(np.float32)  # (K, H, W)
+        return np.concatenate([probs, pred.known[None].astype(np.float32)])  # (K + 1, H, W)
+
+    def batch(self, images: torch.Tensor | np.ndarray) -> torch.Tensor:
+        """Camera images ``(B, 1, H_img, W_img, 3)`` uint8 (the rig's one camera) -> ``(B, K + 1, H, W)``."""
+        arr = images.cpu().numpy() if isinstance(images, torch.Tensor) else np.asarray(images)
+        if arr.ndim != 5 or arr.shape[1] != 1 or arr.shape[-1] != 3:
+            raise ValueError(f"the prior needs RGB images (B, 1, H, W, 3), got {arr.shape}")
+        return torch.from_numpy(np.stack([self.one(a[0].astype(np.uint8)) for a in arr]))
+
+
+__all__ = ["SegIpmPrior"]
