@@ -21,6 +21,7 @@ import torch
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.geometry.grid import BevGrid
 from bev_mapper_core.geometry.rig import Rig, scaled_camera
+from bev_mapper_core.labels.classes import resolve_classes
 from bev_mapper_core.mapper import BevPrediction, Mapper, MapperConfig
 from bev_mapper_core.nn.backends import backend_runner, resolve_backend
 from bev_mapper_core.nn.runtime import inference_device, inference_threads
@@ -217,11 +218,14 @@ class BiMapperMapper(Mapper):
         super().set_rig(rig)
         self.sight = self.faces = None
         if self.config.ipm_occlusion and self.model_input == "labels":
-            mapped = {label for c in self.classes for label in c.labels}
+            # the classes the model maps (the weights', not the layers asked for: the unknown
+            # cells do not depend on which layers are published)
+            model_classes = resolve_classes(self._weight_classes)
+            mapped = {label for c in model_classes for label in c.labels}
             self.sight = LineOfSight(rig, self.grid, OcclusionModel(footprints=learned_footprints(mapped)))
-            #: labels of the object classes mapped (vehicle, pedestrian): where a camera sees one,
-            #: the visibility head does not withhold the cell (:meth:`map`)
-            self.object_labels = sorted({label for c in self.classes if not c.flat for label in c.labels})
+            #: labels of the object classes the model maps (vehicle, pedestrian): where a camera
+            #: sees one, the visibility head does not withhold the cell (:meth:`map`)
+            self.object_labels = sorted({label for c in model_classes if not c.flat for label in c.labels})
             if self.object_labels and self._weights.config.visibility_head:  # IPM's priors, the same tables and rays
                 self.faces = LineOfSight(rig, self.grid, OcclusionModel(), tables=self.sight.tables,
                                          rasters=self.sight.rays)

@@ -220,3 +220,23 @@ def test_init_from_old_file_fine_tunes_with_a_fresh_head(tmp_path):
     other = BiMapper(replace(VIS, decoder_channels=8), RIG, GRID)
     with pytest.raises(WeightsError):
         init_from(other, str(path))
+
+
+@pytest.mark.slow
+def test_the_unknown_cells_do_not_depend_on_the_layers_asked_for():
+    """The line of sight and the seen-object rule (issue #39) follow the classes the model maps,
+    not the subset of layers published: a node publishing three layers and a replay of all seven
+    mark the same cells unknown (a subset without pedestrians once gave 19 other cells)."""
+    from bev_mapper_core.geometry.grid import BevGrid
+    from bev_mapper_core.geometry.rig import preset_rig
+    from bev_mapper_core.mapper import create_mapper
+    from bev_mapper_core.synth import generate_drive
+    from bev_mapper_core.synth.config import SynthConfig
+
+    rig, grid = preset_rig("surround6"), BevGrid()
+    (frame,) = generate_drive(rig, grid, SynthConfig(frames=1, seed=12))
+    images = {n: c.labels for n, c in frame.cameras.items()}
+    known = [create_mapper(rig, grid, MapperConfig(threads=1, backend="torch", classes=classes)).map(images).known
+             for classes in (None, ("drivable", "ped_crossing", "vehicle"), ("drivable",))]
+    assert not known[0].all() and known[0].any()
+    assert np.array_equal(known[0], known[1]) and np.array_equal(known[0], known[2])
