@@ -289,15 +289,24 @@ def run_tasks(ray, fn: Callable, items: Iterable, *args, max_in_flight: int | No
             _cancel(ray, list(pending))
 
 
+#: Seconds a watched task waits for the start board to note its node before it runs anyway.
+BOARD_WAIT_S = 10.0
 #: Seconds between two looks at the cluster's dead nodes (``watch_nodes``).
 NODE_CHECK_S = 1.0
 
 
 def _reporting(fn: Callable, board, key: int, item, *args):
-    """A watched task's body: tell ``board`` this node, then ``fn(item, *args)``."""
+    """A watched task's body: tell ``board`` this node (and wait until it knows, so that a node
+    lost after this is attributed), then ``fn(item, *args)``. A board that cannot be reached
+    (its actor did not start: seen on ``ray.cluster_utils`` clusters) leaves the task unwatched,
+    as Ray alone would run it, never failed.
+    """
     import ray  # noqa: PLC0415 - in a Ray worker
 
-    board.started.remote(key, ray.get_runtime_context().get_node_id())
+    try:
+        ray.get(board.started.remote(key, ray.get_runtime_context().get_node_id()), timeout=BOARD_WAIT_S)
+    except Exception:  # noqa: BLE001 - ActorDiedError, GetTimeoutError, ...: watched or not, the bag runs
+        pass
     return fn(item, *args)
 
 

@@ -217,7 +217,7 @@ def test_joining_an_existing_cluster(fleet, tmp_path):
                      cluster.address, *FAST]) == 1
         s = json.loads((out / SUMMARY_FILE).read_text())
         assert s["ray"]["address"] == cluster.address and s["ray"]["workers"] == 2  # the cluster's CPUs
-        assert s["ray"]["nodes"] == [cluster.head_node.node_id]  # where the tasks ran
+        assert s["ray"]["nodes"] == [cluster.head_node.node_id], s["per_bag"]  # where the tasks ran
         assert {e["node"] for e in s["per_bag"] if e["status"] == "ok"} == {cluster.head_node.node_id}
         same = {k: v for k, v in fleet["summary"]["aggregate"].items() if k != "latency_ms"}
         assert s["bags"]["ok"] == 3 and {k: s["aggregate"][k] for k in same} == same

@@ -205,6 +205,10 @@ def test_a_killed_node_is_reported_and_resume_completes(cluster, drives, tmp_pat
             assert run.poll() is None and time.monotonic() < deadline, "no bag started on the second node"
             busy = [p for p in raylet.children(recursive=True) if _title(p).startswith(TASK_TITLES)]
             time.sleep(0.02)
+        # the task tells the driver's start board its node first thing (and waits for it); frozen
+        # before that, its bag would be nobody's (the run would wait for Ray's 7 minutes): a
+        # machine that vanishes mid-bag has long since started it. The bag itself takes seconds.
+        time.sleep(0.5)
         for p in busy:
             p.send_signal(signal.SIGSTOP)
         cluster.frozen.update(busy)

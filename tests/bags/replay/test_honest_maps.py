@@ -411,4 +411,12 @@ def test_the_visibility_head_keeps_the_objects_a_camera_sees(tmp_path):
     assert not honest[road | beside | shadow].any()
     assert not (honest & ~frustum).any()
     assert not known(ipm_occlusion=False).any()  # the head alone: nothing is seen
-    assert not known(classes=("drivable",)).any()  # no object class mapped: no object kept
+    # the layers asked for change nothing (the rule follows the classes the weights map) ...
+    assert np.array_equal(known(classes=("drivable",)), honest)
+    # ... weights that map no object class keep no object
+    blind = BiMapper(replace(TINY, ipm_skip=True, visibility_head=True, classes=("drivable",)), rig, grid).eval()
+    with torch.no_grad():
+        blind.decoder.vis_head[-1].weight.zero_()
+        blind.decoder.vis_head[-1].bias.fill_(-50.0)
+    save_weights(blind, path)
+    assert not known().any()
