@@ -73,3 +73,23 @@ def random_labels(seed: int) -> torch.Tensor:
     rng = np.random.default_rng(seed)
     w, h = CAM_MODEL.image_size
     return torch.from_numpy(rng.integers(0, NUM_LABELS + 3, size=(1, len(RIG.cameras), h, w), dtype=np.uint8))
+
+
+def step_losses(method, data, cfg, steps: int, epochs: int) -> list[float]:
+    """A training method's loss at each of its first ``steps`` optimizer steps over ``data``
+    (:meth:`prepare` already run), at most ``epochs`` epochs: the loop of the trainer, bare."""
+    opt = method.configure_optimizer(cfg.lr)
+    method.model.train()
+    out, step = [], 0
+    for epoch in range(epochs):
+        for batch in data.batches(cfg.batch, cfg.seed, epoch):
+            loss, _ = method.loss(batch, epoch, step)
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            method.after_step(step)
+            out.append(float(loss.detach()))
+            step += 1
+            if step == steps:
+                return out
+    return out

@@ -8,6 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+from model_helpers import step_losses
 
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.geometry.grid import BevGrid
@@ -47,21 +48,7 @@ def _losses(copies: int, steps: int = 6, **over) -> tuple[list[float], object]:
     m = method_class("s2g2")(cfg, RIG, cfg.grid)
     data = _data()
     m.prepare(data, lambda _: None)
-    opt = m.configure_optimizer(cfg.lr)
-    m.model.train()
-    out, step = [], 0
-    for epoch in range(3):
-        for batch in data.batches(cfg.batch, cfg.seed, epoch):
-            loss, _ = m.loss(batch, epoch, step)
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-            m.after_step(step)
-            out.append(float(loss.detach()))
-            step += 1
-            if step == steps:
-                return out, m
-    return out, m
+    return step_losses(m, data, cfg, steps, epochs=3), m
 
 
 def test_cached_features_give_the_uncached_losses_step_for_step():

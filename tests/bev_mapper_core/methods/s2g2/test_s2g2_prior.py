@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from model_helpers import step_losses
 
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.geometry.grid import BevGrid
@@ -108,21 +109,7 @@ def _losses(drive, copies: int, steps: int = 4):
     assert m.data_needs().image_size is None  # the prior reads camera-size images
     data = _data(drive)
     m.prepare(data, lambda _: None)
-    opt = m.configure_optimizer(cfg.lr)
-    m.model.train()
-    out, step = [], 0
-    for epoch in range(4):
-        for batch in data.batches(cfg.batch, cfg.seed, epoch):
-            loss, _ = m.loss(batch, epoch, step)
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-            m.after_step(step)
-            out.append(float(loss.detach()))
-            step += 1
-            if step == steps:
-                return out, m
-    return out, m
+    return step_losses(m, data, cfg, steps, epochs=4), m
 
 
 def test_cached_prior_and_features_give_the_uncached_losses(drive):
