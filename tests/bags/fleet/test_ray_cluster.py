@@ -207,8 +207,12 @@ def test_a_killed_node_is_reported_and_resume_completes(cluster, drives, tmp_pat
             time.sleep(0.02)
         # the task tells the driver's start board its node first thing (and waits for it); frozen
         # before that, its bag would be nobody's (the run would wait for Ray's 7 minutes): a
-        # machine that vanishes mid-bag has long since started it. The bag itself takes seconds.
-        time.sleep(0.5)
+        # machine that vanishes mid-bag has long since started it. So freeze it once it has a bag
+        # open (its input or its output), which it does only after the board knows its node (a
+        # fixed 0.5 s was too short on a loaded machine: the test hung once).
+        while not any(_has_bag_open(p, (drives["bags"], out)) for p in busy):
+            assert run.poll() is None and time.monotonic() < deadline, "the second node's task opened no bag"
+            time.sleep(0.01)
         for p in busy:
             p.send_signal(signal.SIGSTOP)
         cluster.frozen.update(busy)
@@ -239,6 +243,14 @@ def test_a_killed_node_is_reported_and_resume_completes(cluster, drives, tmp_pat
     assert {e["name"] for e in s2["per_bag"] if not e["resumed"]} == {e["name"] for e in lost}
     assert len(s2["ray"]["nodes"]) == 1  # replayed on the head, the only node left
     assert _timeless(s2["aggregate"]) == _timeless(drives["local"]["aggregate"])
+
+
+def _has_bag_open(proc, folders) -> bool:
+    """True when ``proc`` has a file under one of ``folders`` open."""
+    try:
+        return any(Path(f.path).is_relative_to(d) for f in proc.open_files() for d in folders)
+    except (psutil.NoSuchProcess, psutil.AccessDenied):
+        return False
 
 
 def _title(proc) -> str:

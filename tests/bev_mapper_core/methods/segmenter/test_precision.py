@@ -67,11 +67,35 @@ def _agreement(a: dict, b: dict) -> float:
 
 @pytest.mark.slow
 def test_int8_export_agrees_with_f32_and_a_damaged_file_is_rebuilt(frames, tmp_path, monkeypatch, caplog):
+    """The node's start-up (issue #41): segipm in int8 maps with torch while the export process
+    exports and quantizes, then switches to the int8 model; that one file serves both runtimes,
+    agrees with f32, and a damaged copy is rebuilt to the same bytes (two quantizations in all)."""
     if importlib.util.find_spec("onnxruntime") is None:
         pytest.skip("onnxruntime not installed (its quantizer builds the int8 file)")
     import onnx
 
+    from bev_mapper_core.geometry.grid import BevGrid
+    from bev_mapper_core.geometry.rig import preset_rig
+    from bev_mapper_core.mapper import create_mapper
+
     monkeypatch.setenv("BEV_MAPPER_CACHE", str(tmp_path))
+    mapper = create_mapper(preset_rig("surround6"), BevGrid(),
+                           MapperConfig(method="segipm", input_kind="rgb", backend="onnxruntime",
+                                        segmenter_precision="int8", threads=1))
+    try:
+        mapper.export_in_background()
+        mapper.map(frames[0])
+        assert mapper.backend_state == "torch (until the onnxruntime model is ready)"
+        (runner,) = mapper.stage._runners.values()
+        assert runner.wait_ready(300)
+        mapper.map(frames[1])
+        assert mapper.backend_state == "onnxruntime int8"
+    finally:
+        mapper.close()
+    (model,) = tmp_path.rglob("*.onnx")  # one file for both runtimes, quantized, its tail float
+    ops = {n.op_type for n in onnx.load(str(model)).graph.node}
+    assert {"QuantizeLinear", "DequantizeLinear", "ArgMax"} <= ops
+
     backends = [b for b in ("onnxruntime", "openvino") if importlib.util.find_spec(b) is not None]
     ref = SegmenterStage(PATH, backend="torch", threads=1)
     want = [ref.segment(f) for f in frames]
@@ -84,10 +108,7 @@ def test_int8_export_agrees_with_f32_and_a_damaged_file_is_rebuilt(frames, tmp_p
             assert all(g[n].shape == w[n].shape and g[n].dtype == np.uint8 for n in w)
             assert _agreement(g, w) > AGREEMENT, backend
             assert _agreement(g, w) < 1.0  # it is another model: not f32's labels to the pixel
-    (model,) = tmp_path.rglob("*.onnx")  # one file for both runtimes, quantized, its tail float
-    ops = {n.op_type for n in onnx.load(str(model)).graph.node}
-    assert {"QuantizeLinear", "DequantizeLinear", "ArgMax"} <= ops
-    assert "quantized to int8" in caplog.text
+    assert list(tmp_path.rglob("*.onnx")) == [model]  # the runtimes loaded the background export's file
     sha = file_sha256(model)
     # the f32 export of the same weights and size is another file (the recipe is in the key)
     SegmenterStage(PATH, backend="onnxruntime", threads=1).segment(frames[0])
@@ -100,6 +121,7 @@ def test_int8_export_agrees_with_f32_and_a_damaged_file_is_rebuilt(frames, tmp_p
     stage = SegmenterStage(PATH, backend=backends[0], threads=1, precision="int8")
     assert _agreement(stage.segment(frames[1]), want[1]) > AGREEMENT
     assert "is not used: its contents differ from its record" in caplog.text
+    assert "quantized to int8" in caplog.text
     assert file_sha256(model) == sha  # the calibration and the quantizer are deterministic
     # (a missing file is exported again like any other: tests/bev_mapper_core/nn/test_export_cache.py;
     # a third 20-45 s quantization here would test nothing more)
@@ -116,31 +138,3 @@ def test_bf16_runs_on_openvino_and_agrees_with_f32(frames, tmp_path, monkeypatch
     for f in frames:
         assert _agreement(stage.segment(f), ref.segment(f)) > AGREEMENT
     assert stage.state == "openvino bf16"
-
-
-@pytest.mark.slow
-def test_int8_is_built_by_the_background_export(frames, tmp_path, monkeypatch):
-    """The node's start-up (issue #41): segipm in int8 maps with torch while the export process
-    exports and quantizes, then switches to the int8 model."""
-    if importlib.util.find_spec("onnxruntime") is None:
-        pytest.skip("onnxruntime not installed")
-    import onnx
-
-    from bev_mapper_core.geometry.grid import BevGrid
-    from bev_mapper_core.geometry.rig import preset_rig
-    from bev_mapper_core.mapper import create_mapper
-
-    monkeypatch.setenv("BEV_MAPPER_CACHE", str(tmp_path))
-    mapper = create_mapper(preset_rig("surround6"), BevGrid(),
-                           MapperConfig(method="segipm", input_kind="rgb", backend="onnxruntime",
-                                        segmenter_precision="int8", threads=1))
-    mapper.export_in_background()
-    mapper.map(frames[0])
-    assert mapper.backend_state == "torch (until the onnxruntime model is ready)"
-    (runner,) = mapper.stage._runners.values()
-    assert runner.wait_ready(300)
-    mapper.map(frames[1])
-    assert mapper.backend_state == "onnxruntime int8"
-    (model,) = tmp_path.rglob("*.onnx")
-    assert "QuantizeLinear" in {n.op_type for n in onnx.load(str(model)).graph.node}
-    mapper.close()
