@@ -19,7 +19,7 @@ one from the shipped segmenter's trunk, with the photometric augmentation on):
 * ``focusbev``: FocusBEV on the trunk (``--backbone efficientnet``), front1, ``ahead`` grid;
 * ``bimapper_rgb``: end-to-end RGB Bi-Mapper, surround6, its encoders of the trunk's sizes;
 * the second session's ablation rows on fixed recipes (``*_clip``, ``focusbev_mlp``,
-  ``focusbev_w1``: see :data:`RUNS`).
+  ``focusbev_w1``, ``s2g2_prior``: see :data:`RUNS`).
 
 The drives are rendered with the cache specs the runs themselves compute (the method's input
 size, classes, grid, frames, stride, style), so ``bev-train --cache`` finds every drive and
@@ -91,6 +91,12 @@ RUNS.update({
     "focusbev_mlp": _override(RUNS["focusbev"], _FB_FIXED + ["--decoder-layers", "0", "--window", "1"]) + ["--no-cycle"],
     "focusbev_w1": _override(RUNS["focusbev"], _FB_FIXED + ["--window", "1"]),
 })
+# Issue #39's S2G2 recipe (the shipped front1 file, docs/RESULTS.md "Seed methods on the pretrained
+# trunk"): segipm's map as a prior the branches correct, the trunk frozen and its features cached
+# once per frame, low positive weights but pedestrians at 10; on CPU it ran 1000 steps of batch 4.
+RUNS["s2g2_prior"] = _override(RUNS["s2g2"], ["--batch", "4", "--epochs", "30", "--lr-step-epoch", "24",
+                                              "--grad-clip", "5", "--pos-weight-max", "3"]) + [
+    "--prior-skip", "--frozen-encoder", "--feature-copies", "2", "--pos-weight-classes", "pedestrian=10"]
 #: model settings without flags of their own, per run (given with --config): the end-to-end
 #: RGB Bi-Mapper's encoders take the shipped segmenter's trunk, so they have its sizes
 RUN_CONFIG: dict[str, dict] = {"bimapper_rgb": {"width_mult": 1.0, "depth_mult": 0.5, "encoder_stages": 5}}
@@ -270,6 +276,7 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         print(f"error: unknown runs {unknown}; choose from {list(RUNS)}", file=sys.stderr)
         return 2
+    a.out = str(Path(a.out).resolve())  # the runs start in another folder: relative paths would not reach
     a.cache = a.cache or str(Path(a.out) / "cache")
     a.threads = a.threads or max(1, (os.cpu_count() or 1) // len(names))
     (Path(a.out) / "logs").mkdir(parents=True, exist_ok=True)
