@@ -14,7 +14,7 @@ from bev_mapper_core.geometry.grid import BevGrid
 from bev_mapper_core.geometry.rig import preset_rig
 from bev_mapper_core.mapper import MapperConfig, create_mapper
 from bev_mapper_core.methods.s2g2.model import PRIOR_LOGIT_SCALE, S2G2, S2G2Config
-from bev_mapper_core.methods.s2g2.prior import SegIpmPrior
+from bev_mapper_core.methods.segipm.prior import SegIpmPrior
 from bev_mapper_core.methods.s2g2.weights import save_s2g2
 from bev_mapper_core.training.config import TrainConfig
 from bev_mapper_core.training.data import FrameSet, render_drive

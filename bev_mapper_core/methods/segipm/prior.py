@@ -1,4 +1,5 @@
-"""S2G2's ``prior_skip`` input: segipm's map of the same front image (issue #39).
+"""The ``prior_skip`` input of S2G2 and FocusBEV: segipm's map of the same front image (issue #39;
+:mod:`bev_mapper_core.nn.prior_skip`).
 
 The shipped 2-D segmenter (:class:`~bev_mapper_core.methods.segmenter.stage.SegmenterStage`,
 ``MapperConfig.segmenter``: ``auto`` = the default shipped one) labels the camera image at its
@@ -6,9 +7,9 @@ own size and :class:`~bev_mapper_core.methods.ipm.mapper.IpmMapper` projects the
 grid (occlusion reasoning included): exactly the ``segipm`` baseline
 (:class:`~bev_mapper_core.methods.segipm.mapper.SegIpmMapper`). Its ``K`` class probabilities and
 its ``known`` mask (as a 0/1 coverage channel) are the prior, ``(K + 1, H, W)`` float32. It is a
-fixed function of the image (no parameter of S2G2 reaches it), so training computes it once
-per frame (:meth:`~bev_mapper_core.methods.s2g2.train.S2G2Method.prepare`), from the image
-before any photometric augmentation.
+fixed function of the image (no parameter of the model reaches it), so training computes it once
+per frame (:func:`~bev_mapper_core.training.frozen_trunk.prior_cache`, in the methods'
+``prepare``), from the image before any photometric augmentation.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ class SegIpmPrior:
     """
 
     def __init__(self, rig: Rig, grid: BevGrid, classes: Sequence[str], config: MapperConfig | None = None) -> None:
-        from ..segipm.mapper import SegIpmMapper
+        from .mapper import SegIpmMapper
 
         base = config or MapperConfig()
         cfg = replace(base, method="segipm", input_kind="rgb", classes=tuple(classes), weights=None)
