@@ -93,3 +93,35 @@ def step_losses(method, data, cfg, steps: int, epochs: int) -> list[float]:
             if step == steps:
                 return out
     return out
+
+
+def random_rgb_data(rgb: np.ndarray, classes, grid: BevGrid, camera_names, unlabeled: bool = True):
+    """A :class:`~bev_mapper_core.training.sources.TrainData` of 4 training, 2 held-out (and 2
+    unlabeled) frames with random targets, each frame's RGB image one of ``rgb`` ``(F, 1, H, W, 3)``
+    (same draws on every call)."""
+    from bev_mapper_core.training.data import FrameSet
+    from bev_mapper_core.training.sources import TrainData
+
+    rng = np.random.default_rng(0)
+
+    def frames(n):
+        idx = rng.integers(0, len(rgb), n)
+        return FrameSet(np.zeros((n, 1, 4, 4), np.uint8), rng.random((n, len(classes), *grid.shape)) > 0.6,
+                        np.ones((n, *grid.shape), bool), camera_names=camera_names, rgb=rgb[idx])
+
+    return TrainData(frames(4), frames(2), frames(2) if unlabeled else None)
+
+
+def tiny_run(cfg_dict: dict, data, out, logs=None) -> tuple[list[float], dict]:
+    """A run through the trainer (``TrainConfig.from_dict(cfg_dict)``, ``out`` its folder) on
+    ``data``: ``(loss_total per epoch, last weights)``; ``logs`` collects the trainer's messages."""
+    from safetensors.torch import load_file
+
+    from bev_mapper_core.training.config import TrainConfig
+    from bev_mapper_core.training.sources import InMemorySource
+    from bev_mapper_core.training.trainer import train
+
+    cfg = TrainConfig.from_dict({**cfg_dict, "out": str(out)})
+    doc = train(cfg, log=(logs.append if logs is not None else lambda m: None),
+                data=InMemorySource(data.train, data.val, data.unlabeled))
+    return [r["loss_total"] for r in doc["history"]], load_file(str(out / "last.safetensors"))

@@ -55,16 +55,21 @@ import torch
 from typing_extensions import override
 
 from bev_mapper_core.errors import ConfigError
-from bev_mapper_core.mapper import MapperConfig
 from bev_mapper_core.nn.augment import Augment, step_augment
 from bev_mapper_core.synth.config import SynthConfig
 from bev_mapper_core.training.class_weights import POS_WEIGHTS
-from bev_mapper_core.training.frozen_trunk import (FROZEN_TRUNK_FLAGS, PRIOR_SKIP_FLAG, FrozenTrunkTraining, cache_mib,
-                                                   encode_cache, pick_cached, prior_cache)
+from bev_mapper_core.training.frozen_trunk import (
+    FROZEN_TRUNK_FLAGS,
+    PRIOR_SKIP_FLAG,
+    FrozenTrunkTraining,
+    cache_mib,
+    encode_cache,
+    pick_cached,
+)
 from bev_mapper_core.training.method import CliFlag, TrainMethod
 from bev_mapper_core.training.sources import DataNeeds, TrainData
 
-from ..segipm.prior import SegIpmPrior
+from ..segipm.prior import training_priors
 from ..segmenter.trunk import check_encoder_init, init_encoder
 from .losses import FocusBEVLossConfig, focusbev_loss
 from .model import BACKBONES, FocusBEV, FocusBEVConfig
@@ -231,12 +236,9 @@ class FocusBEVMethod(TrainMethod):
         if pw is not None:
             log(f"BCE positive weights {dict(zip(self.cfg.class_names, pw))}")
         if self.cfg.model.prior_skip:
-            t0 = time.monotonic()
-            self._prior_fn = SegIpmPrior(self.rig, self.grid, self.cfg.class_names,
-                                         MapperConfig(threads=1, device=str(self.device)))
-            self._priors = prior_cache(self._prior_fn.batch, data.train)
-            log(f"segipm prior of {len(self._priors)} frames, {cache_mib([self._priors]):.0f} MiB, "
-                f"{time.monotonic() - t0:.1f} s")
+            self._prior_fn, priors = training_priors(self.rig, self.grid, self.cfg.class_names, self.device,
+                                                     {"train": data.train}, log)
+            self._priors = priors["train"]
         if self.cfg.loss.feature_copies:
             t0 = time.monotonic()
             n = self.cfg.loss.feature_copies

@@ -28,8 +28,8 @@ from bev_mapper_core.nn.mono_mapper import MonocularMapper
 from bev_mapper_core.nn.runtime import inference_device
 
 from .. import shipped_weights
-from .model import S2G2
 from ..segipm.prior import SegIpmPrior
+from .model import S2G2
 from .weights import load_s2g2, read_s2g2_metadata, validate_s2g2
 
 

@@ -97,15 +97,20 @@ import torch
 from typing_extensions import override
 
 from bev_mapper_core.errors import ConfigError
-from bev_mapper_core.mapper import MapperConfig
 from bev_mapper_core.nn.augment import Augment, step_augment
 from bev_mapper_core.training.class_weights import POS_WEIGHTS
-from bev_mapper_core.training.frozen_trunk import (FROZEN_TRUNK_FLAGS, PRIOR_SKIP_FLAG, FrozenTrunkTraining, cache_mib,
-                                                   encode_cache, pick_cached, prior_cache)
+from bev_mapper_core.training.frozen_trunk import (
+    FROZEN_TRUNK_FLAGS,
+    PRIOR_SKIP_FLAG,
+    FrozenTrunkTraining,
+    cache_mib,
+    encode_cache,
+    pick_cached,
+)
 from bev_mapper_core.training.method import CliFlag, TrainMethod
 from bev_mapper_core.training.sources import DataNeeds, TrainData
 
-from ..segipm.prior import SegIpmPrior
+from ..segipm.prior import training_priors
 from ..segmenter.trunk import check_encoder_init, init_encoder
 from .blocks import VIEW_TRANSFORMS
 from .losses import BEV_TIES, S2G2LossConfig, ema_decay_at, ema_update, s2g2_loss
@@ -314,12 +319,8 @@ class S2G2Method(TrainMethod):
             log(f"BCE positive weights {dict(zip(self.cfg.class_names, pw))}")
         sets = [(name, fs) for name, fs in (("train", data.train), ("unlabeled", data.unlabeled)) if fs is not None]
         if self.cfg.model.prior_skip:
-            t0 = time.monotonic()
-            self._prior_fn = SegIpmPrior(self.rig, self.grid, self.cfg.class_names,
-                                         MapperConfig(threads=1, device=str(self.device)))
-            self._priors = {name: prior_cache(self._prior_fn.batch, fs) for name, fs in sets}
-            log(f"segipm prior of {sum(len(c) for c in self._priors.values())} frames, "
-                f"{cache_mib(self._priors.values()):.0f} MiB, {time.monotonic() - t0:.1f} s")
+            self._prior_fn, self._priors = training_priors(self.rig, self.grid, self.cfg.class_names, self.device,
+                                                           dict(sets), log)
         if self.cfg.loss.feature_copies:
             t0 = time.monotonic()
             n = self.cfg.loss.feature_copies

@@ -14,7 +14,8 @@ per frame (:func:`~bev_mapper_core.training.frozen_trunk.prior_cache`, in the me
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 
 import numpy as np
@@ -23,6 +24,7 @@ import torch
 from bev_mapper_core.geometry.grid import BevGrid
 from bev_mapper_core.geometry.rig import Rig
 from bev_mapper_core.mapper import MapperConfig
+from bev_mapper_core.training.frozen_trunk import cache_mib, prior_cache
 
 
 class SegIpmPrior:
@@ -62,4 +64,17 @@ class SegIpmPrior:
         return torch.from_numpy(np.stack([self.one(a[0].astype(np.uint8)) for a in arr]))
 
 
-__all__ = ["SegIpmPrior"]
+def training_priors(rig: Rig, grid: BevGrid, classes: Sequence[str], device, sets: Mapping[str, object],
+                    log: Callable[[str], None]) -> tuple[SegIpmPrior, dict[str, torch.Tensor]]:
+    """A training run's prior: ``(the prior on one thread, {name: (M, K + 1, H, W)})``, the prior of
+    every frame of each named frame set (their camera-size images as they are), computed once.
+    """
+    t0 = time.monotonic()
+    fn = SegIpmPrior(rig, grid, classes, MapperConfig(threads=1, device=str(device)))
+    priors = {name: prior_cache(fn.batch, fs) for name, fs in sets.items()}
+    log(f"segipm prior of {sum(len(p) for p in priors.values())} frames, {cache_mib(priors.values()):.0f} MiB, "
+        f"{time.monotonic() - t0:.1f} s")
+    return fn, priors
+
+
+__all__ = ["SegIpmPrior", "training_priors"]

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from model_helpers import step_losses
+from model_helpers import random_rgb_data, step_losses, tiny_run
 
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.geometry.grid import BevGrid
@@ -17,7 +17,7 @@ from bev_mapper_core.methods.focusbev.model import FocusBEV, FocusBEVConfig
 from bev_mapper_core.methods.focusbev.weights import save_focusbev
 from bev_mapper_core.nn.prior_skip import PRIOR_LOGIT_SCALE
 from bev_mapper_core.training.config import TrainConfig
-from bev_mapper_core.training.data import FrameSet, render_drive
+from bev_mapper_core.training.data import render_drive
 from bev_mapper_core.training.method import method_class
 from bev_mapper_core.training.sources import TrainData
 
@@ -70,14 +70,7 @@ def test_mapper_with_untrained_prior_weights_decides_as_segipm(tmp_path, drive):
 
 
 def _data(drive) -> TrainData:
-    rng = np.random.default_rng(0)
-
-    def frames(n):
-        idx = rng.integers(0, 2, n)
-        return FrameSet(np.zeros((n, 1, 4, 4), np.uint8), rng.random((n, len(CLASSES), *GRID.shape)) > 0.6,
-                        np.ones((n, *GRID.shape), bool), camera_names=RIG.names, rgb=drive["rgb"][idx])
-
-    return TrainData(frames(4), frames(2), None)
+    return random_rgb_data(drive["rgb"], CLASSES, GRID, RIG.names, unlabeled=False)
 
 
 def _losses(drive, copies: int, steps: int = 3):
@@ -109,23 +102,14 @@ def test_cached_prior_and_features_give_the_uncached_losses(drive):
     for bad in ({"window": 2, "feature_copies": 1}, {"backbone": "resnet"}):
         cfg = TrainConfig.from_dict({**RUN, **bad})
         with pytest.raises(ConfigError, match="window 1|pretrained trunk"):
-            method_class("focusbev")(cfg, RIG, cfg.grid).model
+            method_class("focusbev")(cfg, RIG, cfg.grid)
 
 
 def _run(drive, out, logs=None, **extra):
     """A tiny prior_skip run through the trainer on :func:`_data` (two cached, augmented copies):
     ``(loss_total per epoch, last weights)``."""
-    from safetensors.torch import load_file
-
-    from bev_mapper_core.training.sources import InMemorySource
-    from bev_mapper_core.training.trainer import train
-
-    cfg = TrainConfig.from_dict({**RUN, "augment": True, "feature_copies": 2, "epochs": 2, "threads": 1,
-                                 "out": str(out), **extra})
-    data = _data(drive)
-    doc = train(cfg, log=(logs.append if logs is not None else lambda m: None),
-                data=InMemorySource(data.train, data.val, data.unlabeled))
-    return [r["loss_total"] for r in doc["history"]], load_file(str(out / "last.safetensors"))
+    return tiny_run({**RUN, "augment": True, "feature_copies": 2, "epochs": 2, "threads": 1, **extra},
+                    _data(drive), out, logs)
 
 
 def test_resume_with_the_prior_equals_an_uninterrupted_run(tmp_path, drive):
