@@ -56,8 +56,9 @@ LICENSE_NC = {
            "CamVid (Brostow, Fauqueur & Cipolla 2009). The package's code stays Apache-2.0."}
 
 
-def _scores(eval_dir: Path) -> list[dict]:
-    """The card's score entries, one per test set; exits unless the file beats segipm on both."""
+def _scores(eval_dir: Path, method: str = "s2g2") -> list[dict]:
+    """The card's score entries, one per test set (``experiments/score_s2g2_39.sh``'s JSON files of
+    ``method``); exits unless the file beats segipm on both."""
     out = []
     for name, seeds in SETS.items():
         d = json.loads((eval_dir / f"new_{name}.json").read_text())
@@ -68,9 +69,9 @@ def _scores(eval_dir: Path) -> list[dict]:
         vals.update(mIoU=round(100 * d["miou"], 1), mAP=round(100 * d["map"], 1))
         out.append({"data": f"test set {name}: drives {seeds} ({d['frames']} frames), the training styles (mixed)",
                     "metric": "BEV IoU % of the visible cells (and mAP %)", "values": vals,
-                    "command": f"bev-train eval --rig front1 --grid ahead --input rgb --method s2g2 --weights FILE "
+                    "command": f"bev-train eval --rig front1 --grid ahead --input rgb --method {method} --weights FILE "
                                f"--style mixed --frames-per-drive 100 --val-seeds {seeds}   "
-                               f"# experiments/score_s2g2_39.sh",
+                               f"# experiments/score_s2g2_39.sh{'' if method == 's2g2' else ' FILE OUT CACHE ' + method}",
                     "note": f"Measured on CPU. `segipm` on the same frames: {100 * ref['miou']:.1f}."})
     return out
 
