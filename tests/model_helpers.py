@@ -125,3 +125,22 @@ def tiny_run(cfg_dict: dict, data, out, logs=None) -> tuple[list[float], dict]:
     doc = train(cfg, log=(logs.append if logs is not None else lambda m: None),
                 data=InMemorySource(data.train, data.val, data.unlabeled))
     return [r["loss_total"] for r in doc["history"]], load_file(str(out / "last.safetensors"))
+
+
+def memory_focusbev(path) -> str:
+    """A small untrained FocusBEV file with a memory bank (window 2, 0.3 s apart) for ``front1`` on
+    the ``ahead`` grid, for the tests of how the node and the replay run FocusBEV's memory (the
+    shipped file, issue #39, maps each frame alone), mapping every class nearly everywhere: its path."""
+    from bev_mapper_core.geometry.grid import grid_preset
+    from bev_mapper_core.geometry.rig import preset_rig
+    from bev_mapper_core.methods.focusbev.model import FocusBEV, FocusBEVConfig
+    from bev_mapper_core.methods.focusbev.weights import save_focusbev
+
+    torch.manual_seed(0)
+    cfg = FocusBEVConfig(input_width=64, backbone_width=8, fpn_levels=2, channels=16, decoder_layers=1, heads=2,
+                         window=2, decoder_channels=8)
+    model = FocusBEV(cfg, preset_rig("front1"), grid_preset("ahead"))
+    last = [m for m in model.head.modules() if isinstance(m, torch.nn.Conv2d)][-1]
+    with torch.no_grad():  # every class mapped nearly everywhere: the drivable area scores above 0
+        last.bias.fill_(2.0)
+    return str(save_focusbev(model, path, 0.3))
