@@ -89,6 +89,7 @@ def test_exported_monocular_methods_map_as_torch_does(method, backend, tmp_path_
     monkeypatch.setenv(backends.CACHE_ENV, str(tmp_path))
     rig, grid = preset_rig("front1"), grid_preset("ahead")
     # f32: S2G2's prior runs the segmenter stage, whose OpenVINO default may be bf16 (other labels)
+    tmp_path.mkdir(parents=True, exist_ok=True)
     weights = memory_focusbev(tmp_path / "focusbev_w2.safetensors") if method == "focusbev_memory" else None
     cfg = MapperConfig(backend="torch", method=method.removesuffix("_memory"), input_kind="rgb", threads=1,
                        segmenter_precision="f32", weights=weights)
