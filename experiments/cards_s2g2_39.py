@@ -1,8 +1,8 @@
-"""Ship issue #39's S2G2 with segipm's prior: copy the chosen run's best file to
-``bev_mapper_core/weights/s2g2_front1_rgb.safetensors`` with its model card, the scores read from
-``experiments/score_s2g2_39.sh``'s JSON files (test sets A and B, never used for training or choice).
+"""Ship issue #39's S2G2 or FocusBEV with segipm's prior: copy the chosen run's best file to
+``bev_mapper_core/weights/{s2g2,focusbev}_front1_rgb.safetensors`` with its model card, the scores read
+from ``experiments/score_s2g2_39.sh``'s JSON files (test sets A and B, never used for training or choice).
 
-    .venv/bin/python experiments/cards_s2g2_39.py --run RUN_DIR --eval EVAL_DIR --command "bev-train ..."
+    .venv/bin/python experiments/cards_s2g2_39.py [--method focusbev] --run RUN_DIR --eval EVAL_DIR --command "bev-train ..."
     .venv/bin/python -m bev_mapper_core.methods.cards write      # then docs/MODELS.md
 
 The run and its epoch were chosen on the validation drives 900000000-05; this script only ships
@@ -56,8 +56,9 @@ LICENSE_NC = {
            "CamVid (Brostow, Fauqueur & Cipolla 2009). The package's code stays Apache-2.0."}
 
 
-def _scores(eval_dir: Path) -> list[dict]:
-    """The card's score entries, one per test set; exits unless the file beats segipm on both."""
+def _scores(eval_dir: Path, method: str = "s2g2") -> list[dict]:
+    """The card's score entries, one per test set (``experiments/score_s2g2_39.sh``'s JSON files of
+    ``method``); exits unless the file beats segipm on both."""
     out = []
     for name, seeds in SETS.items():
         d = json.loads((eval_dir / f"new_{name}.json").read_text())
@@ -68,42 +69,64 @@ def _scores(eval_dir: Path) -> list[dict]:
         vals.update(mIoU=round(100 * d["miou"], 1), mAP=round(100 * d["map"], 1))
         out.append({"data": f"test set {name}: drives {seeds} ({d['frames']} frames), the training styles (mixed)",
                     "metric": "BEV IoU % of the visible cells (and mAP %)", "values": vals,
-                    "command": f"bev-train eval --rig front1 --grid ahead --input rgb --method s2g2 --weights FILE "
+                    "command": f"bev-train eval --rig front1 --grid ahead --input rgb --method {method} --weights FILE "
                                f"--style mixed --frames-per-drive 100 --val-seeds {seeds}   "
-                               f"# experiments/score_s2g2_39.sh",
+                               f"# experiments/score_s2g2_39.sh{'' if method == 's2g2' else ' FILE OUT CACHE ' + method}",
                     "note": f"Measured on CPU. `segipm` on the same frames: {100 * ref['miou']:.1f}."})
     return out
+
+
+#: What differs between the two methods' cards (S2G2 first shipped by this script, then FocusBEV).
+METHODS = {
+    "s2g2": {
+        "file": "s2g2_front1_rgb.safetensors",
+        "summary": "S2G2 (RA-L 2022) for one front RGB camera (`front1` rig), mapping the `ahead` grid, 32 m x "
+                   "32 m ahead of base_link at 0.25 m (128 x 128 cells); node preset `config/front1_s2g2.yaml`. "
+                   "With segipm's map of the same image as a prior (`prior_skip`, issue #39): the default "
+                   "segmenter's labels projected by IPM enter both branches, which learn its correction from the "
+                   "image's BEV features. Trained supervised on a frozen encoder (cached features).",
+        "encoder": "encoder"},
+    "focusbev": {
+        "file": "focusbev_front1_rgb.safetensors",
+        "summary": "FocusBEV for one front RGB camera (`front1` rig), mapping the `ahead` grid, 32 m x 32 m ahead "
+                   "of base_link at 0.25 m (128 x 128 cells); node preset `config/front1_focusbev.yaml`. With "
+                   "segipm's map of the same image as a prior (`prior_skip`, issue #39): the default segmenter's "
+                   "labels projected by IPM enter the top-down network's head and the logits, and the network "
+                   "learns its correction from the image's BEV features. Single frame (window 1: no memory "
+                   "bank). Trained supervised on a frozen trunk (cached features).",
+        "encoder": "backbone"},
+}
 
 
 def main(argv=None) -> int:
     """Command line entry (see the module docstring)."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--method", choices=sorted(METHODS), default="s2g2", help="the method of the file")
     ap.add_argument("--run", required=True, help="the chosen run directory (its best.safetensors ships)")
     ap.add_argument("--eval", required=True, help="experiments/score_s2g2_39.sh's output directory")
     ap.add_argument("--command", required=True, help="the run's bev-train command line")
     ap.add_argument("--details", required=True, help="steps, schedule and the chosen epoch")
     a = ap.parse_args(argv)
-    scores = _scores(Path(a.eval))
-    card = {"card_version": 1,
-            "summary": "S2G2 (RA-L 2022) for one front RGB camera (`front1` rig), mapping the `ahead` grid, 32 m x "
-                       "32 m ahead of base_link at 0.25 m (128 x 128 cells); node preset `config/front1_s2g2.yaml`. "
-                       "With segipm's map of the same image as a prior (`prior_skip`, issue #39): the default "
-                       "segmenter's labels projected by IPM enter both branches, which learn its correction from the "
-                       "image's BEV features. Trained supervised on a frozen encoder (cached features).",
-            "input": "the RGB image of the front camera, resized to 192x108 (w x h, from 400x225) for the encoder; "
-                     "at its own 400x225 for the segmenter of the prior (which resizes it to its own 480 px)",
+    spec = METHODS[a.method]
+    scores = _scores(Path(a.eval), a.method)
+    trunk = {**TRUNK, "description": TRUNK["description"].replace("S2G2's encoder",
+                                                                  f"{'S2G2' if a.method == 's2g2' else 'FocusBEV'}'s "
+                                                                  f"{spec['encoder']}")}
+    card = {"card_version": 1, "summary": spec["summary"],
+            "input": f"the RGB image of the front camera, resized to 192x108 (w x h, from 400x225) for the "
+                     f"{spec['encoder']}; at its own 400x225 for the segmenter of the prior (which resizes it to "
+                     f"its own 480 px)",
             "classes": ["drivable", "lane_divider", "ped_crossing", "road_boundary", "sidewalk", "vehicle",
                         "pedestrian"],
-            "training_data": [SYNTH_F1, TRUNK, PRIOR], "license": LICENSE_NC,
-            "training": {"command": a.command + f"\ncp {a.run}/best.safetensors "
-                                               "bev_mapper_core/weights/s2g2_front1_rgb.safetensors",
+            "training_data": [SYNTH_F1, trunk, PRIOR], "license": LICENSE_NC,
+            "training": {"command": a.command + f"\ncp {a.run}/best.safetensors bev_mapper_core/weights/{spec['file']}",
                          "details": a.details},
             "scores": scores}
-    dest = WEIGHTS_DIR / "s2g2_front1_rgb.safetensors"
+    dest = WEIGHTS_DIR / spec["file"]
     shutil.copy(Path(a.run) / "best.safetensors", dest)
     dest.chmod(0o644)
     set_card(dest, card)
-    print(f"s2g2_front1_rgb.safetensors: {scores[0]['values']['mIoU']} / {scores[1]['values']['mIoU']} (A / B)")
+    print(f"{spec['file']}: {scores[0]['values']['mIoU']} / {scores[1]['values']['mIoU']} (A / B)")
     return 0
 
 

@@ -93,3 +93,54 @@ def step_losses(method, data, cfg, steps: int, epochs: int) -> list[float]:
             if step == steps:
                 return out
     return out
+
+
+def random_rgb_data(rgb: np.ndarray, classes, grid: BevGrid, camera_names, unlabeled: bool = True):
+    """A :class:`~bev_mapper_core.training.sources.TrainData` of 4 training, 2 held-out (and 2
+    unlabeled) frames with random targets, each frame's RGB image one of ``rgb`` ``(F, 1, H, W, 3)``
+    (same draws on every call)."""
+    from bev_mapper_core.training.data import FrameSet
+    from bev_mapper_core.training.sources import TrainData
+
+    rng = np.random.default_rng(0)
+
+    def frames(n):
+        idx = rng.integers(0, len(rgb), n)
+        return FrameSet(np.zeros((n, 1, 4, 4), np.uint8), rng.random((n, len(classes), *grid.shape)) > 0.6,
+                        np.ones((n, *grid.shape), bool), camera_names=camera_names, rgb=rgb[idx])
+
+    return TrainData(frames(4), frames(2), frames(2) if unlabeled else None)
+
+
+def tiny_run(cfg_dict: dict, data, out, logs=None) -> tuple[list[float], dict]:
+    """A run through the trainer (``TrainConfig.from_dict(cfg_dict)``, ``out`` its folder) on
+    ``data``: ``(loss_total per epoch, last weights)``; ``logs`` collects the trainer's messages."""
+    from safetensors.torch import load_file
+
+    from bev_mapper_core.training.config import TrainConfig
+    from bev_mapper_core.training.sources import InMemorySource
+    from bev_mapper_core.training.trainer import train
+
+    cfg = TrainConfig.from_dict({**cfg_dict, "out": str(out)})
+    doc = train(cfg, log=(logs.append if logs is not None else lambda m: None),
+                data=InMemorySource(data.train, data.val, data.unlabeled))
+    return [r["loss_total"] for r in doc["history"]], load_file(str(out / "last.safetensors"))
+
+
+def memory_focusbev(path) -> str:
+    """A small untrained FocusBEV file with a memory bank (window 2, 0.3 s apart) for ``front1`` on
+    the ``ahead`` grid, for the tests of how the node and the replay run FocusBEV's memory (the
+    shipped file, issue #39, maps each frame alone), mapping every class nearly everywhere: its path."""
+    from bev_mapper_core.geometry.grid import grid_preset
+    from bev_mapper_core.geometry.rig import preset_rig
+    from bev_mapper_core.methods.focusbev.model import FocusBEV, FocusBEVConfig
+    from bev_mapper_core.methods.focusbev.weights import save_focusbev
+
+    torch.manual_seed(0)
+    cfg = FocusBEVConfig(input_width=64, backbone_width=8, fpn_levels=2, channels=16, decoder_layers=1, heads=2,
+                         window=2, decoder_channels=8)
+    model = FocusBEV(cfg, preset_rig("front1"), grid_preset("ahead"))
+    last = [m for m in model.head.modules() if isinstance(m, torch.nn.Conv2d)][-1]
+    with torch.no_grad():  # every class mapped nearly everywhere: the drivable area scores above 0
+        last.bias.fill_(2.0)
+    return str(save_focusbev(model, path, 0.3))

@@ -8,6 +8,7 @@ import math
 from dataclasses import replace
 
 import numpy as np
+from model_helpers import memory_focusbev
 from nav_msgs.msg import Odometry
 from ros_helpers import REPO, loaded_torch, rclpy, spin_until, start_process, stop_process
 from test_node import Driver, node_view_of_rig
@@ -148,18 +149,20 @@ def test_node_runs_focusbev_with_its_memory_bank_exactly_as_the_core(tmp_path, r
     order with the same poses (``bev-bag replay``'s path), the memory interval of 0.3 s brings
     in an earlier frame from frame 2 on, and a stamp going back (a bag loop) starts a new bank."""
     params = REPO / "config" / "front1_focusbev.yaml"
+    weights = memory_focusbev(tmp_path / "focusbev_w2.safetensors")  # the shipped file maps frames alone
     grid, rig = grid_preset("ahead"), preset_rig("front1")
     classes = ("drivable", "vehicle")
     log = tmp_path / "node.log"
     proc = start_process(["bev_mapper_ros.mapper_node", "--ros-args", "--params-file", str(params),
-                          "-p", "threads:=1", "-p", "backend:=torch",
+                          "-p", "threads:=1", "-p", f"weights:={weights}", "-p", "backend:=torch",
                           "-p", f"classes:={list(classes)}".replace("'", '"')], ros_domain, log)
     frames = list(generate_drive(rig, grid, SynthConfig(frames=5, seed=950_000_014)))
     back = 2_000_000_000  # a loop: more than the synchronizer's jump_back_ns behind
     looped = replace(frames[3], stamp_ns=frames[3].stamp_ns - back,
                      cameras={n: replace(c, stamp_ns=c.stamp_ns - back) for n, c in frames[3].cameras.items()})
     expected = create_mapper(node_view_of_rig(rig, params), grid,
-                             MapperConfig(method="focusbev", input_kind="rgb", classes=classes, threads=1, backend="torch"))
+                             MapperConfig(method="focusbev", input_kind="rgb", classes=classes, threads=1, backend="torch",
+                                          weights=weights))
     node = None
     got = []  # (frame, {class: grid data}) in the order sent
     try:

@@ -11,6 +11,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from model_helpers import memory_focusbev
 from ros_helpers import REPO, rclpy, spin_until, start_process, stop_process
 from test_node import Driver
 
@@ -255,15 +256,17 @@ def test_focusbev_memory_follows_tf_with_pose_source_auto(tmp_path, ros_domain):
     from bev_mapper_core.mapper import create_mapper
 
     params = REPO / "config" / "front1_focusbev.yaml"
+    weights = memory_focusbev(tmp_path / "focusbev_w2.safetensors")  # the shipped file maps frames alone
     grid, rig = grid_preset("ahead"), preset_rig("front1")
     classes = ("drivable", "vehicle")
     log = tmp_path / "node.log"
     proc = start_process(["bev_mapper_ros.mapper_node", "--ros-args", "--params-file", str(params),
-                          "-p", "threads:=1", "-p", "diagnostics_period_s:=0.2", "-p", "backend:=torch",
+                          "-p", "threads:=1", "-p", f"weights:={weights}", "-p", "diagnostics_period_s:=0.2", "-p", "backend:=torch",
                           "-p", f"classes:={list(classes)}".replace("'", '"')], ros_domain, log)
     frames = at_now(list(generate_drive(rig, grid, SynthConfig(frames=4, seed=950_000_014))))
     expected = create_mapper(rig_with(rig, {"front": rig.cameras[0].ego_from_cam_array}), grid,
-                             MapperConfig(method="focusbev", input_kind="rgb", classes=classes, threads=1, backend="torch"))
+                             MapperConfig(method="focusbev", input_kind="rgb", classes=classes, threads=1, backend="torch",
+                                          weights=weights))
     d, values = drive_with_tf_motion(ros_domain, proc, log, rig, frames, "rgb", classes, 120.0)
     assert values["pose_source"] == "tf", values
     fused = []

@@ -17,6 +17,11 @@ not after the last one (a bag loop), on a gap longer than ``max_gap_s`` or an eg
 than ``max_jump_m`` (:class:`~bev_mapper_core.temporal.TemporalConfig`'s defaults, the same
 rules as the method-independent fusion), and when a frame comes without a valid pose or stamp:
 it is then mapped alone, and the next frame with a pose starts a new bank.
+
+**segipm's prior** (weights with ``prior_skip``, issue #39): each frame also runs segipm on the
+image (:class:`~bev_mapper_core.methods.segipm.prior.SegIpmPrior`, the segmenter of
+``MapperConfig.segmenter``) and hands its map to the head. The prior is the current frame's
+only: the bank keeps BEV features, which the fusion warps, and the prior enters after the fusion.
 """
 
 from __future__ import annotations
@@ -38,6 +43,7 @@ from bev_mapper_core.nn.runtime import inference_device
 from bev_mapper_core.temporal import TemporalConfig, drop_reason, pose_problem
 
 from .. import shipped_weights
+from ..segipm.prior import SegIpmPrior
 from .model import FocusBEV
 from .weights import load_focusbev, read_focusbev_metadata, validate_focusbev
 
@@ -84,11 +90,17 @@ class FocusBEVMapper(MonocularMapper):
         self._kept: deque[_Kept] = deque()
         #: runs image -> BEV feature by ``MapperConfig.backend`` (the fusion and head: torch)
         self._runner = backend_runner(config, self.device)
+        #: segipm's map of the image, the head's second input of ``prior_skip`` weights (None otherwise)
+        self.prior: SegIpmPrior | None = None
+        if meta["config"].get("prior_skip"):
+            self.prior = SegIpmPrior(rig, grid, meta["classes"], config)
         super().__init__(rig, grid, config)
 
     def set_rig(self, rig: Rig) -> None:
         """The model for this calibration (see :class:`MonocularMapper`); export again if exported."""
         super().set_rig(rig)
+        if self.prior is not None:
+            self.prior.set_rig(rig)
         self._runner.reset(_Features(self.model))
 
     def reset(self) -> None:
@@ -151,7 +163,8 @@ class FocusBEVMapper(MonocularMapper):
                     while self._kept and self._kept[0].stamp_ns < horizon:
                         self._kept.popleft()
                 fused = self.model.temporal(bev, hist)
-            logits = self.model.head(fused)[0]  # (1, K, H, W)
+            prior = None if self.prior is None else torch.from_numpy(self.prior.one(img))[None].to(self.device)
+            logits = self.model.logits(fused, prior)  # (1, K, H, W); prior (1, K + 1, H, W)
             probs = torch.sigmoid(logits[0, self._layers]).float().cpu().numpy()  # (K_wanted, H, W)
             known = self.model.known().cpu().numpy()
         return BevPrediction(self.class_names, np.ascontiguousarray(probs, dtype=np.float32), known.astype(bool),

@@ -19,6 +19,10 @@ where the paper leaves a detail open.
    of the reference feature with the warped history features (no gradient into them).
 6. **Top-down network**: the project's BEV decoder (:class:`~.bimapper.BevDecoder`; the paper:
    PON's two residual bottleneck layers with upsampling) to per-class logits on the grid.
+7. **segipm's prior** (``prior_skip``, not in the paper; issue #39): segipm's map of the same
+   image (:mod:`~bev_mapper_core.nn.prior_skip`) enters the top-down network's head (whose last
+   layer starts at zero) and is projected onto the logits (starting at ``8 p - 4``): the
+   untrained model maps as segipm does, and the network learns the correction.
 
 Single-frame use: :meth:`FocusBEV.forward` with no history (the reference feature stands in for
 every history frame, as after a memory reset). The features to keep in a memory bank are the
@@ -44,6 +48,7 @@ from bev_mapper_core.nn.decoder import BevDecoder
 from bev_mapper_core.nn.efficientnet import EfficientNet, EfficientNetConfig, downsampled_size
 from bev_mapper_core.nn.inputs import preprocess_one_camera
 from bev_mapper_core.nn.mono_geometry import check_same_camera, one_camera_input_size
+from bev_mapper_core.nn.prior_skip import PriorProjection, check_prior
 from bev_mapper_core.nn.resnet import FPN, RESNET_DEPTHS, ResNet
 
 from ..segmenter.trunk import trunk_config
@@ -102,6 +107,9 @@ class FocusBEVConfig(DictConfig):
         min_depth: nearest depth of the polar rays (m; the paper's GT starts at 1 m).
         max_depth: farthest depth (m); ``None`` = the grid's farthest corner from the ego origin.
         decoder_channels: width of the top-down network at the BEV feature resolution.
+        prior_skip: segipm's map of the same image, ``K`` class probabilities + the coverage
+            channel on the full grid, enters the head and the logits (step 7 of the module
+            docstring); RGB input only.
     """
 
     input_kind: str = "rgb"
@@ -120,6 +128,7 @@ class FocusBEVConfig(DictConfig):
     min_depth: float = 1.0
     max_depth: float | None = None
     decoder_channels: int = 64
+    prior_skip: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "classes", tuple(self.classes))
@@ -139,8 +148,11 @@ class FocusBEVConfig(DictConfig):
                 raise ConfigError(f"{name} must be an integer in [{lo}, {hi}], got {v!r}")
         if self.channels % self.heads:
             raise ConfigError(f"channels ({self.channels}) must be a multiple of heads ({self.heads})")
-        if not isinstance(self.cycle, bool):
-            raise ConfigError(f"cycle must be true or false, got {self.cycle!r}")
+        for name in ("cycle", "prior_skip"):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(f"{name} must be true or false, got {getattr(self, name)!r}")
+        if self.prior_skip and self.input_kind != "rgb":
+            raise ConfigError("prior_skip is segipm's map of an RGB image: it needs input_kind 'rgb'")
         for name in ("min_depth", "max_depth"):
             v = getattr(self, name)
             if v is None and name == "max_depth":
@@ -217,7 +229,12 @@ class FocusBEV(nn.Module):
         self.to_pv = nn.ModuleList(ColumnTransformer(C, d, hl, wl, L, heads)
                                    for (hl, wl), d in zip(self.level_hw, self.depths)) if config.cycle else None
         self.temporal = EgoMotionFusion(C, config.window, self.fgrid) if config.window > 1 else None
-        self.head = BevDecoder(C, config.decoder_channels, self.num_classes, self.fgrid.shape, grid.shape)
+        #: channels of the ``prior_skip`` input: K class probabilities + coverage (0 without it)
+        self.prior_channels = self.num_classes + 1 if config.prior_skip else 0
+        self.head = BevDecoder(C, config.decoder_channels, self.num_classes, self.fgrid.shape, grid.shape,
+                               skip_channels=self.prior_channels)
+        if config.prior_skip:
+            self.prior_proj = PriorProjection(self.num_classes)  # logits start as the prior's: 8 p - 4 per class
         mean, std = rgb_stats(config.backbone == "lite0")  # a Lite trunk reads ImageNet-Lite's scaling
         self.register_buffer("rgb_mean", torch.tensor(mean), persistent=False)
         self.register_buffer("rgb_std", torch.tensor(std), persistent=False)
@@ -261,21 +278,42 @@ class FocusBEV(nn.Module):
         """
         if tuple(x.shape[-2:]) != tuple(self.input_size):
             raise ValueError(f"input {tuple(x.shape)} does not match the model input size {self.input_size}")
-        levels = self.fpn(self.backbone(x))  # each (B, C, H_l, W_l)
+        return self.bev_from_trunk(self.backbone(x))
+
+    def bev_from_trunk(self, feats) -> torch.Tensor:
+        """:meth:`bev_features` from the backbone's maps ``feats`` (e.g. cached ones of a frozen
+        trunk; the FPN reads those from stride 8 on, the first may be None).
+        """
+        levels = self.fpn(feats)  # each (B, C, H_l, W_l)
         polar = [t(f) for t, f in zip(self.to_bev, levels)]  # each (B, C, D_l, W_l)
         if self.to_pv is not None:
             focused = [t(p) for t, p in zip(self.to_pv, polar)]  # BEV-focusing PV, each (B, C, H_l, W_l)
             polar = [t(f) + p for t, f, p in zip(self.to_bev, focused, polar)]  # weight-shared PV->BEV + residual
         return polar_to_cartesian(polar, self.polar_grid, self.polar_valid)
 
-    def forward(self, x: torch.Tensor, history=None) -> dict[str, torch.Tensor]:
+    def forward(self, x: torch.Tensor, history=None, prior: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """Model inputs ``(B, C_in, h, w)`` and optional ``history`` (see
         :meth:`~.focusbev_blocks.EgoMotionFusion.forward`: newest first, ``(feature, prev_from_cur,
-        present)``) -> ``{"bev": this frame's feature (B, C, hb, wb), "logits": (B, K, H, W)}``.
+        present)``) -> ``{"bev": this frame's feature (B, C, hb, wb), "logits": (B, K, H, W)}``;
+        ``prior``: see :meth:`logits`.
         """
-        bev = self.bev_features(x)
+        return self.decode(self.bev_features(x), history, prior)
+
+    def decode(self, bev: torch.Tensor, history=None, prior: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """:meth:`forward` from this frame's BEV feature ``bev`` ``(B, C, hb, wb)``."""
         fused = bev if self.temporal is None else self.temporal(bev, history or [])
-        return {"bev": bev, "logits": self.head(fused)[0]}
+        return {"bev": bev, "logits": self.logits(fused, prior)}
+
+    def logits(self, fused: torch.Tensor, prior: torch.Tensor | None = None) -> torch.Tensor:
+        """The top-down network on the (fused) BEV feature ``(B, C, hb, wb)`` -> logits ``(B, K, H, W)``;
+        ``prior`` ``(B, K + 1, H, W)`` (:mod:`~bev_mapper_core.methods.segipm.prior`) is required
+        by ``prior_skip`` models.
+        """
+        if not self.prior_channels:
+            return self.head(fused)[0]
+        check_prior(prior, self.prior_channels, self.grid.shape)
+        prior = prior.to(fused.dtype)
+        return self.head(fused, prior)[0] + self.prior_proj(prior)
 
     def known(self) -> torch.Tensor:
         """(H, W) bool: grid cells on the ground inside the camera's image."""

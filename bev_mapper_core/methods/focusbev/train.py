@@ -29,12 +29,24 @@ are not augmented.
 
 Optimizer: AdamW (the paper's); the trainer's step schedule replaces the paper's warm-up and
 linear decay. Positive weights of the BCE: the project's ``auto`` weights, as Bi-Mapper's
-(PON's weighted BCE weighs classes too; its exact weights are dataset statistics).
+(PON's weighted BCE weighs classes too; its exact weights are dataset statistics), capped at
+``pos_weight_max``, some set by ``pos_weight_classes``.
+
+**segipm's prior on a frozen trunk** (issue #39, as S2G2's;
+:mod:`~bev_mapper_core.training.frozen_trunk`). With ``FocusBEVConfig.prior_skip`` the prior of
+every training frame (:class:`~bev_mapper_core.methods.segipm.prior.SegIpmPrior`, from the
+camera-size image as it is) is computed once in :meth:`FocusBEVMethod.prepare` and indexed by the
+batches' frame ids (a window's last frame: the prior enters after the fusion); validation computes
+it per frame, as the mapper does. ``frozen_encoder`` keeps the backbone (the shipped segmenter's
+trunk or Lite0) as it starts, and ``feature_copies`` caches its maps of every training frame once
+(window 1 only: the history frames of a window would need their own copies), so a step runs the
+FPN, the view transformers and the top-down network only.
 """
 
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -45,10 +57,19 @@ from typing_extensions import override
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.nn.augment import Augment, step_augment
 from bev_mapper_core.synth.config import SynthConfig
-from bev_mapper_core.training.class_weights import POS_WEIGHTS, class_pos_weight
+from bev_mapper_core.training.class_weights import POS_WEIGHTS
+from bev_mapper_core.training.frozen_trunk import (
+    FROZEN_TRUNK_FLAGS,
+    PRIOR_SKIP_FLAG,
+    FrozenTrunkTraining,
+    cache_mib,
+    encode_cache,
+    pick_cached,
+)
 from bev_mapper_core.training.method import CliFlag, TrainMethod
 from bev_mapper_core.training.sources import DataNeeds, TrainData
 
+from ..segipm.prior import training_priors
 from ..segmenter.trunk import check_encoder_init, init_encoder
 from .losses import FocusBEVLossConfig, focusbev_loss
 from .model import BACKBONES, FocusBEV, FocusBEVConfig
@@ -56,8 +77,9 @@ from .weights import load_state_focusbev, save_focusbev
 
 
 @dataclass(frozen=True)
-class FocusBEVTraining:
-    """FocusBEV's training settings.
+class FocusBEVTraining(FrozenTrunkTraining):
+    """FocusBEV's training settings (and :class:`~bev_mapper_core.training.frozen_trunk.FrozenTrunkTraining`'s
+    ``frozen_encoder``, ``feature_copies``, ``pos_weight_max``, ``pos_weight_classes``).
 
     Args:
         uncertainty_weight, iou_weight: the loss weights (:class:`FocusBEVLossConfig`).
@@ -89,6 +111,7 @@ class FocusBEVTraining:
         v = self.weight_decay
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or v < 0:
             raise ConfigError(f"weight_decay must be a finite number >= 0, got {v!r}")
+        self.check_frozen_trunk()
         self.loss_config()
 
     def loss_config(self) -> FocusBEVLossConfig:
@@ -142,6 +165,8 @@ class FocusBEVMethod(TrainMethod):
         CliFlag("--augment", "augment", action="boolean",
                 help="photometric augmentation (colour, exposure, blur, noise) of the training windows' images, "
                      "one draw per window (RGB input)"),
+        PRIOR_SKIP_FLAG,
+        *FROZEN_TRUNK_FLAGS,
     )
 
     @override
@@ -161,11 +186,22 @@ class FocusBEVMethod(TrainMethod):
             raise ConfigError(f"encoder_init {init!r} initializes {'a' if need == 'lite0' else 'an'} {need} backbone; "
                               f"the {self.cfg.model.backbone} backbone has no pretrained weights for it "
                               f"(use --backbone {need})")
+        if self.cfg.loss.frozen_encoder:
+            if self.cfg.model.backbone == "resnet":
+                raise ConfigError("frozen_encoder keeps a pretrained trunk: use --backbone efficientnet or lite0")
+            model.backbone.requires_grad_(False)
+        if self.cfg.loss.feature_copies and self.cfg.model.window != 1:
+            raise ConfigError("feature_copies caches single frames' features: it needs --window 1")
+        self._cache: tuple[torch.Tensor, ...] = ()
         return model
 
     @override
+    def trainable_parameters(self):
+        return [p for p in self.model.parameters() if p.requires_grad]
+
+    @override
     def configure_optimizer(self, lr: float) -> torch.optim.Optimizer:
-        return torch.optim.AdamW(self.model.parameters(), lr=lr, weight_decay=self.cfg.loss.weight_decay)
+        return torch.optim.AdamW(self.trainable_parameters(), lr=lr, weight_decay=self.cfg.loss.weight_decay)
 
     @override
     def describe(self) -> str:
@@ -188,47 +224,102 @@ class FocusBEVMethod(TrainMethod):
     @override
     def data_needs(self) -> DataNeeds:
         w = self.cfg.model.window
-        return DataNeeds(image_size=self.model.input_size, sequence_length=w, poses=w > 1,
+        size = None if self.cfg.model.prior_skip else self.model.input_size  # the prior reads camera-size images
+        return DataNeeds(image_size=size, sequence_length=w, poses=w > 1,
                          rgb=self.cfg.model.input_kind == "rgb", labels=self.cfg.model.input_kind == "labels")
 
     @override
     def prepare(self, data: TrainData, log: Callable[[str], None]) -> None:
-        pw = class_pos_weight(data.train) if self.cfg.loss.pos_weight == "auto" else None
+        pw = self.cfg.loss.run_pos_weights(data.train, self.cfg.class_names)
         self.pos_weight = None if pw is None else torch.tensor(pw, dtype=torch.float32)
         self.loss_cfg = self.cfg.loss.loss_config()
         if pw is not None:
             log(f"BCE positive weights {dict(zip(self.cfg.class_names, pw))}")
+        if self.cfg.model.prior_skip:
+            self._prior_fn, priors = training_priors(self.rig, self.grid, self.cfg.class_names, self.device,
+                                                     {"train": data.train}, log)
+            self._priors = priors["train"]
+        if self.cfg.loss.feature_copies:
+            t0 = time.monotonic()
+            n = self.cfg.loss.feature_copies
+            self.model.backbone.eval()
+            # the FPN reads the maps from stride 8 on: the stride-4 map is not kept
+            self._cache = encode_cache(lambda x: self.model.backbone(x)[1:], self._inputs, data.train, n,
+                                       self.cfg.seed, self.device)
+            log(f"feature cache: {n} cop{'y' if n == 1 else 'ies'} of {self._cache[0].shape[1]} frames, "
+                f"{cache_mib(self._cache):.0f} MiB, {time.monotonic() - t0:.1f} s")
 
     def _augments(self) -> bool:
         """Training images are augmented: ``augment`` on RGB input."""
         return self.cfg.loss.augment and self.cfg.model.input_kind == "rgb"
 
-    def _forward(self, batch: dict, aug: Augment | None = None) -> dict[str, torch.Tensor]:
-        """The model on a batch: single frames, or windows whose last frame is mapped; ``aug``:
-        the RGB images photometrically augmented, one draw per window.
+    def _raw(self, batch: dict, aug: Augment | None = None) -> torch.Tensor:
+        """A batch's camera images (RGB on RGB input, else labels) on the device, ``aug``: the RGB
+        images photometrically augmented, one draw per window.
         """
         raw = batch["rgb"] if self.cfg.model.input_kind == "rgb" else batch["images"]
         if aug is not None and self.cfg.model.input_kind == "rgb":
             # (B, 1, h, w, 3), or windows (B, T, 1, h, w, 3): each sample's T images (one camera) share the draw
             raw = aug.camera_images(raw.to(self.device), share=math.prod(raw.shape[1:-3]))  # float in [0, 255]
+        return raw.to(self.device)
+
+    def _inputs(self, batch: dict, aug: Augment | None = None) -> torch.Tensor:
+        """Model input ``(B, C_in, h, w)`` of a batch of single frames (see :meth:`_raw`)."""
+        return self.model.preprocess(self._raw(batch, aug))  # (B, 1, h, w[, 3]) -> (B, C_in, h, w)
+
+    def _bev(self, x: torch.Tensor) -> torch.Tensor:
+        """This frame's BEV feature ``(B, C, hb, wb)`` of model inputs ``x`` (the backbone without
+        gradient when frozen).
+        """
+        if not self.cfg.loss.frozen_encoder:
+            return self.model.bev_features(x)
+        with torch.no_grad():
+            feats = self.model.backbone(x)
+        return self.model.bev_from_trunk(feats)
+
+    def _forward(self, batch: dict, aug: Augment | None = None,
+                 prior: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """The model on a batch: single frames, or windows whose last frame is mapped; ``aug``:
+        the RGB images photometrically augmented, one draw per window; ``prior``: the
+        ``prior_skip`` input of the (last) frames.
+        """
         if self.cfg.model.window == 1:
-            return self.model(self.model.preprocess(raw.to(self.device)))  # (B, 1, h, w[, 3])
+            return self.model.decode(self._bev(self._inputs(batch, aug)), None, prior)
+        raw = self._raw(batch, aug)
         B, T = raw.shape[:2]
-        x = self.model.preprocess(raw.flatten(0, 1).to(self.device))  # (B*T, 1, ...) -> (B*T, C_in, h, w)
+        x = self.model.preprocess(raw.flatten(0, 1))  # (B*T, 1, ...) -> (B*T, C_in, h, w)
         x = x.view(B, T, *x.shape[1:])  # (B*T, C_in, h, w) -> (B, T, C_in, h, w)
         hist = history(self.model, x, batch["poses"].to(self.device), batch["present"].to(self.device))
-        return self.model(x[:, -1], hist)
+        return self.model.decode(self._bev(x[:, -1]), hist, prior)
+
+    def _train_prior(self, batch: dict) -> torch.Tensor | None:
+        """The cached prior ``(B, K + 1, H, W)`` of a training batch (None without ``prior_skip``)."""
+        if not self.cfg.model.prior_skip:
+            return None
+        return self._priors[batch["index"].cpu()].to(self.device)
 
     @override
     def loss(self, batch: dict, epoch: int, step: int) -> tuple[torch.Tensor, dict[str, float]]:
-        out = self._forward(batch, step_augment(self.cfg.seed, step, self.device) if self._augments() else None)
+        if self.cfg.loss.frozen_encoder:
+            self.model.backbone.eval()  # the trainer sets train() each epoch: keep its BatchNorm statistics
+        prior = self._train_prior(batch)
+        if self._cache:
+            feats = [f.to(self.device) for f in pick_cached(self._cache, batch["index"], self.cfg.seed, step)]
+            out = self.model.decode(self.model.bev_from_trunk([None, *feats]), None, prior)
+        else:
+            out = self._forward(batch, step_augment(self.cfg.seed, step, self.device) if self._augments() else None,
+                                prior)
         cm = batch.get("class_mask")
         return focusbev_loss(out["logits"], batch["target"].to(self.device), batch["mask"].to(self.device),
                              self.loss_cfg, self.pos_weight, None if cm is None else cm.to(self.device))
 
     @override
     def predict(self, batch: dict) -> tuple[np.ndarray, np.ndarray]:
-        probs = torch.sigmoid(self._forward(batch)["logits"]).float().cpu().numpy()  # (B, K, H, W)
+        prior = None
+        if self.cfg.model.prior_skip:
+            rgb = batch["rgb"] if self.cfg.model.window == 1 else batch["rgb"][:, -1]  # (B, 1, H, W, 3)
+            prior = self._prior_fn.batch(rgb).to(self.device)
+        probs = torch.sigmoid(self._forward(batch, None, prior)["logits"]).float().cpu().numpy()  # (B, K, H, W)
         known = self.model.known().cpu().numpy()
         return probs, np.broadcast_to(known, (len(probs), *known.shape))
 

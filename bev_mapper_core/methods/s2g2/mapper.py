@@ -8,7 +8,7 @@ the node's ``config/front1_s2g2.yaml`` sets that grid). The weights' metadata na
 that maps (``inference_branch``: ``active`` or ``passive``). With ``classes=None`` the weights' classes are used; otherwise they
 must be among them (a subset, any order).
 
-Weights with ``prior_skip`` (issue #39) also run segipm on the image (:class:`~.prior.SegIpmPrior`,
+Weights with ``prior_skip`` (issue #39) also run segipm on the image (:class:`~bev_mapper_core.methods.segipm.prior.SegIpmPrior`,
 the segmenter of ``MapperConfig.segmenter``) and hand its map to the network as a second input.
 """
 
@@ -28,8 +28,8 @@ from bev_mapper_core.nn.mono_mapper import MonocularMapper
 from bev_mapper_core.nn.runtime import inference_device
 
 from .. import shipped_weights
+from ..segipm.prior import SegIpmPrior
 from .model import S2G2
-from .prior import SegIpmPrior
 from .weights import load_s2g2, read_s2g2_metadata, validate_s2g2
 
 

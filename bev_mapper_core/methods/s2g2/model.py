@@ -51,14 +51,12 @@ from bev_mapper_core.nn.decoder import BevDecoder
 from bev_mapper_core.nn.efficientnet import EfficientNet, EfficientNetConfig, downsampled_size
 from bev_mapper_core.nn.inputs import preprocess_one_camera
 from bev_mapper_core.nn.mono_geometry import check_same_camera, one_camera_input_size
+from bev_mapper_core.nn.prior_skip import PRIOR_LOGIT_SCALE, PriorProjection, check_prior
 
 from .blocks import VIEW_TRANSFORMS, CrossViewAttention, InterViewAttention, ViewTransform
 
 #: The two branches of the double branch generator.
 BRANCHES = ("active", "passive")
-#: ``prior_skip`` initialisation: logit ``8 p - 4`` for a prior class probability ``p`` (as
-#: Bi-Mapper's ``ipm_skip``).
-PRIOR_LOGIT_SCALE = 8.0
 
 
 @dataclass(frozen=True)
@@ -82,7 +80,8 @@ class S2G2Config(DictConfig):
             the ablated one passes ``F_BEV`` through).
         decoder_channels: width of each branch at the BEV feature resolution.
         prior_skip: a strong prior the branches correct (not in the paper; issue #39): segipm's
-            map of the same image (the 2-D segmenter's labels projected by IPM, :mod:`.prior`),
+            map of the same image (the 2-D segmenter's labels projected by IPM,
+            :mod:`~bev_mapper_core.methods.segipm.prior`, :mod:`~bev_mapper_core.nn.prior_skip`),
             ``K`` class probabilities + the coverage channel on the full grid, enters each
             branch's head (:class:`~bev_mapper_core.nn.decoder.BevDecoder`'s skip input, whose
             last layer starts at zero) and is projected onto the logits by ``prior_proj``, which
@@ -197,11 +196,7 @@ class S2G2(nn.Module):
         self.passive = copy.deepcopy(self.active)  # starts equal to the active branch
         self.passive.requires_grad_(False)
         if config.prior_skip:
-            self.prior_proj = nn.Conv2d(self.prior_channels, self.num_classes, 1)
-            with torch.no_grad():  # logits start as the prior's: 8 p - 4 per class
-                self.prior_proj.weight.zero_()
-                self.prior_proj.weight[:, :self.num_classes, 0, 0] = PRIOR_LOGIT_SCALE * torch.eye(self.num_classes)
-                self.prior_proj.bias.fill_(-PRIOR_LOGIT_SCALE / 2)
+            self.prior_proj = PriorProjection(self.num_classes)  # logits start as the prior's: 8 p - 4 per class
         mean, std = rgb_stats(config.encoder_config().lite)  # a Lite encoder reads ImageNet-Lite's scaling
         self.register_buffer("rgb_mean", torch.tensor(mean), persistent=False)
         self.register_buffer("rgb_std", torch.tensor(std), persistent=False)
@@ -268,7 +263,7 @@ class S2G2(nn.Module):
 
     def heads(self, out: dict[str, torch.Tensor], prior: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """:meth:`features`' outputs ``out`` with both branches' logits added (see :meth:`forward`);
-        ``prior`` ``(B, K + 1, H, W)`` (:mod:`.prior`) is required by ``prior_skip`` models.
+        ``prior`` ``(B, K + 1, H, W)`` (:mod:`~bev_mapper_core.methods.segipm.prior`) is required by ``prior_skip`` models.
         """
         out["active_logits"] = self._branch(self.active, out["f_c"], prior)
         with torch.no_grad():
@@ -279,10 +274,7 @@ class S2G2(nn.Module):
         """One branch's logits ``(B, K, H, W)`` on BEV features ``f`` (+ the prior's skip and projection)."""
         if not self.prior_channels:
             return branch(f)[0]
-        if prior is None or tuple(prior.shape[1:]) != (self.prior_channels, *self.grid.shape):
-            got = None if prior is None else tuple(prior.shape)
-            raise ValueError(f"a prior_skip model needs the prior (B, {self.prior_channels}, {self.grid.shape[0]}, "
-                             f"{self.grid.shape[1]}), got {got}")
+        check_prior(prior, self.prior_channels, self.grid.shape)
         prior = prior.to(f.dtype)
         if self._pool:
             f = torch.cat([f, F.adaptive_avg_pool2d(prior, f.shape[-2:])], dim=1)  # (B, C + K + 1, hb, wb)

@@ -74,9 +74,11 @@ semi-supervised runs start from the same encoder, so comparisons between them st
 A resumed run then loads its own checkpoint over it.
 
 **segipm's prior** (``S2G2Config.prior_skip``, issue #39). The prior of every training and
-unlabeled frame (:class:`~bev_mapper_core.methods.s2g2.prior.SegIpmPrior`, from the camera-size
+unlabeled frame (:class:`~bev_mapper_core.methods.segipm.prior.SegIpmPrior`, from the camera-size
 image as it is, never augmented) is computed once in :meth:`S2G2Method.prepare` and indexed by
-the batches' frame ids; validation computes it per frame, as the mapper does.
+the batches' frame ids; validation computes it per frame, as the mapper does. The frozen
+encoder, the feature cache and the positive weights' settings are shared with FocusBEV
+(:mod:`~bev_mapper_core.training.frozen_trunk`).
 
 Validation scores the branch the weights will map with (``inference_branch``, saved in the
 weights' metadata).
@@ -95,17 +97,24 @@ import torch
 from typing_extensions import override
 
 from bev_mapper_core.errors import ConfigError
-from bev_mapper_core.mapper import MapperConfig
-from bev_mapper_core.nn.augment import Augment, AugmentConfig, step_augment
-from bev_mapper_core.training.class_weights import POS_WEIGHTS, class_pos_weight
+from bev_mapper_core.nn.augment import Augment, step_augment
+from bev_mapper_core.training.class_weights import POS_WEIGHTS
+from bev_mapper_core.training.frozen_trunk import (
+    FROZEN_TRUNK_FLAGS,
+    PRIOR_SKIP_FLAG,
+    FrozenTrunkTraining,
+    cache_mib,
+    encode_cache,
+    pick_cached,
+)
 from bev_mapper_core.training.method import CliFlag, TrainMethod
 from bev_mapper_core.training.sources import DataNeeds, TrainData
 
+from ..segipm.prior import training_priors
 from ..segmenter.trunk import check_encoder_init, init_encoder
 from .blocks import VIEW_TRANSFORMS
 from .losses import BEV_TIES, S2G2LossConfig, ema_decay_at, ema_update, s2g2_loss
 from .model import BRANCHES, S2G2, S2G2Config
-from .prior import SegIpmPrior
 from .weights import load_state_s2g2, save_s2g2
 
 #: ``S2G2Training.optimizer`` choices.
@@ -114,15 +123,12 @@ OPTIMIZERS = ("sgd", "adam")
 UNLABELED_BN = ("running", "batch")
 #: The paper's SGD settings.
 SGD_MOMENTUM, SGD_WEIGHT_DECAY = 0.9, 1e-4
-#: ``S2G2Training.feature_copies`` at most (memory: copies x frames x the encoder's features).
-MAX_FEATURE_COPIES = 16
-#: Frames encoded at once while filling the feature cache.
-CACHE_BATCH = 32
 
 
 @dataclass(frozen=True)
-class S2G2Training:
-    """S2G2's training settings.
+class S2G2Training(FrozenTrunkTraining):
+    """S2G2's training settings (and :class:`~bev_mapper_core.training.frozen_trunk.FrozenTrunkTraining`'s
+    ``frozen_encoder``, ``feature_copies``, ``pos_weight_max``, ``pos_weight_classes``).
 
     Args:
         cycle_weight, bev_weight, bev_tie, consistency_weight, consistency_ramp_steps: the
@@ -152,20 +158,6 @@ class S2G2Training:
             see the module docstring.
         augment: photometric augmentation of every training frame's camera image (RGB input;
             see the module docstring).
-        frozen_encoder: the encoder (the shipped segmenter's trunk, ``encoder_init``) never
-            trains: no gradient, its BatchNorm on its running statistics. Everything after it
-            trains as before.
-        feature_copies: with ``frozen_encoder``, the encoder's features of every training and
-            unlabeled frame are computed once, before the first step, and the view transforms
-            and heads train on them: ``n`` copies per frame, copy 0 of the image as it is, copies
-            1..n-1 of augmented images (each step draws one copy per frame); 0 = no cache (the
-            encoder runs every step). With one copy and ``augment`` off, a step's loss equals the
-            uncached frozen step's.
-        pos_weight_max: the cap of the ``auto`` positive weights (10: Bi-Mapper's; the rare
-            pedestrian layer reaches it).
-        pos_weight_classes: ``name=w,name=w``: these classes' positive weights set to ``w``
-            (with ``pos_weight`` ``auto``; e.g. a low cap for the thin layers and
-            ``pedestrian=10``, whose layer collapses without a weight).
     """
 
     cycle_weight: float = S2G2LossConfig.cycle_weight
@@ -184,10 +176,6 @@ class S2G2Training:
     cycle_into_encoder: bool = False
     unlabeled_into_encoder: bool = False
     augment: bool = True
-    frozen_encoder: bool = False
-    feature_copies: int = 0
-    pos_weight_max: float = 10.0
-    pos_weight_classes: str = ""
 
     def __post_init__(self) -> None:
         check_encoder_init(self.encoder_init)
@@ -195,7 +183,7 @@ class S2G2Training:
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not 0 <= v <= 1:
             raise ConfigError(f"ema_decay must be a number in [0, 1], got {v!r}")
         for name in ("ema_warmup", "supervised_only", "cycle_into_encoder", "unlabeled_into_encoder",
-                     "augment", "frozen_encoder"):
+                     "augment"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"{name} must be true or false, got {getattr(self, name)!r}")
         for name, choices in (("pos_weight", POS_WEIGHTS), ("optimizer", OPTIMIZERS),
@@ -205,41 +193,10 @@ class S2G2Training:
                 raise ConfigError(f"{name} must be one of {choices}, got {getattr(self, name)!r}")
         if self.unlabeled_bn == "batch" and not self.unlabeled_into_encoder:
             raise ConfigError("unlabeled_bn 'batch' (one batch with the labeled frames) needs unlabeled_into_encoder")
-        n = self.feature_copies
-        if isinstance(n, bool) or not isinstance(n, int) or not 0 <= n <= MAX_FEATURE_COPIES:
-            raise ConfigError(f"feature_copies must be an integer in 0..{MAX_FEATURE_COPIES}, got {n!r}")
-        if n and not self.frozen_encoder:
-            raise ConfigError("feature_copies caches the encoder's features: it needs frozen_encoder")
-        if n > 1 and not self.augment:
-            raise ConfigError("feature_copies > 1 caches augmented copies: it needs augment")
-        v = self.pos_weight_max
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 1:
-            raise ConfigError(f"pos_weight_max must be a finite number >= 1, got {v!r}")
-        self.class_pos_weights()  # validates pos_weight_classes
+        self.check_frozen_trunk()
         if self.frozen_encoder and (self.cycle_into_encoder or self.unlabeled_into_encoder):
             raise ConfigError("a frozen encoder trains from no loss: drop cycle_into_encoder / unlabeled_into_encoder")
         self.loss_config()  # validates the weights and the ramp
-
-    def class_pos_weights(self) -> dict[str, float]:
-        """``pos_weight_classes`` parsed: class name -> weight (>= 1).
-
-        Raises:
-            ConfigError: not ``name=w`` items, a weight that is not a finite number >= 1, or set
-                without ``pos_weight`` ``auto``.
-        """
-        out: dict[str, float] = {}
-        for item in filter(None, (t.strip() for t in str(self.pos_weight_classes).split(","))):
-            name, _, w = item.partition("=")
-            try:
-                v = float(w)
-            except ValueError:
-                v = float("nan")
-            if not name.strip() or not math.isfinite(v) or v < 1:
-                raise ConfigError(f"pos_weight_classes items are name=weight (weight >= 1), got {item!r}")
-            out[name.strip()] = v
-        if out and self.pos_weight != "auto":
-            raise ConfigError("pos_weight_classes sets some of the auto weights: it needs pos_weight 'auto'")
-        return out
 
     def loss_config(self, pos_weight: tuple[float, ...] | None = None) -> S2G2LossConfig:
         """The loss configuration of a run."""
@@ -303,19 +260,10 @@ class S2G2Method(TrainMethod):
                      "(--config keys encoder_variant lite0, width_mult 1.0, depth_mult 1.0)"),
         CliFlag("--augment", "augment", action="boolean",
                 help="photometric augmentation (colour, exposure, blur, noise) of every training image (RGB input)"),
-        CliFlag("--prior-skip", "prior_skip", action="store_true",
-                help="segipm's map of the same image (segmenter + IPM) enters both branches and their logits "
-                     "(they start as segipm's); computed once per training frame"),
+        PRIOR_SKIP_FLAG,
         CliFlag("--prior-pool", "prior_pool", action="store_true",
                 help="with --prior-skip: the prior, pooled to the BEV feature map, also enters each branch's first layer"),
-        CliFlag("--pos-weight-max", "pos_weight_max", number=True, help="cap of the auto BCE positive weights"),
-        CliFlag("--pos-weight-classes", "pos_weight_classes",
-                help="name=w,...: these classes' auto BCE positive weights set to w (e.g. pedestrian=10)"),
-        CliFlag("--frozen-encoder", "frozen_encoder", action="store_true",
-                help="the encoder (the shipped segmenter's trunk) never trains"),
-        CliFlag("--feature-copies", "feature_copies", min_value=0,
-                help="with --frozen-encoder: cache the encoder's features of N copies of every frame (copy 0 as "
-                     "it is, the others augmented) and train on them (default 0: no cache)"),
+        *FROZEN_TRUNK_FLAGS,
     )
 
     @override
@@ -365,58 +313,22 @@ class S2G2Method(TrainMethod):
     def prepare(self, data: TrainData, log: Callable[[str], None]) -> None:
         if data.unlabeled is None and not self.cfg.loss.supervised_only:
             raise ConfigError("S2G2 trains on unlabeled frames too, and the data source gave none")
-        pw = class_pos_weight(data.train, self.cfg.loss.pos_weight_max) if self.cfg.loss.pos_weight == "auto" else None
-        over = self.cfg.loss.class_pos_weights()
-        unknown = sorted(set(over) - set(self.cfg.class_names))
-        if unknown:
-            raise ConfigError(f"pos_weight_classes names {unknown}, not among the classes {list(self.cfg.class_names)}")
-        if pw is not None:
-            pw = tuple(over.get(c, w) for c, w in zip(self.cfg.class_names, pw))
+        pw = self.cfg.loss.run_pos_weights(data.train, self.cfg.class_names)
         self.loss_cfg = self.cfg.loss.loss_config(pw)
         if pw is not None:
             log(f"BCE positive weights {dict(zip(self.cfg.class_names, pw))}")
+        sets = [(name, fs) for name, fs in (("train", data.train), ("unlabeled", data.unlabeled)) if fs is not None]
         if self.cfg.model.prior_skip:
-            t0 = time.monotonic()
-            self._prior_fn = SegIpmPrior(self.rig, self.grid, self.cfg.class_names,
-                                         MapperConfig(threads=1, device=str(self.device)))
-            self._priors = {name: self._prior_all(fs) for name, fs in (("train", data.train), ("unlabeled", data.unlabeled))
-                            if fs is not None}
-            mib = sum(c.numel() * c.element_size() for c in self._priors.values()) / 2**20
-            log(f"segipm prior of {sum(len(c) for c in self._priors.values())} frames, {mib:.0f} MiB, "
-                f"{time.monotonic() - t0:.1f} s")
+            self._prior_fn, self._priors = training_priors(self.rig, self.grid, self.cfg.class_names, self.device,
+                                                           dict(sets), log)
         if self.cfg.loss.feature_copies:
             t0 = time.monotonic()
-            self._cache = {name: self._encode_all(fs) for name, fs in (("train", data.train), ("unlabeled", data.unlabeled))
-                           if fs is not None}
-            mib = sum(c.numel() * c.element_size() for c in self._cache.values()) / 2**20
-            log(f"feature cache: {self.cfg.loss.feature_copies} cop{'y' if self.cfg.loss.feature_copies == 1 else 'ies'} "
-                f"of {sum(c.shape[1] for c in self._cache.values())} frames, {mib:.0f} MiB, {time.monotonic() - t0:.1f} s")
-
-    @torch.no_grad()
-    def _encode_all(self, fs) -> torch.Tensor:
-        """The frozen encoder's features ``(copies, M, C, hf, wf)`` of every frame of ``fs`` (copy 0
-        as it is, the others augmented, each draw a function of the run seed, copy and frame).
-        """
-        self.model.encoder.eval()
-        copies = []
-        for c in range(self.cfg.loss.feature_copies):
-            feats = []
-            for start in range(0, len(fs), CACHE_BATCH):
-                batch = fs.batch(np.arange(start, min(start + CACHE_BATCH, len(fs))))
-                aug = None
-                if c > 0:
-                    gen = torch.Generator(device=self.device).manual_seed(
-                        int(np.random.SeedSequence([self.cfg.seed, c, start, 25]).generate_state(1, np.uint64)[0] >> 1))
-                    aug = Augment(AugmentConfig(), gen)
-                feats.append(self.model.encoder(self._inputs(batch, aug))[-1])  # (b, C, hf, wf)
-            copies.append(torch.cat(feats))
-        return torch.stack(copies)  # n x (M, C, hf, wf) -> (n, M, C, hf, wf)
-
-    @torch.no_grad()
-    def _prior_all(self, fs) -> torch.Tensor:
-        """The segipm prior ``(M, K + 1, H, W)`` of every frame of ``fs`` (its images as they are)."""
-        return torch.cat([self._prior_fn.batch(fs.batch(np.arange(s, min(s + CACHE_BATCH, len(fs))))["rgb"])
-                          for s in range(0, len(fs), CACHE_BATCH)])
+            n = self.cfg.loss.feature_copies
+            self.model.encoder.eval()
+            self._cache = {name: encode_cache(lambda x: self.model.encoder(x)[-1:], self._inputs, fs, n, self.cfg.seed,
+                                              self.device)[0] for name, fs in sets}
+            log(f"feature cache: {n} cop{'y' if n == 1 else 'ies'} of {sum(c.shape[1] for c in self._cache.values())} "
+                f"frames, {cache_mib(self._cache.values()):.0f} MiB, {time.monotonic() - t0:.1f} s")
 
     def _prior(self, name: str, batch: dict) -> torch.Tensor | None:
         """The cached prior ``(B, K + 1, H, W)`` of a batch of set ``name`` (None without ``prior_skip``)."""
@@ -428,9 +340,8 @@ class S2G2Method(TrainMethod):
         """Cached features ``(B, C, hf, wf)`` of frames ``index`` of set ``name``, one copy each
         (drawn from the run seed and the step).
         """
-        cache = self._cache[name]
-        pick = np.random.default_rng([self.cfg.seed, step, 26]).integers(0, cache.shape[0], len(index))
-        return cache[torch.from_numpy(pick), index.cpu()]
+        return pick_cached((self._cache[name],), index, self.cfg.seed, step)[0]
+
     def _augments(self) -> bool:
         """Training images are augmented: ``augment`` on RGB input."""
         return self.cfg.loss.augment and self.cfg.model.input_kind == "rgb"

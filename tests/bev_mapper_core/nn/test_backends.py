@@ -8,6 +8,7 @@ import importlib.util
 
 import numpy as np
 import pytest
+from model_helpers import memory_focusbev
 
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.geometry.grid import BevGrid
@@ -72,10 +73,11 @@ def _pose(x: float) -> np.ndarray:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("backend", ["onnxruntime", "openvino"])
-@pytest.mark.parametrize("method", ["s2g2", "focusbev"])
+@pytest.mark.parametrize("method", ["s2g2", "focusbev", "focusbev_memory"])
 def test_exported_monocular_methods_map_as_torch_does(method, backend, tmp_path_factory, monkeypatch):
-    """The shipped front1 RGB weights of S2G2 and FocusBEV through the backend, on a real drive
-    in order with its stamps and poses (FocusBEV's memory bank fuses the kept features): within
+    """The shipped front1 RGB weights of S2G2 and FocusBEV (both with segipm's prior, single frame)
+    and a FocusBEV file with a memory bank (``focusbev_memory``, window 2) through the backend, on
+    a real drive in order with its stamps and poses (the bank fuses the kept features): within
     ``backends.TOLERANCE`` of torch, the same known cells and frames; the same rig rebuilt does
     not export again.
     """
@@ -87,7 +89,10 @@ def test_exported_monocular_methods_map_as_torch_does(method, backend, tmp_path_
     monkeypatch.setenv(backends.CACHE_ENV, str(tmp_path))
     rig, grid = preset_rig("front1"), grid_preset("ahead")
     # f32: S2G2's prior runs the segmenter stage, whose OpenVINO default may be bf16 (other labels)
-    cfg = MapperConfig(backend="torch", method=method, input_kind="rgb", threads=1, segmenter_precision="f32")
+    tmp_path.mkdir(parents=True, exist_ok=True)
+    weights = memory_focusbev(tmp_path / "focusbev_w2.safetensors") if method == "focusbev_memory" else None
+    cfg = MapperConfig(backend="torch", method=method.removesuffix("_memory"), input_kind="rgb", threads=1,
+                       segmenter_precision="f32", weights=weights)
     ref, fast = create_mapper(rig, grid, cfg), create_mapper(rig, grid, MapperConfig(**{**cfg.__dict__, "backend": backend}))
     frames = list(generate_drive(rig, grid, SynthConfig(frames=3, seed=950_000_011)))
     for k, f in enumerate(frames):
@@ -97,10 +102,10 @@ def test_exported_monocular_methods_map_as_torch_does(method, backend, tmp_path_
         assert np.abs(a.probs - b.probs).max() <= backends.TOLERANCE, (k, np.abs(a.probs - b.probs).max())
         np.testing.assert_array_equal(a.known, b.known)
         assert a.frames == b.frames
-    if method == "focusbev":
+    if method == "focusbev_memory":
         assert a.frames == 2  # the bank was used: the exported features are what it keeps
-    # S2G2's shipped weights map with segipm's prior (issue #39): its segmenter stage exports too
-    exported = 2 if method == "s2g2" else 1
+    # the shipped weights map with segipm's prior (issue #39): its segmenter stage exports too
+    exported = 1 if method == "focusbev_memory" else 2
     assert len(list((tmp_path / "onnx").glob("*.onnx"))) == exported
     moved = rig.scaled(1.0)  # the same rig, rebuilt: no new export
     fast.set_rig(moved)

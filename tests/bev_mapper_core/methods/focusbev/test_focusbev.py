@@ -8,6 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+from model_helpers import memory_focusbev
 
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.geometry.grid import BevGrid
@@ -336,10 +337,11 @@ def test_training_run_on_windows_through_the_trainer(tmp_path):
 
 # ------------------------------------------------------------------------- the bag tool
 @pytest.mark.slow
-def test_replay_maps_a_front1_bag_with_the_shipped_focusbev_and_its_memory(tmp_path):
-    """``bev-bag replay --method focusbev --input rgb`` on a front1 bag with odometry: the shipped
-    weights, the bag's frames in order with their poses; the output grids equal the core mapper
-    fed the same frames in order, and from the third frame on the memory bank is used."""
+def test_replay_maps_a_front1_bag_with_focusbev_and_its_memory(tmp_path):
+    """``bev-bag replay --method focusbev --input rgb`` on a front1 bag with odometry: weights with a
+    memory bank (the shipped file maps each frame alone), the bag's frames in order with their
+    poses; the output grids equal the core mapper fed the same frames in order, and from the third
+    frame on the memory bank is used."""
     from bags.cli.main import main
     from bags.io.reader import BagReader
     from bags.replay import BAG_DIR, METRICS_FILE
@@ -347,15 +349,17 @@ def test_replay_maps_a_front1_bag_with_the_shipped_focusbev_and_its_memory(tmp_p
 
     bag, out = tmp_path / "bag", tmp_path / "out"
     assert main(["synth", str(bag), "--rig", "front1", "--grid", "ahead", "--frames", "4", "--seed", "950000015"]) == 0
+    weights = memory_focusbev(tmp_path / "focusbev_w2.safetensors")
     assert main(["replay", str(bag), "--out", str(out), "--method", "focusbev", "--backend", "torch", "--input", "rgb", "--no-pictures",
-                 "--no-report", "--quiet"]) == 0
+                 "--no-report", "--quiet", "--weights", weights]) == 0
     m = json.loads((out / METRICS_FILE).read_text())
     assert m["method"] == "focusbev" and 0.0 < m["miou"] <= 1.0
     # FocusBEV's own memory is counted (issue #29): 1 + 1 + 2 + 2 frames fused, nothing reset
     assert m["temporal"]["method"] == {"fused_frames": 6, "resets": 0, "frames_without_pose": 0}
     assert sum(m["temporal"]["odometry_problems"].values()) == 0
     with BagReader(bag) as r:
-        mapper = create_mapper(r.rig(), r.grid(), MapperConfig(backend="torch", method="focusbev", input_kind="rgb"))
+        mapper = create_mapper(r.rig(), r.grid(), MapperConfig(backend="torch", method="focusbev", input_kind="rgb",
+                                                               weights=weights))
         preds = [(f.stamp_ns, mapper.map(f.rgb, f.odom.world_from_ego, f.stamp_ns)) for f in r.frames(labels=False)]
     assert [p.frames for _, p in preds] == [1, 1, 2, 2]
     with BagReader(out / BAG_DIR) as r:
@@ -391,7 +395,8 @@ def test_replay_counts_focusbevs_frames_without_odometry(tmp_path):
             if msg.topic not in (T.ODOM, T.TF):
                 w.write(msg.topic, msg.msg, msg.log_ns)
     assert main(["replay", str(bare), "--out", str(out), "--method", "focusbev", "--backend", "torch", "--input", "rgb",
-                 "--no-pictures", "--no-report", "--quiet"]) == 0  # torch: no ONNX export on a fresh machine
+                 "--no-pictures", "--no-report", "--quiet",  # torch: no ONNX export on a fresh machine
+                 "--weights", memory_focusbev(tmp_path / "focusbev_w2.safetensors")]) == 0
     m = json.loads((out / METRICS_FILE).read_text())
     assert m["temporal"]["method"] == {"fused_frames": 3, "resets": 0, "frames_without_pose": 3}
     assert m["temporal"]["odometry_problems"]["no_pose"] == 3

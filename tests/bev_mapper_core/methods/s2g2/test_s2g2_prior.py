@@ -7,17 +7,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from model_helpers import step_losses
+from model_helpers import random_rgb_data, step_losses, tiny_run
 
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.geometry.grid import BevGrid
 from bev_mapper_core.geometry.rig import preset_rig
 from bev_mapper_core.mapper import MapperConfig, create_mapper
 from bev_mapper_core.methods.s2g2.model import PRIOR_LOGIT_SCALE, S2G2, S2G2Config
-from bev_mapper_core.methods.s2g2.prior import SegIpmPrior
 from bev_mapper_core.methods.s2g2.weights import save_s2g2
+from bev_mapper_core.methods.segipm.prior import SegIpmPrior
 from bev_mapper_core.training.config import TrainConfig
-from bev_mapper_core.training.data import FrameSet, render_drive
+from bev_mapper_core.training.data import render_drive
 from bev_mapper_core.training.method import method_class
 from bev_mapper_core.training.sources import TrainData
 
@@ -92,14 +92,7 @@ def test_mapper_with_untrained_prior_weights_decides_as_segipm(tmp_path, drive):
 
 
 def _data(drive) -> TrainData:
-    rng = np.random.default_rng(0)
-
-    def frames(n):
-        idx = rng.integers(0, 2, n)
-        return FrameSet(np.zeros((n, 1, 4, 4), np.uint8), rng.random((n, len(CLASSES), *GRID.shape)) > 0.6,
-                        np.ones((n, *GRID.shape), bool), camera_names=RIG.names, rgb=drive["rgb"][idx])
-
-    return TrainData(frames(4), frames(2), frames(2))
+    return random_rgb_data(drive["rgb"], CLASSES, GRID, RIG.names)
 
 
 def _losses(drive, copies: int, steps: int = 4):
@@ -158,17 +151,8 @@ def test_class_pos_weights_override_the_auto_weights(drive):
 def _run(drive, out, logs=None, **extra):
     """A tiny prior_skip run through the trainer on :func:`_data` (two cached, augmented copies):
     ``(loss_total per epoch, last weights)``; ``logs`` collects the trainer's messages."""
-    from safetensors.torch import load_file
-
-    from bev_mapper_core.training.sources import InMemorySource
-    from bev_mapper_core.training.trainer import train
-
-    cfg = TrainConfig.from_dict({**RUN, "augment": True, "feature_copies": 2, "epochs": 2, "threads": 1,
-                                 "out": str(out), **extra})
-    data = _data(drive)
-    doc = train(cfg, log=(logs.append if logs is not None else lambda m: None),
-                data=InMemorySource(data.train, data.val, data.unlabeled))
-    return [r["loss_total"] for r in doc["history"]], load_file(str(out / "last.safetensors"))
+    return tiny_run({**RUN, "augment": True, "feature_copies": 2, "epochs": 2, "threads": 1, **extra},
+                    _data(drive), out, logs)
 
 
 @pytest.mark.slow

@@ -1,4 +1,5 @@
-"""S2G2's ``prior_skip`` input: segipm's map of the same front image (issue #39).
+"""The ``prior_skip`` input of S2G2 and FocusBEV: segipm's map of the same front image (issue #39;
+:mod:`bev_mapper_core.nn.prior_skip`).
 
 The shipped 2-D segmenter (:class:`~bev_mapper_core.methods.segmenter.stage.SegmenterStage`,
 ``MapperConfig.segmenter``: ``auto`` = the default shipped one) labels the camera image at its
@@ -6,14 +7,15 @@ own size and :class:`~bev_mapper_core.methods.ipm.mapper.IpmMapper` projects the
 grid (occlusion reasoning included): exactly the ``segipm`` baseline
 (:class:`~bev_mapper_core.methods.segipm.mapper.SegIpmMapper`). Its ``K`` class probabilities and
 its ``known`` mask (as a 0/1 coverage channel) are the prior, ``(K + 1, H, W)`` float32. It is a
-fixed function of the image (no parameter of S2G2 reaches it), so training computes it once
-per frame (:meth:`~bev_mapper_core.methods.s2g2.train.S2G2Method.prepare`), from the image
-before any photometric augmentation.
+fixed function of the image (no parameter of the model reaches it), so training computes it once
+per frame (:func:`~bev_mapper_core.training.frozen_trunk.prior_cache`, in the methods'
+``prepare``), from the image before any photometric augmentation.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 
 import numpy as np
@@ -22,6 +24,7 @@ import torch
 from bev_mapper_core.geometry.grid import BevGrid
 from bev_mapper_core.geometry.rig import Rig
 from bev_mapper_core.mapper import MapperConfig
+from bev_mapper_core.training.frozen_trunk import cache_mib, prior_cache
 
 
 class SegIpmPrior:
@@ -34,7 +37,7 @@ class SegIpmPrior:
     """
 
     def __init__(self, rig: Rig, grid: BevGrid, classes: Sequence[str], config: MapperConfig | None = None) -> None:
-        from ..segipm.mapper import SegIpmMapper
+        from .mapper import SegIpmMapper
 
         base = config or MapperConfig()
         cfg = replace(base, method="segipm", input_kind="rgb", classes=tuple(classes), weights=None)
@@ -61,4 +64,17 @@ class SegIpmPrior:
         return torch.from_numpy(np.stack([self.one(a[0].astype(np.uint8)) for a in arr]))
 
 
-__all__ = ["SegIpmPrior"]
+def training_priors(rig: Rig, grid: BevGrid, classes: Sequence[str], device, sets: Mapping[str, object],
+                    log: Callable[[str], None]) -> tuple[SegIpmPrior, dict[str, torch.Tensor]]:
+    """A training run's prior: ``(the prior on one thread, {name: (M, K + 1, H, W)})``, the prior of
+    every frame of each named frame set (their camera-size images as they are), computed once.
+    """
+    t0 = time.monotonic()
+    fn = SegIpmPrior(rig, grid, classes, MapperConfig(threads=1, device=str(device)))
+    priors = {name: prior_cache(fn.batch, fs) for name, fs in sets.items()}
+    log(f"segipm prior of {sum(len(p) for p in priors.values())} frames, {cache_mib(priors.values()):.0f} MiB, "
+        f"{time.monotonic() - t0:.1f} s")
+    return fn, priors
+
+
+__all__ = ["SegIpmPrior", "training_priors"]
