@@ -7,8 +7,11 @@ batch 1, one 400x225 RGB image per frame of a 10 Hz drive; the time covers ``map
 (resize, backbone + FPN, column transformers and the cycle, polar -> Cartesian, fusion, top-down
 network, sigmoid, copy back). "with memory": every frame with its stamp and ego pose, so from the
 third frame on a kept feature is warped and fused; "without": no pose, every frame mapped alone
-(the fusion still runs, with the reference in every slot). For reference, in the same run on the
-same frames: S2G2 (the shipped weights) and IPM on the true label images.
+(the fusion still runs, with the reference in every slot). The file shipped since issue #39 has
+window 1 (segipm's map as its prior, each frame alone): both rows then time the same work, and
+``--weights`` names a file with a window to time the bank. For reference, in the same run on the
+same frames: segipm (the prior's own cost), S2G2 (the shipped weights) and IPM on the true label
+images.
 
     .venv/bin/python bench/bench_focusbev.py [--frames 20] [--repeat 3] [--threads N] [--weights FILE]
 """
@@ -48,8 +51,10 @@ def main() -> None:
     fb.map(rgb[0][0])  # the model loads on first use; warm-up
     setup_ms = (time.perf_counter() - t0) * 1000.0
     s2g2 = create_mapper(rig, grid, MapperConfig(method="s2g2", input_kind="rgb", classes=fb.class_names))
+    segipm = create_mapper(rig, grid, MapperConfig(method="segipm", input_kind="rgb", classes=fb.class_names))
     ipm = create_mapper(rig, grid, MapperConfig(method="ipm", classes=fb.class_names))
     s2g2.map(rgb[0][0])
+    segipm.map(rgb[0][0])
 
     def per_frame(m, frames, memory: bool):
         runs, fused = [], 0
@@ -63,7 +68,8 @@ def main() -> None:
         return min(runs), statistics.median(runs), fused // args.repeat
 
     rows = [("FocusBEV, with memory", per_frame(fb, rgb, True)), ("FocusBEV, no memory", per_frame(fb, rgb, False)),
-            ("S2G2 (rgb)", per_frame(s2g2, rgb, False)), ("IPM (true labels)", per_frame(ipm, labels, False))]
+            ("segipm (rgb)", per_frame(segipm, rgb, False)), ("S2G2 (rgb)", per_frame(s2g2, rgb, False)),
+            ("IPM (true labels)", per_frame(ipm, labels, False))]
     n_params = sum(p.numel() for p in fb.model.parameters())
     w, h = rig.cameras[0].model.image_size
     print(f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, torch {torch.__version__}, "

@@ -249,13 +249,23 @@ def _write_cache(path: Path, d: dict[str, np.ndarray]) -> None:
     """
     tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
     try:
-        with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED, allowZip64=True) as zf:
+        zf = zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED, allowZip64=True)
+        try:
             for name, value in d.items():
                 info = zipfile.ZipInfo(f"{name}.npy", date_time=ZIP_DATE)
                 info.compress_type = zipfile.ZIP_DEFLATED
                 info.external_attr = 0o600 << 16  # what ZipFile.open(name, "w") gives
                 with zf.open(info, "w", force_zip64=True) as f:
                     np.lib.format.write_array(f, np.asanyarray(value), allow_pickle=False)
+        except BaseException:
+            # Interrupted while zipfile opens a member (SIGTERM's exception can be raised there):
+            # its close() would then refuse the half-open member with a ValueError that hides the
+            # real exception (bev-train printed a traceback and exited 1 instead of 143). The
+            # abandoned file is removed below; zipfile has no public way to drop the member.
+            zf._writing = False  # noqa: SLF001
+            raise
+        finally:
+            zf.close()
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
