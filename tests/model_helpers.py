@@ -144,3 +144,15 @@ def memory_focusbev(path) -> str:
     with torch.no_grad():  # every class mapped nearly everywhere: the drivable area scores above 0
         last.bias.fill_(2.0)
     return str(save_focusbev(model, path, 0.3))
+
+
+def prior_losses(name: str, cfg, rig, data, steps: int, epochs: int):
+    """A ``prior_skip`` method ``name`` built (seed 0), prepared on ``data`` (its prior and feature
+    caches) and trained ``steps`` steps: (losses, method). Its prior reads camera-size images."""
+    from bev_mapper_core.training.method import method_class  # noqa: PLC0415
+
+    torch.manual_seed(0)
+    m = method_class(name)(cfg, rig, cfg.grid)
+    assert m.data_needs().image_size is None  # the prior reads camera-size images
+    m.prepare(data, lambda _: None)
+    return step_losses(m, data, cfg, steps, epochs=epochs), m

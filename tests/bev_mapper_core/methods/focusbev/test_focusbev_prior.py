@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from model_helpers import random_rgb_data, step_losses, tiny_run
+from model_helpers import prior_losses, random_rgb_data, tiny_run
 
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.geometry.grid import BevGrid
@@ -76,12 +76,7 @@ def _data(drive) -> TrainData:
 def _losses(drive, copies: int, steps: int = 3):
     cfg = TrainConfig.from_dict({**RUN, "feature_copies": copies, "pos_weight_max": 1.5,
                                  "pos_weight_classes": "pedestrian=7"})
-    torch.manual_seed(0)
-    m = method_class("focusbev")(cfg, RIG, cfg.grid)
-    assert m.data_needs().image_size is None  # the prior reads camera-size images
-    data = _data(drive)
-    m.prepare(data, lambda _: None)
-    return step_losses(m, data, cfg, steps, epochs=3), m
+    return prior_losses("focusbev", cfg, RIG, _data(drive), steps, epochs=3)
 
 
 def test_cached_prior_and_features_give_the_uncached_losses(drive):

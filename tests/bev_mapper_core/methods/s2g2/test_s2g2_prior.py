@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from model_helpers import random_rgb_data, step_losses, tiny_run
+from model_helpers import prior_losses, random_rgb_data, tiny_run
 
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.geometry.grid import BevGrid
@@ -97,12 +97,7 @@ def _data(drive) -> TrainData:
 
 def _losses(drive, copies: int, steps: int = 4):
     cfg = TrainConfig.from_dict({**RUN, "feature_copies": copies})
-    torch.manual_seed(0)
-    m = method_class("s2g2")(cfg, RIG, cfg.grid)
-    assert m.data_needs().image_size is None  # the prior reads camera-size images
-    data = _data(drive)
-    m.prepare(data, lambda _: None)
-    return step_losses(m, data, cfg, steps, epochs=4), m
+    return prior_losses("s2g2", cfg, RIG, _data(drive), steps, epochs=4)
 
 
 def test_cached_prior_and_features_give_the_uncached_losses(drive):
