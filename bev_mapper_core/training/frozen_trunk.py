@@ -2,8 +2,9 @@
 
 * :class:`FrozenTrunkTraining`: the training settings both methods' loss configs inherit: a
   frozen encoder, its features cached per frame (``feature_copies``) and the positive weights
-  of the BCE (``pos_weight_max``, ``pos_weight_classes``); :data:`FROZEN_TRUNK_FLAGS` their
-  ``bev-train`` flags and :data:`PRIOR_SKIP_FLAG` the model's ``--prior-skip``.
+  of the BCE (:class:`~.class_weights.PosWeightTraining`: ``pos_weight_max``,
+  ``pos_weight_classes``); :data:`FROZEN_TRUNK_FLAGS` their ``bev-train`` flags and
+  :data:`PRIOR_SKIP_FLAG` the model's ``--prior-skip`` (Bi-Mapper's too).
 * :func:`prior_cache`: segipm's prior (:class:`~bev_mapper_core.methods.segipm.prior.SegIpmPrior`)
   of every frame of a set, computed once.
 * :func:`encode_cache` / :func:`pick_cached`: the frozen encoder's features of every frame, copy 0
@@ -14,7 +15,6 @@
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -24,7 +24,7 @@ import torch
 from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.nn.augment import Augment, AugmentConfig
 
-from .class_weights import class_pos_weight
+from .class_weights import POS_WEIGHT_FLAGS, PosWeightTraining
 from .method import CliFlag
 
 #: ``feature_copies`` at most (memory: copies x frames x the encoder's features).
@@ -34,9 +34,9 @@ CACHE_BATCH = 32
 
 
 @dataclass(frozen=True)
-class FrozenTrunkTraining:
+class FrozenTrunkTraining(PosWeightTraining):
     """Training settings for a pretrained trunk (inherited by the methods' loss configs, which
-    define ``pos_weight`` and ``augment``).
+    define ``pos_weight`` and ``augment``), with :class:`~.class_weights.PosWeightTraining`'s.
 
     Args:
         frozen_encoder: the encoder (the shipped segmenter's trunk, ``encoder_init``) never
@@ -48,20 +48,13 @@ class FrozenTrunkTraining:
             1..n-1 of augmented images (each step draws one copy per frame); 0 = no cache (the
             encoder runs every step). With one copy and ``augment`` off, a step's loss equals the
             uncached frozen step's.
-        pos_weight_max: the cap of the ``auto`` positive weights (10: Bi-Mapper's; the rare
-            pedestrian layer reaches it).
-        pos_weight_classes: ``name=w,name=w``: these classes' positive weights set to ``w``
-            (with ``pos_weight`` ``auto``; e.g. a low cap for the thin layers and
-            ``pedestrian=10``, whose layer collapses without a weight).
     """
 
     frozen_encoder: bool = False
     feature_copies: int = 0
-    pos_weight_max: float = 10.0
-    pos_weight_classes: str = ""
 
     def check_frozen_trunk(self) -> None:
-        """Validate these fields (call from ``__post_init__``).
+        """Validate these fields and the positive weights' (call from ``__post_init__``).
 
         Raises:
             ConfigError: a bad value or a combination that does nothing.
@@ -75,46 +68,7 @@ class FrozenTrunkTraining:
             raise ConfigError("feature_copies caches the encoder's features: it needs frozen_encoder")
         if n > 1 and not getattr(self, "augment", False):
             raise ConfigError("feature_copies > 1 caches augmented copies: it needs augment")
-        v = self.pos_weight_max
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 1:
-            raise ConfigError(f"pos_weight_max must be a finite number >= 1, got {v!r}")
-        self.class_pos_weights()
-
-    def class_pos_weights(self) -> dict[str, float]:
-        """``pos_weight_classes`` parsed: class name -> weight (>= 1).
-
-        Raises:
-            ConfigError: not ``name=w`` items, a weight that is not a finite number >= 1, or set
-                without ``pos_weight`` ``auto``.
-        """
-        out: dict[str, float] = {}
-        for item in filter(None, (t.strip() for t in str(self.pos_weight_classes).split(","))):
-            name, _, w = item.partition("=")
-            try:
-                v = float(w)
-            except ValueError:
-                v = float("nan")
-            if not name.strip() or not math.isfinite(v) or v < 1:
-                raise ConfigError(f"pos_weight_classes items are name=weight (weight >= 1), got {item!r}")
-            out[name.strip()] = v
-        if out and getattr(self, "pos_weight", "auto") != "auto":
-            raise ConfigError("pos_weight_classes sets some of the auto weights: it needs pos_weight 'auto'")
-        return out
-
-    def run_pos_weights(self, train, class_names: Sequence[str]) -> tuple[float, ...] | None:
-        """The BCE positive weights of a run on the training frames ``train`` (None: plain BCE).
-
-        Raises:
-            ConfigError: ``pos_weight_classes`` names a class the run does not map.
-        """
-        if getattr(self, "pos_weight", "auto") != "auto":
-            return None
-        over = self.class_pos_weights()
-        unknown = sorted(set(over) - set(class_names))
-        if unknown:
-            raise ConfigError(f"pos_weight_classes names {unknown}, not among the classes {list(class_names)}")
-        pw = class_pos_weight(train, self.pos_weight_max)
-        return tuple(over.get(c, w) for c, w in zip(class_names, pw))
+        self.check_pos_weights()
 
 
 #: ``--prior-skip`` (a model config field of the methods that have it).
@@ -122,11 +76,9 @@ PRIOR_SKIP_FLAG = CliFlag("--prior-skip", "prior_skip", action="store_true",
                           help="segipm's map of the same image (segmenter + IPM) enters the BEV head and the logits "
                                "(which start as segipm's); computed once per training frame")
 
-#: The flags of :class:`FrozenTrunkTraining`'s fields.
+#: The flags of :class:`FrozenTrunkTraining`'s fields (the positive weights' included).
 FROZEN_TRUNK_FLAGS = (
-    CliFlag("--pos-weight-max", "pos_weight_max", number=True, help="cap of the auto BCE positive weights"),
-    CliFlag("--pos-weight-classes", "pos_weight_classes",
-            help="name=w,...: these classes' auto BCE positive weights set to w (e.g. pedestrian=10)"),
+    *POS_WEIGHT_FLAGS,
     CliFlag("--frozen-encoder", "frozen_encoder", action="store_true",
             help="the encoder (the shipped segmenter's trunk) never trains"),
     CliFlag("--feature-copies", "feature_copies", min_value=0,
@@ -143,7 +95,7 @@ def _ranges(n: int) -> list[np.ndarray]:
 @torch.no_grad()
 def prior_cache(prior_fn: Callable[[torch.Tensor], torch.Tensor], fs) -> torch.Tensor:
     """``prior_fn`` (e.g. :meth:`SegIpmPrior.batch`) on every frame of ``fs`` (its camera images
-    ``rgb`` ``(b, 1, H, W, 3)`` as they are) -> ``(M, K + 1, H, W)``.
+    ``rgb`` ``(b, N, H, W, 3)`` as they are) -> ``(M, K + 1, H, W)``.
     """
     return torch.cat([prior_fn(fs.batch(idx)["rgb"]) for idx in _ranges(len(fs))])
 

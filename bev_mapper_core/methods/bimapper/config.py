@@ -49,6 +49,12 @@ class BiMapperConfig:
             projection initialised to the class table, the learned refinement zero-initialised).
             The streams then only have to learn corrections (occlusion, object footprints, far
             range) instead of re-deriving 0.15 m detail from 1.2 m features.
+        prior_skip: **not in the paper** (issue #39; RGB input). As ``ipm_skip``, but the prior is
+            segipm's map of the same camera images (the shipped segmenter, then IPM with its
+            occlusion reasoning: :mod:`~bev_mapper_core.methods.segipm.prior`), ``K`` class
+            probabilities + a coverage channel, and the logits start from it through
+            :class:`~bev_mapper_core.nn.prior_skip.PriorProjection` (``8 p - 4``): the untrained
+            model maps as segipm does, and the streams learn the correction from the images.
         unet_channels: U-Net expanding-path width.
         decoder_channels: BEV decoder width at the feature resolution.
         decoder_min_channels: **not in the paper** (issue #15). The decoder halves its width at
@@ -86,6 +92,7 @@ class BiMapperConfig:
     plane_height: float | None = None
     lv_full_res: bool = False
     ipm_skip: bool = False
+    prior_skip: bool = False
     unet_channels: int = 32
     decoder_channels: int = 64
     decoder_min_channels: int = 16
@@ -102,15 +109,20 @@ class BiMapperConfig:
                 raise ConfigError(f"temperature must be one number in [0.01, 100] per class "
                                   f"({len(self.classes)}), got {self.temperature!r}")
             object.__setattr__(self, "temperature", tuple(float(v) for v in t))
-        if not isinstance(self.visibility_head, bool):
-            raise ConfigError(f"visibility_head must be true or false, got {self.visibility_head!r}")
+        for name in ("visibility_head", "ipm_skip", "prior_skip", "lv_full_res"):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(f"{name} must be true or false, got {getattr(self, name)!r}")
         if self.input_kind not in ("labels", "rgb"):
             raise ConfigError(f"input_kind must be 'labels' or 'rgb', got {self.input_kind!r}")
         resolve_classes(self.classes)
         if self.streams not in STREAMS:
             raise ConfigError(f"streams must be one of {STREAMS}, got {self.streams!r}")
-        if self.streams == "none" and not self.ipm_skip:
-            raise ConfigError("streams 'none' leaves the model without input: it needs ipm_skip")
+        if self.prior_skip and self.input_kind != "rgb":
+            raise ConfigError("prior_skip is segipm's map of the RGB images: it needs input_kind 'rgb'")
+        if self.prior_skip and self.ipm_skip:
+            raise ConfigError("ipm_skip and prior_skip are two priors for the same place: choose one")
+        if self.streams == "none" and not (self.ipm_skip or self.prior_skip):
+            raise ConfigError("streams 'none' leaves the model without input: it needs ipm_skip or prior_skip")
         if self.fusion not in FUSIONS:
             raise ConfigError(f"fusion must be one of {FUSIONS}, got {self.fusion!r}")
         limits = {"input_width": MAX_WIDTH_PX, "neck_channels": MAX_CHANNELS, "bev_channels": MAX_CHANNELS,

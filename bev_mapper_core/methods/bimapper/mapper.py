@@ -30,6 +30,7 @@ from bev_mapper_core.nn.weights import WeightsError
 from .. import WEIGHTS_DIR, alternatives, shipped_weights
 from ..ipm.mapper import LineOfSight
 from ..ipm.occlusion import OcclusionModel, learned_footprints
+from ..segipm.prior import SegIpmPrior
 from ..segmenter.stage import SegmenterStage, segmenter_path
 from ..segmenter.weights import load_segmenter
 from .model import BiMapper
@@ -141,17 +142,22 @@ class BiMapperMapper(Mapper):
         """``(weights file, the model's input kind, segmenter file or None)``.
 
         RGB input with label weights runs chained: the segmenter (``config.segmenter``) turns
-        each RGB image into a label image first. End-to-end RGB weights take no segmenter.
+        each RGB image into a label image first. End-to-end RGB weights take no segmenter, except
+        ``prior_skip`` weights, whose prior is segipm's map: their segmenter file is returned.
 
         Raises:
-            ConfigError: label weights on RGB input with ``segmenter`` ``none``; an explicit
-                segmenter with RGB weights; or no weights (see :meth:`weights_path`).
+            ConfigError: label weights, or ``prior_skip`` weights, on RGB input with ``segmenter``
+                ``none``; an explicit segmenter with other RGB weights; or no weights (see
+                :meth:`weights_path`).
             WeightsError: the weights file cannot be read.
         """
         path = cls.weights_path(config, rig_name)
         if config.input_kind == "labels":
             return path, "labels", None  # preflight refuses RGB weights
-        if WeightsFile.open(path).input_kind == "rgb":
+        weights = WeightsFile.open(path)
+        if weights.input_kind == "rgb":
+            if weights.config.prior_skip:  # segipm's map is the model's second input
+                return path, "rgb", segmenter_path(config, rig_name)
             if config.segmenter not in ("auto", "none"):
                 raise ConfigError(f"{path} maps RGB end to end; it takes no segmenter (got {config.segmenter!r})")
             return path, "rgb", None
@@ -193,6 +199,7 @@ class BiMapperMapper(Mapper):
         self.preflight(config, rig.name, grid, rig.names)  # the clear errors first (file, rig, grid, cameras)
         path, self.model_input, seg = self.plan(config, rig.name)
         self._weights = WeightsFile.open(path)  # the header preflight just read (cached)
+        prior_skip = self._weights.config.prior_skip
         weight_classes = self._weights.classes
         if config.classes is None:
             config = replace(config, classes=weight_classes)
@@ -206,8 +213,13 @@ class BiMapperMapper(Mapper):
         self.backend = self._runner.backend
         self.weights_path = path
         #: the chained first stage (RGB -> labels), None when the model reads the input itself
-        self.stage = None if seg is None else SegmenterStage(seg, self.device, config.backend, config.threads,
-                                                                    config.segmenter_precision)
+        self.stage = None
+        if seg is not None and not prior_skip:
+            self.stage = SegmenterStage(seg, self.device, config.backend, config.threads, config.segmenter_precision)
+        #: segipm's map of the images, the second input of ``prior_skip`` weights (None otherwise)
+        self.prior: SegIpmPrior | None = None
+        if prior_skip:
+            self.prior = SegIpmPrior(rig, grid, weight_classes, replace(config, segmenter=str(seg)))
         self.model: BiMapper | None = None
         super().__init__(rig, grid, config)
 
@@ -229,6 +241,8 @@ class BiMapperMapper(Mapper):
             if self.object_labels and self._weights.config.visibility_head:  # IPM's priors, the same tables and rays
                 self.faces = LineOfSight(rig, self.grid, OcclusionModel(), tables=self.sight.tables,
                                          rasters=self.sight.rays)
+        if getattr(self, "prior", None) is not None:
+            self.prior.set_rig(rig)
         if self.model is None:
             self.model = self._weights.build_model(rig, self.grid, input_kind=self.model_input,
                                                    classes=self._weight_classes, device=self.device)
@@ -236,13 +250,15 @@ class BiMapperMapper(Mapper):
             self.model.set_rig(rig)
         self._runner.reset(_Exportable(self.model))  # tables changed: export again on the next frame
 
-    def _run_exported(self, raw: torch.Tensor, cam_mask: torch.Tensor) -> dict[str, torch.Tensor] | None:
+    def _run_exported(self, raw: torch.Tensor, cam_mask: torch.Tensor,
+                      prior: torch.Tensor | None) -> dict[str, torch.Tensor] | None:
         """The model's calibrated logits (and visibility logits) from the ONNX backend, or None
         when the backend is torch or the model runs on a GPU.
         """
         if self._runner.eager:
             return None
-        outs = self._runner(self.model.preprocess(raw), raw, cam_mask)
+        args = (raw, cam_mask) if prior is None else (raw, cam_mask, prior)
+        outs = self._runner(self.model.preprocess(raw), *args)
         res = {"logits": outs[0]}
         if len(outs) > 1:
             res["visibility_logits"] = outs[1]
@@ -254,6 +270,9 @@ class BiMapperMapper(Mapper):
         if self.stage is not None:  # chained: RGB -> labels first
             images = self.mask_ego(self.stage.segment(images))
         present = [name in images for name in self.rig.names]
+        prior = None
+        if self.prior is not None:  # segipm's map of the present cameras' images
+            prior = torch.from_numpy(self.prior.frame(images))[None].to(self.device)  # (1, K + 1, H, W)
         raws = []
         for name in self.rig.names:
             img = images.get(name)
@@ -265,13 +284,12 @@ class BiMapperMapper(Mapper):
             cam_mask = torch.tensor([present], dtype=torch.bool, device=self.device)  # (1, N)
             if len({r.shape for r in raws}) == 1:
                 raw = torch.from_numpy(np.stack(raws))[None].to(self.device)  # (1, N, H, W[, 3])
-                out = self._run_exported(raw, cam_mask)
+                out = self._run_exported(raw, cam_mask, prior)
                 if out is None:
-                    out = self.model(raw, cam_mask)
+                    out = self.model(raw, cam_mask, prior)
                     out = {**out, "logits": self.model.calibrated(out["logits"])}
             else:  # cameras of different sizes (the model refuses lv_full_res then; torch only)
                 xs = [self.model.preprocess(torch.from_numpy(r)[None, None].to(self.device)) for r in raws]  # (1, 1, C_in, h, w) each
-                prior = None
                 if self.model.config.ipm_skip:  # each camera's own image
                     prior = self.model.ipm_prior([torch.from_numpy(r)[None].to(self.device) for r in raws], cam_mask)
                 out = self.model.forward_preprocessed(torch.cat(xs, dim=1), cam_mask, None, prior)  # input (1, N, C_in, h, w)
@@ -304,10 +322,11 @@ class _Exportable(torch.nn.Module):
         super().__init__()
         self.model = model
 
-    def forward(self, x: torch.Tensor, raw: torch.Tensor, cam_mask: torch.Tensor):
+    def forward(self, x: torch.Tensor, raw: torch.Tensor, cam_mask: torch.Tensor, prior: torch.Tensor | None = None):
         m = self.model
         x_lv = m.preprocess(raw, resize=False) if m.config.lv_full_res and m.use_lv else None  # (1, N, C_in, H, W)
-        prior = m.ipm_prior(raw, cam_mask) if m.config.ipm_skip else None
+        if m.config.ipm_skip:
+            prior = m.ipm_prior(raw, cam_mask)
         out = m.forward_preprocessed(x, cam_mask, x_lv, prior)
         logits = m.calibrated(out["logits"])
         vis = out.get("visibility_logits")

@@ -33,14 +33,12 @@ from bev_mapper_core.nn.config import rgb_stats
 from bev_mapper_core.nn.decoder import BevDecoder
 from bev_mapper_core.nn.efficientnet import downsampled_size
 from bev_mapper_core.nn.inputs import preprocess_images
+from bev_mapper_core.nn.prior_skip import PRIOR_LOGIT_SCALE, PriorProjection, check_prior
 
 from .config import FUSIONS, STREAMS, BiMapperConfig
 from .geometry import BiMapperGeometry
 from .gv import CamEncoder, GVTransform
 from .lv import LVStream
-
-#: ``ipm_skip`` initialisation: logit ``8 p - 4`` for an averaged IPM class indicator ``p``.
-PRIOR_LOGIT_SCALE = 8.0
 
 
 class BiMapper(nn.Module):
@@ -76,7 +74,9 @@ class BiMapper(nn.Module):
             self.lv = LVStream(config.encoder_config(cin), config.unet_channels, Cb, self.num_classes, interp)
         dec_in = 2 * Cb if (config.fusion == "concat" and config.streams == "both") else Cb
         self.raw_hw = self._raw_hw(geo, rig)
-        self.prior_channels = cin + 1 if config.ipm_skip else 0  # averaged input + coverage
+        # the decoder head's skip input: ipm_skip: averaged input + coverage; prior_skip: segipm's K
+        # class probabilities + coverage
+        self.prior_channels = cin + 1 if config.ipm_skip else self.num_classes + 1 if config.prior_skip else 0
         self.decoder = BevDecoder(dec_in, config.decoder_channels, self.num_classes, self.feat_hw, grid.shape,
                                   skip_channels=self.prior_channels, visibility_head=config.visibility_head,
                                   min_channels=config.decoder_min_channels)
@@ -90,6 +90,8 @@ class BiMapper(nn.Module):
                     lut = torch.from_numpy(label_lut(resolve_classes(config.classes)).astype(np.float32))  # (L, K)
                     self.ipm_proj.weight[:, :NUM_LABELS, 0, 0] = PRIOR_LOGIT_SCALE * lut.t()
                     self.ipm_proj.bias.fill_(-PRIOR_LOGIT_SCALE / 2)
+        if config.prior_skip:
+            self.prior_proj = PriorProjection(self.num_classes)  # logits start as segipm's: 8 p - 4 per class
         mean, std = rgb_stats(config.encoder_config(3).lite)  # a Lite encoder reads ImageNet-Lite's scaling
         self.register_buffer("rgb_mean", torch.tensor(mean).view(1, 1, 3, 1, 1), persistent=False)
         self.register_buffer("rgb_std", torch.tensor(std).view(1, 1, 3, 1, 1), persistent=False)
@@ -243,9 +245,13 @@ class BiMapper(nn.Module):
         return preprocess_images(images, self.config.input_kind, size, self.rgb_mean, self.rgb_std)
 
     # ---------------------------------------------------------------- forward
-    def forward(self, images: torch.Tensor, cam_mask: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-        """Raw images (B, N, H, W[, 3]) at the cameras' size -> outputs (see :meth:`forward_preprocessed`)."""
-        x_lv = prior = None
+    def forward(self, images: torch.Tensor, cam_mask: torch.Tensor | None = None,
+                prior: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """Raw images (B, N, H, W[, 3]) at the cameras' size -> outputs (see :meth:`forward_preprocessed`);
+        ``prior``: a ``prior_skip`` model's segipm prior ``(B, K + 1, H, W)`` (an ``ipm_skip`` model
+        computes its own).
+        """
+        x_lv = None
         if self.config.lv_full_res and self.use_lv:
             x_lv = self.preprocess(images, resize=False)  # (B, N, C_in, H, W) at camera size
         if self.config.ipm_skip:
@@ -261,7 +267,9 @@ class BiMapper(nn.Module):
             cam_mask: (B, N) bool, cameras present (absent ones are ignored); None = all.
             x_lv: optional (B, N, C_in, H, W) input of the LV stream at any resolution (the IPM
                 tables are normalised coordinates, so they apply at every size); None = ``x``.
-            prior: (B, C_in + 1, H, W) from :meth:`ipm_prior`; required by ``ipm_skip`` models.
+            prior: (B, C_in + 1, H, W) from :meth:`ipm_prior`, required by ``ipm_skip`` models;
+                (B, K + 1, H, W) segipm's map (:class:`~bev_mapper_core.methods.segipm.prior.SegIpmPrior`),
+                required by ``prior_skip`` models.
 
         Returns dict:
             ``logits`` (B, K, H, W) fused per-class logits on the full grid;
@@ -312,6 +320,11 @@ class BiMapper(nn.Module):
                 raise ValueError("an ipm_skip model needs the IPM prior: call forward() with the camera-size images")
             logits, vis = self.decoder(fused, prior)
             out["logits"] = logits + self.ipm_proj(prior)
+        elif cfg.prior_skip:
+            check_prior(prior, self.prior_channels, self.grid.shape)
+            prior = prior.to(fused.dtype)
+            logits, vis = self.decoder(fused, prior)
+            out["logits"] = logits + self.prior_proj(prior)
         else:
             out["logits"], vis = self.decoder(fused)
         out["visibility_logits"] = vis

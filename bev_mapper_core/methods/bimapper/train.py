@@ -31,11 +31,13 @@ from bev_mapper_core.errors import ConfigError
 from bev_mapper_core.geometry.random_rig import RANDOM_RIGS
 from bev_mapper_core.nn.augment import Augment, step_augment
 from bev_mapper_core.nn.efficientnet import EfficientNetConfig
-from bev_mapper_core.training.class_weights import POS_WEIGHTS, class_pos_weight
+from bev_mapper_core.training.class_weights import POS_WEIGHT_FLAGS, POS_WEIGHTS, PosWeightTraining, class_pos_weight
 from bev_mapper_core.training.config import PAPER_EPOCHS
+from bev_mapper_core.training.frozen_trunk import PRIOR_SKIP_FLAG
 from bev_mapper_core.training.method import CliFlag, TrainMethod
 from bev_mapper_core.training.sources import DataNeeds, TrainData
 
+from ..segipm.prior import training_priors
 from ..segmenter.trunk import check_encoder_init, init_encoder, trunk_config
 from .config import FUSIONS, STREAMS, BiMapperConfig
 from .losses import MUTUAL_MODES, BiMapperLossConfig, bimapper_loss
@@ -51,8 +53,10 @@ TRAIN_GV_HIDDEN = 128
 
 
 @dataclass(frozen=True)
-class BiMapperTraining:
-    """Bi-Mapper's training settings (turned into a :class:`BiMapperLossConfig` per run).
+class BiMapperTraining(PosWeightTraining):
+    """Bi-Mapper's training settings (turned into a :class:`BiMapperLossConfig` per run), with
+    :class:`~bev_mapper_core.training.class_weights.PosWeightTraining`'s cap and per-class
+    overrides of the ``auto`` positive weights.
 
     Args:
         asl: Across-Space Loss on (weight 1, paper) or off.
@@ -62,7 +66,8 @@ class BiMapperTraining:
         pos_weight: ``auto``: per-class positive weight of the ego BCE,
             ``clip(sqrt(negatives / positives), 1, 10)`` over the visible cells of the training
             set (thin and rare layers: lane dividers, crossings, pedestrians); ``none``: plain BCE
-            as in the paper. See :func:`class_pos_weight`.
+            as in the paper. See :func:`class_pos_weight` (``pos_weight_max`` and
+            ``pos_weight_classes`` adjust the ``auto`` weights).
         visibility_weight: weight of the visibility head's BCE (issue #11; needs the model's
             ``visibility_head``).
         uncertainty_weight: weight of PON's uncertainty loss on hidden cells (FocusBEV: 0.001).
@@ -99,6 +104,7 @@ class BiMapperTraining:
 
     def __post_init__(self) -> None:
         check_encoder_init(self.encoder_init)
+        self.check_pos_weights()
         if not isinstance(self.augment, bool):
             raise ConfigError(f"augment must be true or false, got {self.augment!r}")
         if not isinstance(self.asl, bool):
@@ -169,6 +175,13 @@ def segment_frames(path: str, rgb: np.ndarray, device, batch: int = 8) -> np.nda
     return out.reshape(M, N, H, W)
 
 
+def frame_marks(rgb: np.ndarray) -> torch.Tensor:
+    """A mark of each frame's camera images ``(M, N, H, W, 3)`` uint8 -> ``(M,)`` int64 (the sum of
+    their bytes): tells a cached frame's prior from another frame's.
+    """
+    return torch.from_numpy(np.asarray(rgb).reshape(len(rgb), -1).sum(1, dtype=np.int64))  # (M, N, H, W, 3) -> (M,)
+
+
 def same_trunk(a: EfficientNetConfig, b: EfficientNetConfig) -> bool:
     """Two EfficientNet configurations have the same weights' shapes (regularization aside)."""
     return (a.width_mult, a.depth_mult, a.num_stages, a.in_channels) == (b.width_mult, b.depth_mult, b.num_stages,
@@ -195,6 +208,8 @@ class BiMapperMethod(TrainMethod):
         CliFlag("--mutual-start-epoch", "mutual_start_epoch", min_value=0,
                 help=f"0-based; default paper {PAPER_MUTUAL_START}/{PAPER_EPOCHS} scaled"),
         CliFlag("--pos-weight", "pos_weight", choices=POS_WEIGHTS, help="BCE class weights (none = paper)"),
+        *POS_WEIGHT_FLAGS,
+        PRIOR_SKIP_FLAG,
         CliFlag("--input-width", "input_width", min_value=1),
         CliFlag("--gv-hidden", "gv_hidden", min_value=1),
         CliFlag("--decoder-min-channels", "decoder_min_channels", min_value=1,
@@ -234,6 +249,8 @@ class BiMapperMethod(TrainMethod):
         if self.random_rigs and not model.rig_free:
             raise ConfigError("--rig random trains a model for any rig: it needs one without the GV stream "
                               "(--streams lv; the GV MLPs are sized for one rig's cameras)")
+        if self.random_rigs and self.cfg.model.prior_skip:
+            raise ConfigError("--prior-skip computes segipm's prior once per frame of one rig: not with --rig random")
         self.encoder_source = None
         spec, kind = self.cfg.loss.encoder_init, self.cfg.model.input_kind
         if spec == "auto" and not same_trunk(self.cfg.model.encoder_config(3), trunk_config()):
@@ -261,7 +278,8 @@ class BiMapperMethod(TrainMethod):
     def data_needs(self) -> DataNeeds:
         # Full-resolution LV input and the IPM prior need the camera-size images in memory (else:
         # stored resized, exactly as preprocess would).
-        full = self.cfg.model.lv_full_res or self.cfg.model.ipm_skip or self.random_rigs  # random rigs: sizes differ
+        m = self.cfg.model
+        full = m.lv_full_res or m.ipm_skip or m.prior_skip or self.random_rigs  # random rigs: sizes differ
         rgb = self.cfg.model.input_kind == "rgb" or self.cfg.loss.segmenter is not None
         labels = self.cfg.model.input_kind == "labels" and self.cfg.loss.segmenter is None
         return DataNeeds(image_size=None if full else self.model.input_size, rgb=rgb, labels=labels)
@@ -281,7 +299,7 @@ class BiMapperMethod(TrainMethod):
 
     @override
     def prepare(self, data: TrainData, log: Callable[[str], None]) -> None:
-        pw = class_pos_weight(data.train) if self.cfg.loss.pos_weight == "auto" else None
+        pw = self.cfg.loss.run_pos_weights(data.train, self.cfg.class_names)
         self.loss_cfg = self.cfg.loss.loss_config(self.cfg.epochs, pw)
         if self.loss_cfg.visibility_weight > 0 and not self.cfg.model.visibility_head:
             raise ConfigError("--visibility-weight needs --visibility-head")
@@ -296,6 +314,22 @@ class BiMapperMethod(TrainMethod):
             for frames in (data.train, data.val):
                 frames.labels = segment_frames(self.cfg.loss.segmenter, frames.rgb, self.device)
             log(f"labels: predicted by the segmenter {self.cfg.loss.segmenter} from the RGB images")
+        if self.cfg.model.prior_skip:
+            self._prior_fn, self._priors = training_priors(self.rig, self.grid, self.cfg.class_names, self.device,
+                                                           {"train": data.train, "val": data.val}, log)
+            self._val_marks = frame_marks(data.val.rgb)
+
+    def _prior(self, batch: dict, name: str) -> torch.Tensor | None:
+        """The ``prior_skip`` input ``(B, K + 1, H, W)`` of a batch of set ``name`` (None without it):
+        the cached prior of its frames; for ``val``, computed anew unless the batch's images are
+        the cached frames' (:func:`frame_marks`), so another frame set is never given a wrong prior.
+        """
+        if not self.cfg.model.prior_skip:
+            return None
+        index = batch["index"].cpu()
+        if name == "val" and not torch.equal(frame_marks(batch["rgb"].numpy()), self._val_marks[index]):
+            return self._prior_fn.batch(batch["rgb"]).to(self.device)
+        return self._priors[name][index].to(self.device)
 
     @override
     def trainable_parameters(self):
@@ -325,14 +359,14 @@ class BiMapperMethod(TrainMethod):
         self._use_rig(batch)
         dev = self.device
         aug = step_augment(self.cfg.seed, step, dev) if self._augments() else None
-        outputs = self.model(self._inputs(batch, aug))
+        outputs = self.model(self._inputs(batch, aug), prior=self._prior(batch, "train"))
         return bimapper_loss(outputs, {"target": batch["target"].to(dev), "mask": batch["mask"].to(dev)}, epoch,
                              self.loss_cfg)
 
     @override
     def predict(self, batch: dict) -> tuple[np.ndarray, np.ndarray]:
         self._use_rig(batch)
-        out = self.model(self._inputs(batch))
+        out = self.model(self._inputs(batch), prior=self._prior(batch, "val"))
         probs = torch.sigmoid(self.model.calibrated(out["logits"])).float().cpu().numpy()
         known = self.model.known().cpu().numpy()[0]  # (1, H, W) -> (H, W), the same for every frame
         return probs, np.broadcast_to(known, (len(probs), *known.shape))
