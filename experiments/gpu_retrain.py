@@ -19,7 +19,7 @@ one from the shipped segmenter's trunk, with the photometric augmentation on):
 * ``focusbev``: FocusBEV on the trunk (``--backbone efficientnet``), front1, ``ahead`` grid;
 * ``bimapper_rgb``: end-to-end RGB Bi-Mapper, surround6, its encoders of the trunk's sizes;
 * the second session's ablation rows on fixed recipes (``*_clip``, ``focusbev_mlp``,
-  ``focusbev_w1``, ``s2g2_prior``: see :data:`RUNS`).
+  ``focusbev_w1``, ``s2g2_prior``, ``focusbev_prior``: see :data:`RUNS`).
 
 The drives are rendered with the cache specs the runs themselves compute (the method's input
 size, classes, grid, frames, stride, style), so ``bev-train --cache`` finds every drive and
@@ -96,6 +96,13 @@ RUNS.update({
 # once per frame, low positive weights but pedestrians at 10; on CPU it ran 1000 steps of batch 4.
 RUNS["s2g2_prior"] = _override(RUNS["s2g2"], ["--batch", "4", "--epochs", "30", "--lr-step-epoch", "24",
                                               "--grad-clip", "5", "--pos-weight-max", "3"]) + [
+    "--prior-skip", "--frozen-encoder", "--feature-copies", "2", "--pos-weight-classes", "pedestrian=10"]
+# Issue #39's FocusBEV recipe (the shipped front1 file, f3 in docs/RESULTS.md "FocusBEV with segipm's
+# prior"): the same prior, frozen trunk and weights, window 1 (cached features are per frame); on
+# CPU it ran 1600 steps of batch 4 (8 epochs, the lr x0.1 for the last two).
+RUNS["focusbev_prior"] = _override(RUNS["focusbev"], ["--batch", "4", "--lr", "1e-3", "--epochs", "30",
+                                                      "--lr-step-epoch", "22", "--window", "1", "--grad-clip", "5",
+                                                      "--pos-weight-max", "3"]) + [
     "--prior-skip", "--frozen-encoder", "--feature-copies", "2", "--pos-weight-classes", "pedestrian=10"]
 #: model settings without flags of their own, per run (given with --config): the end-to-end
 #: RGB Bi-Mapper's encoders take the shipped segmenter's trunk, so they have its sizes
