@@ -19,7 +19,7 @@ one from the shipped segmenter's trunk, with the photometric augmentation on):
 * ``focusbev``: FocusBEV on the trunk (``--backbone efficientnet``), front1, ``ahead`` grid;
 * ``bimapper_rgb``: end-to-end RGB Bi-Mapper, surround6, its encoders of the trunk's sizes;
 * the second session's ablation rows on fixed recipes (``*_clip``, ``focusbev_mlp``,
-  ``focusbev_w1``, ``s2g2_prior``, ``focusbev_prior``: see :data:`RUNS`).
+  ``focusbev_w1``, ``s2g2_prior``, ``focusbev_prior``, ``bimapper_prior``: see :data:`RUNS`).
 
 The drives are rendered with the cache specs the runs themselves compute (the method's input
 size, classes, grid, frames, stride, style), so ``bev-train --cache`` finds every drive and
@@ -104,9 +104,20 @@ RUNS["focusbev_prior"] = _override(RUNS["focusbev"], ["--batch", "4", "--lr", "1
                                                       "--lr-step-epoch", "22", "--window", "1", "--grad-clip", "5",
                                                       "--pos-weight-max", "3"]) + [
     "--prior-skip", "--frozen-encoder", "--feature-copies", "2", "--pos-weight-classes", "pedestrian=10"]
+# Issue #39's RGB Bi-Mapper recipe (docs/RESULTS.md "RGB Bi-Mapper with segipm's prior"): the prior
+# of the six cameras in place of the IPM skip, both streams' Lite0 encoders from ImageNet, no ASL or
+# mutual learning, the same weights; on CPU it ran 1200 steps of batch 4.
+RUNS["bimapper_prior"] = _override(RUNS["bimapper_rgb"], ["--epochs", "30", "--lr-step-epoch", "24",
+                                                          "--val-frames", "60", "--grad-clip", "5",
+                                                          "--mutual", "none", "--pos-weight", "auto",
+                                                          "--pos-weight-max", "3", "--encoder-init", "imagenet"])
+RUNS["bimapper_prior"] = [f for f in RUNS["bimapper_prior"] if f != "--ipm-skip"] + [
+    "--prior-skip", "--no-asl", "--pos-weight-classes", "pedestrian=10"]
 #: model settings without flags of their own, per run (given with --config): the end-to-end
-#: RGB Bi-Mapper's encoders take the shipped segmenter's trunk, so they have its sizes
-RUN_CONFIG: dict[str, dict] = {"bimapper_rgb": {"width_mult": 1.0, "depth_mult": 0.5, "encoder_stages": 5}}
+#: RGB Bi-Mapper's encoders take the shipped segmenter's trunk, so they have its sizes; the prior
+#: recipe's are EfficientNet-Lite0's (the ImageNet checkpoint)
+RUN_CONFIG: dict[str, dict] = {"bimapper_rgb": {"width_mult": 1.0, "depth_mult": 0.5, "encoder_stages": 5},
+                               "bimapper_prior": {"encoder_variant": "lite0", "width_mult": 1.0, "depth_mult": 1.0}}
 #: what --tiny changes in every run's flags: one short drive, a few steps
 TINY = ["--train-drives", "1", "--val-drives", "1", "--frames-per-drive", "3", "--stride", "2", "--epochs", "1",
         "--frames-per-epoch", "2", "--batch", "1", "--val-frames", "2"]

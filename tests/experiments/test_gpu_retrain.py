@@ -22,7 +22,7 @@ REPO = Path(__file__).resolve().parents[2]
 def test_gpu_script_runs_end_to_end_on_cpu_with_a_tiny_budget(tmp_path):
     camvid = write_camvid(tmp_path / "camvid", n=2)
     out = tmp_path / "out"
-    runs = ["s2g2_semi", "focusbev", "bimapper_rgb", "focusbev_prior"]  # "s2g2": s2g2_semi without unlabeled frames
+    runs = ["s2g2_semi", "focusbev", "bimapper_rgb", "focusbev_prior", "bimapper_prior"]  # "s2g2": s2g2_semi without unlabeled frames
     cmd = [sys.executable, str(REPO / "experiments" / "gpu_retrain.py"), "--out", str(out), "--tiny",
            "--workers", "2", "--no-plan", "--deadline-min", "3", "--reserve-s", "10", "--camvid", str(camvid),
            "--runs", ",".join(runs), "--pack", str(tmp_path / "pack")]  # --no-plan: the probes' plan has its own test
@@ -43,6 +43,8 @@ def test_gpu_script_runs_end_to_end_on_cpu_with_a_tiny_budget(tmp_path):
     assert "encoders from" in (out / "logs" / "runs_bimapper_rgb.log").read_text()
     prior = (out / "logs" / "runs_focusbev_prior.log").read_text()  # issue #39's recipe: prior and cached trunk
     assert "segipm prior of" in prior and "feature cache: 2 copies" in prior
+    prior = (out / "logs" / "runs_bimapper_prior.log").read_text()  # the six cameras' prior, ImageNet encoders
+    assert "segipm prior of" in prior and "efficientnet-lite0" in prior
     assert "2 real unlabeled frames" in semi and "--unlabeled-real" in summary["flags"]["s2g2_semi"]
     bad = subprocess.run([sys.executable, str(REPO / "experiments" / "gpu_retrain.py"), "--out", str(out),
                           "--runs", "nope"], capture_output=True, text=True)
