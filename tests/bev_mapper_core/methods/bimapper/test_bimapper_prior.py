@@ -84,7 +84,7 @@ def test_prior_of_two_cameras_is_segipms_map(drive):
         prior.batch(torch.from_numpy(drive["rgb"][:, :1]))
 
 
-@pytest.mark.parametrize("backend", ["torch", "onnxruntime"])
+@pytest.mark.parametrize("backend", ["torch", "openvino"])  # openvino: auto's pick, the model exported with the prior
 def test_mapper_with_untrained_prior_weights_decides_as_segipm(tmp_path, drive, backend):
     pytest.importorskip(backend)
     path = save_weights(BiMapper(CFG, RIG, GRID), tmp_path / "bimapper_prior.safetensors")
