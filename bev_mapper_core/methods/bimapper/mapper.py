@@ -57,7 +57,10 @@ class BiMapperMapper(Mapper):
     ``known = frustum & line of sight & (p_visible >= unknown_below | seen object)``
     (issue #39: the head called the far parts of seen cars unseen).
     Class probabilities are ``sigmoid(logit / T_k)`` with the weights' per-class temperature.
-    Cameras missing from a frame are zeroed and masked out of both streams.
+    Cameras missing from a frame are zeroed and masked out of both streams. ``prior_skip``
+    weights (issue #39) also run segipm on the present cameras' RGB images
+    (:class:`~bev_mapper_core.methods.segipm.prior.SegIpmPrior`, the segmenter of
+    ``MapperConfig.segmenter``) and hand its map to the model.
 
     Raises (constructor):
         ConfigError: no weights file given and none shipped, or a bad device.
@@ -314,8 +317,8 @@ class _Exportable(torch.nn.Module):
     """The part of :meth:`BiMapperMapper.map` an ONNX backend runs: the resized model input ``x``
     ``(1, N, C_in, h, w)`` (:meth:`BiMapper.preprocess`, run in torch: OpenVINO's antialiased
     resize differs from torch's), the raw images ``(1, N, H, W[, 3])`` (for the full-resolution
-    streams) and the camera mask ``(1, N)`` -> calibrated logits (and visibility logits when the
-    weights have the head).
+    streams), the camera mask ``(1, N)`` and, for ``prior_skip`` weights, segipm's prior
+    ``(1, K + 1, H, W)`` -> calibrated logits (and visibility logits when the weights have the head).
     """
 
     def __init__(self, model: BiMapper) -> None:
