@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import sys
 from pathlib import Path
 
@@ -25,10 +24,7 @@ for p in (REPO, REPO / "experiments"):
     if str(p) not in sys.path:
         sys.path.insert(0, str(p))
 
-from cards_s2g2_39 import LICENSE_NC, PRIOR, SETS  # noqa: E402
-
-from bev_mapper_core.methods import WEIGHTS_DIR  # noqa: E402
-from bev_mapper_core.methods.cards import set_card  # noqa: E402
+from cards_s2g2_39 import LICENSE_NC, PRIOR, SETS, ship, test_set  # noqa: E402
 
 SYNTH_S6 = {
     "name": "synthetic surround6 drives", "kind": "synthetic",
@@ -51,12 +47,9 @@ def _scores(eval_dir: Path) -> tuple[list[dict], bool]:
     exits unless it beats segipm on both."""
     out, above_chained = [], True
     for name, seeds in SETS.items():
-        d, ref, chained = (json.loads((eval_dir / f"{k}_{name}.json").read_text()) for k in ("new", "segipm", "chained"))
-        if d["miou"] <= ref["miou"]:
-            raise SystemExit(f"error: set {name}: {100 * d['miou']:.1f} does not beat segipm's {100 * ref['miou']:.1f}")
+        d, ref, vals = test_set(eval_dir, name)
+        chained = json.loads((eval_dir / f"chained_{name}.json").read_text())
         above_chained &= d["miou"] > chained["miou"]
-        vals = {k: round(100 * v["iou"], 1) for k, v in d["classes"].items()}
-        vals.update(mIoU=round(100 * d["miou"], 1), mAP=round(100 * d["map"], 1))
         out.append({"data": f"test set {name}: surround6 drives {seeds} ({d['frames']} frames), the training styles "
                             "(mixed)",
                     "metric": "BEV IoU % of the visible cells (and mAP %)", "values": vals,
@@ -95,11 +88,7 @@ def main(argv=None) -> int:
             "training": {"command": a.command + f"\ncp {a.run}/best.safetensors bev_mapper_core/weights/{name}",
                          "details": a.details},
             "scores": scores}
-    dest = WEIGHTS_DIR / name
-    shutil.copy(Path(a.run) / "best.safetensors", dest)
-    dest.chmod(0o644)
-    set_card(dest, card)
-    print(f"{name}: {scores[0]['values']['mIoU']} / {scores[1]['values']['mIoU']} (A / B)")
+    ship(a.run, name, card)
     return 0
 
 

@@ -56,17 +56,35 @@ LICENSE_NC = {
            "CamVid (Brostow, Fauqueur & Cipolla 2009). The package's code stays Apache-2.0."}
 
 
+def test_set(eval_dir: Path, name: str) -> tuple[dict, dict, dict]:
+    """Test set ``name``'s JSON files of the new file and segipm (``new_<name>.json``,
+    ``segipm_<name>.json`` in ``eval_dir``) and the card's values of the new file (IoU per class,
+    mIoU, mAP, %); exits unless the new file beats segipm."""
+    d = json.loads((eval_dir / f"new_{name}.json").read_text())
+    ref = json.loads((eval_dir / f"segipm_{name}.json").read_text())
+    if d["miou"] <= ref["miou"]:
+        raise SystemExit(f"error: set {name}: {100 * d['miou']:.1f} does not beat segipm's {100 * ref['miou']:.1f}")
+    vals = {k: round(100 * v["iou"], 1) for k, v in d["classes"].items()}
+    vals.update(mIoU=round(100 * d["miou"], 1), mAP=round(100 * d["map"], 1))
+    return d, ref, vals
+
+
+def ship(run: str, file: str, card: dict) -> None:
+    """Copy the run's ``best.safetensors`` to the weights folder as ``file`` with ``card``, and print
+    its two test sets' mIoU."""
+    dest = WEIGHTS_DIR / file
+    shutil.copy(Path(run) / "best.safetensors", dest)
+    dest.chmod(0o644)
+    set_card(dest, card)
+    print(f"{file}: {card['scores'][0]['values']['mIoU']} / {card['scores'][1]['values']['mIoU']} (A / B)")
+
+
 def _scores(eval_dir: Path, method: str = "s2g2") -> list[dict]:
     """The card's score entries, one per test set (``experiments/score_s2g2_39.sh``'s JSON files of
     ``method``); exits unless the file beats segipm on both."""
     out = []
     for name, seeds in SETS.items():
-        d = json.loads((eval_dir / f"new_{name}.json").read_text())
-        ref = json.loads((eval_dir / f"segipm_{name}.json").read_text())
-        if d["miou"] <= ref["miou"]:
-            raise SystemExit(f"error: set {name}: {100 * d['miou']:.1f} does not beat segipm's {100 * ref['miou']:.1f}")
-        vals = {k: round(100 * v["iou"], 1) for k, v in d["classes"].items()}
-        vals.update(mIoU=round(100 * d["miou"], 1), mAP=round(100 * d["map"], 1))
+        d, ref, vals = test_set(eval_dir, name)
         out.append({"data": f"test set {name}: drives {seeds} ({d['frames']} frames), the training styles (mixed)",
                     "metric": "BEV IoU % of the visible cells (and mAP %)", "values": vals,
                     "command": f"bev-train eval --rig front1 --grid ahead --input rgb --method {method} --weights FILE "
@@ -122,11 +140,7 @@ def main(argv=None) -> int:
             "training": {"command": a.command + f"\ncp {a.run}/best.safetensors bev_mapper_core/weights/{spec['file']}",
                          "details": a.details},
             "scores": scores}
-    dest = WEIGHTS_DIR / spec["file"]
-    shutil.copy(Path(a.run) / "best.safetensors", dest)
-    dest.chmod(0o644)
-    set_card(dest, card)
-    print(f"{spec['file']}: {scores[0]['values']['mIoU']} / {scores[1]['values']['mIoU']} (A / B)")
+    ship(a.run, spec["file"], card)
     return 0
 
 
