@@ -95,9 +95,13 @@ def _ranges(n: int) -> list[np.ndarray]:
 @torch.no_grad()
 def prior_cache(prior_fn: Callable[[torch.Tensor], torch.Tensor], fs) -> torch.Tensor:
     """``prior_fn`` (e.g. :meth:`SegIpmPrior.batch`) on every frame of ``fs`` (its camera images
-    ``rgb`` ``(b, N, H, W, 3)`` as they are) -> ``(M, K + 1, H, W)``.
+    ``rgb`` ``(b, N, H, W, 3)`` as they are) -> ``(M, K + 1, H, W)``. A set of windows (``rgb``
+    ``(b, T, N, H, W, 3)``) gives the prior of each window's last frame, the one the model maps.
     """
-    return torch.cat([prior_fn(fs.batch(idx)["rgb"]) for idx in _ranges(len(fs))])
+    def last(rgb: torch.Tensor) -> torch.Tensor:
+        return rgb[:, -1] if rgb.ndim == 6 else rgb  # windows (b, T, N, H, W, 3) -> (b, N, H, W, 3)
+
+    return torch.cat([prior_fn(last(fs.batch(idx)["rgb"])) for idx in _ranges(len(fs))])
 
 
 @torch.no_grad()

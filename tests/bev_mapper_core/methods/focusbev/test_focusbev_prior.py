@@ -116,3 +116,24 @@ def test_resume_with_the_prior_equals_an_uninterrupted_run(tmp_path, drive):
     assert len(losses) == 2 and losses_b == losses
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
     assert "prior_proj.weight" in a
+
+
+def test_windows_train_on_the_prior_of_their_last_frame(drive):
+    """Window 2 (the memory bank, uncached trunk): each window's cached prior is its last frame's."""
+    from bev_mapper_core.methods.segipm.prior import SegIpmPrior
+    from bev_mapper_core.training.data import FrameSet
+
+    rgb = drive["rgb"][[0, 1, 1, 0]]  # (4, 1, H, W, 3): drive 0 = frames 0, 1; drive 1 = frames 2, 3
+    rng = np.random.default_rng(1)
+    fs = FrameSet(np.zeros((4, 1, 4, 4), np.uint8), rng.random((4, len(CLASSES), *GRID.shape)) > 0.6,
+                  np.ones((4, *GRID.shape), bool), camera_names=RIG.names, rgb=rgb,
+                  poses=np.repeat(np.eye(4)[None], 4, 0), stamps=np.arange(4, dtype=np.int64) * 300_000_000,
+                  drives=np.array([0, 0, 1, 1]))
+    fs.window = 2
+    cfg = TrainConfig.from_dict({**RUN, "window": 2, "feature_copies": 0})
+    losses, m = prior_losses("focusbev", cfg, RIG, TrainData(fs, fs, None), 2, epochs=1)
+    assert len(losses) == 2 and np.isfinite(losses).all()
+    prior = SegIpmPrior(RIG, GRID, CLASSES)
+    want = torch.from_numpy(np.stack([prior.one(rgb[i, 0]) for i in range(4)]))
+    assert not torch.equal(want[0], want[1])  # frame 1's window also holds frame 0's image
+    torch.testing.assert_close(m._priors, want)
