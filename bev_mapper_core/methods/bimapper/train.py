@@ -272,7 +272,11 @@ class BiMapperMethod(TrainMethod):
     @override
     def schedule(self) -> str:
         aug = ", images augmented" if self._augments() else ""
-        return f"mutual both ways from epoch {self.cfg.loss.mutual_start(self.cfg.epochs) + 1}{aug}"
+        mode = self.cfg.loss.mutual
+        mutual = {"async": f"mutual: LV teaches GV, both ways from epoch {self.cfg.loss.mutual_start(self.cfg.epochs) + 1}",
+                  "sync": "mutual both ways from epoch 1", "lv": "mutual: LV teaches GV",
+                  "gv": "mutual: GV teaches LV", "none": "no mutual learning"}[mode]
+        return mutual + aug
 
     @override
     def data_needs(self) -> DataNeeds:

@@ -52,3 +52,10 @@ def test_no_augment_is_the_run_before_augmentation(tmp_path):
 @pytest.mark.slow
 def test_resume_with_augmentation_equals_an_uninterrupted_run(tmp_path):
     resume_check("bimapper", tmp_path)
+
+
+@pytest.mark.parametrize(("mode", "says"), [("none", "no mutual learning"), ("async", "both ways from epoch 3"),
+                                            ("lv", "LV teaches GV")])
+def test_the_logged_schedule_names_the_mutual_mode(tmp_path, mode, says):
+    m, _ = method_and_batch("bimapper", tmp_path, mutual=mode, mutual_start_epoch=2)
+    assert says in m.schedule() and ("both ways" in m.schedule()) == (mode == "async")
