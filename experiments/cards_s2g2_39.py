@@ -110,8 +110,9 @@ METHODS = {
                    "of base_link at 0.25 m (128 x 128 cells); node preset `config/front1_focusbev.yaml`. With "
                    "segipm's map of the same image as a prior (`prior_skip`, issue #39): the default segmenter's "
                    "labels projected by IPM enter the top-down network's head and the logits, and the network "
-                   "learns its correction from the image's BEV features. Single frame (window 1: no memory "
-                   "bank). Trained supervised on a frozen trunk (cached features).",
+                   "learns its correction from the image's BEV features. Two frames (window 2): the memory bank "
+                   "fuses the BEV features of the frame 0.3 s before, moved by the ego motion (the frame is mapped "
+                   "alone without an ego pose). Trained supervised on a frozen trunk.",
         "encoder": "backbone"},
 }
 

@@ -97,13 +97,14 @@ RUNS.update({
 RUNS["s2g2_prior"] = _override(RUNS["s2g2"], ["--batch", "4", "--epochs", "30", "--lr-step-epoch", "24",
                                               "--grad-clip", "5", "--pos-weight-max", "3"]) + [
     "--prior-skip", "--frozen-encoder", "--feature-copies", "2", "--pos-weight-classes", "pedestrian=10"]
-# Issue #39's FocusBEV recipe (the shipped front1 file, f3 in docs/RESULTS.md "FocusBEV with segipm's
-# prior"): the same prior, frozen trunk and weights, window 1 (cached features are per frame); on
-# CPU it ran 1600 steps of batch 4 (8 epochs, the lr x0.1 for the last two).
+# Issue #39's FocusBEV recipe (the shipped front1 file, w2 in docs/RESULTS.md "FocusBEV with segipm's
+# prior"): the same prior, frozen trunk and weights, window 2 (the memory bank: the trunk runs on
+# both frames of a window, so no feature cache); on CPU it ran 2400 steps of batch 4 (12 epochs,
+# the lr x0.1 for the last two).
 RUNS["focusbev_prior"] = _override(RUNS["focusbev"], ["--batch", "4", "--lr", "1e-3", "--epochs", "30",
-                                                      "--lr-step-epoch", "22", "--window", "1", "--grad-clip", "5",
+                                                      "--lr-step-epoch", "25", "--window", "2", "--grad-clip", "5",
                                                       "--pos-weight-max", "3"]) + [
-    "--prior-skip", "--frozen-encoder", "--feature-copies", "2", "--pos-weight-classes", "pedestrian=10"]
+    "--prior-skip", "--frozen-encoder", "--pos-weight-classes", "pedestrian=10"]
 # Issue #39's RGB Bi-Mapper recipe (docs/RESULTS.md "RGB Bi-Mapper with segipm's prior"): the prior
 # of the six cameras in place of the IPM skip, no ASL or mutual learning, the same weights; on CPU it
 # ran 1200 steps of batch 4. Its ImageNet variant (run i1): at 1200 steps the shipped run from

@@ -41,8 +41,8 @@ def test_gpu_script_runs_end_to_end_on_cpu_with_a_tiny_budget(tmp_path):
     semi = (out / "logs" / "runs_s2g2_semi.log").read_text()
     assert "EfficientNet trunk from" in (out / "logs" / "runs_focusbev.log").read_text()  # the shipped backbone
     assert "encoders from" in (out / "logs" / "runs_bimapper_rgb.log").read_text()
-    prior = (out / "logs" / "runs_focusbev_prior.log").read_text()  # issue #39's recipe: prior and cached trunk
-    assert "segipm prior of" in prior and "feature cache: 2 copies" in prior
+    prior = (out / "logs" / "runs_focusbev_prior.log").read_text()  # issue #39's recipe: prior, memory bank
+    assert "segipm prior of" in prior and "window 2" in prior and "feature cache" not in prior
     prior = (out / "logs" / "runs_bimapper_prior.log").read_text()  # the six cameras' prior, ImageNet encoders
     assert "segipm prior of" in prior and "efficientnet-lite0" in prior
     assert "2 real unlabeled frames" in semi and "--unlabeled-real" in summary["flags"]["s2g2_semi"]
