@@ -1,7 +1,9 @@
 """Benchmark (issue #41): surround6 RGB (6 cameras of 400x225) at camera rate on the CPU: frames
 per second of ``Mapper.map`` for the default chained Bi-Mapper (the segmenter per camera, then the
-shipped label Bi-Mapper) and for ``segipm``, in each segmenter precision
-(``MapperConfig.segmenter_precision``), in the same run.
+shipped label Bi-Mapper), for ``segipm`` and (``e2e``, issue #39) for the shipped end-to-end RGB
+Bi-Mapper (``bimapper_surround6_rgb_e2e.safetensors``: segipm's map as its prior, then both view
+streams on the RGB images), in each segmenter precision (``MapperConfig.segmenter_precision``), in
+the same run.
 
 Rows, per method: ``f32`` (the segmenter on onnxruntime in f32: the default before #41), ``auto``
 (the default: OpenVINO in bf16 where the CPU has it, else f32), ``bf16`` and ``int8``
@@ -16,7 +18,7 @@ precision, in turns; frames published per second on ``/bev/drivable``. The expor
 usual one (``$BEV_MAPPER_CACHE``); the first run of a precision exports (int8: exports and
 quantizes, about 20 s), not timed.
 
-    .venv/bin/python bench/bench_rgb_rate.py [--frames 6] [--repeat 5] [--methods bimapper segipm]
+    .venv/bin/python bench/bench_rgb_rate.py [--frames 6] [--repeat 5] [--methods bimapper segipm e2e]
         [--node [--hz 10] [--seconds 15]]
 """
 
@@ -36,6 +38,8 @@ import torch
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 PRECISIONS = ("f32", "auto", "bf16", "int8")
+#: the shipped end-to-end RGB Bi-Mapper (``--methods e2e``)
+E2E = "bimapper_surround6_rgb_e2e.safetensors"
 
 
 def _mapper_rows(args) -> None:
@@ -43,6 +47,7 @@ def _mapper_rows(args) -> None:
     from bev_mapper_core.geometry.rig import preset_rig
     from bev_mapper_core.labels.classes import BEV_CLASS_NAMES
     from bev_mapper_core.mapper import MapperConfig, create_mapper
+    from bev_mapper_core.methods import WEIGHTS_DIR
     from bev_mapper_core.training.data import render_drive
 
     rig, grid = preset_rig("surround6"), BevGrid()
@@ -54,7 +59,8 @@ def _mapper_rows(args) -> None:
     for method in args.methods:
         mappers = {}
         for p in args.precisions:
-            m = create_mapper(rig, grid, MapperConfig(method=method, input_kind="rgb", segmenter_precision=p))
+            e2e = {"method": "bimapper", "weights": str(WEIGHTS_DIR / E2E)} if method == "e2e" else {"method": method}
+            m = create_mapper(rig, grid, MapperConfig(input_kind="rgb", segmenter_precision=p, **e2e))
             m.map(frames[0])  # export / cache read, not timed
             mappers[p] = m
         t_map = {p: [] for p in mappers}
@@ -66,9 +72,9 @@ def _mapper_rows(args) -> None:
                     m.map(f)
                     t_map[p].append(time.perf_counter() - t)
                     t = time.perf_counter()
-                    m.stage.segment(f)
+                    (m.stage or m.prior.mapper.stage).segment(f)  # e2e: the prior's segmenter
                     t_seg[p].append(time.perf_counter() - t)
-        name = "chained Bi-Mapper" if method == "bimapper" else method
+        name = {"bimapper": "chained Bi-Mapper", "e2e": f"end-to-end RGB Bi-Mapper ({E2E})"}.get(method, method)
         print(f"\n{name}: precision, what runs, map ms, frames/s, segmenter stage ms (6 cameras), rest ms")
         for p, m in mappers.items():
             ms, seg = 1000 * statistics.median(t_map[p]), 1000 * statistics.median(t_seg[p])
@@ -100,7 +106,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=6)
     ap.add_argument("--repeat", type=int, default=5)
-    ap.add_argument("--methods", nargs="+", default=["bimapper", "segipm"])
+    ap.add_argument("--methods", nargs="+", default=["bimapper", "segipm", "e2e"],
+                    choices=["bimapper", "segipm", "e2e"])
     ap.add_argument("--precisions", nargs="+", default=list(PRECISIONS), choices=PRECISIONS)
     ap.add_argument("--node", action="store_true", help="also the node's published grids per second")
     ap.add_argument("--node-only", action="store_true", help="only the node's rows")
