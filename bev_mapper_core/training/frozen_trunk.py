@@ -94,14 +94,12 @@ def _ranges(n: int) -> list[np.ndarray]:
 
 @torch.no_grad()
 def prior_cache(prior_fn: Callable[[torch.Tensor], torch.Tensor], fs) -> torch.Tensor:
-    """``prior_fn`` (e.g. :meth:`SegIpmPrior.batch`) on every frame of ``fs`` (its camera images
-    ``rgb`` ``(b, N, H, W, 3)`` as they are) -> ``(M, K + 1, H, W)``. A set of windows (``rgb``
-    ``(b, T, N, H, W, 3)``) gives the prior of each window's last frame, the one the model maps.
+    """``prior_fn`` (e.g. :meth:`SegIpmPrior.batch`) on every frame of ``fs`` (its own camera images
+    ``fs.rgb`` ``(b, N, H, W, 3)`` as they are) -> ``(M, K + 1, H, W)``. Whatever the set's
+    ``window``, frame ``i``'s prior is its own: the last frame of the window ending at ``i``, the
+    one the model maps.
     """
-    def last(rgb: torch.Tensor) -> torch.Tensor:
-        return rgb[:, -1] if rgb.ndim == 6 else rgb  # windows (b, T, N, H, W, 3) -> (b, N, H, W, 3)
-
-    return torch.cat([prior_fn(last(fs.batch(idx)["rgb"])) for idx in _ranges(len(fs))])
+    return torch.cat([prior_fn(torch.from_numpy(fs.rgb[idx])) for idx in _ranges(len(fs))])
 
 
 @torch.no_grad()
